@@ -1,0 +1,83 @@
+"""The one helper for argument checks at public boundaries.
+
+Every public entry point validates its inputs through these functions so that a bad input
+fails with a message that names it (SPEC section 7).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+__all__ = ["InputError", "check_shape", "check_finite", "check_rotation", "check_same_size"]
+
+
+class InputError(ValueError):
+    """A public entry point was given an input it cannot use; the message names the input."""
+
+
+def check_shape(x: torch.Tensor, shape: Sequence[int | str | None], name: str) -> None:
+    """Check that ``x`` is a tensor of the given shape.
+
+    Args:
+        x: the tensor.
+        shape: expected sizes; ``None`` or a string (a symbolic name such as ``"H"``) accepts any
+            size, a string used twice must match itself. A leading ``"*"`` accepts any batch dims.
+        name: the input's name for the message.
+    """
+    if not isinstance(x, torch.Tensor):
+        raise InputError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    shape = list(shape)
+    dims = list(x.shape)
+    if shape and shape[0] == "*":
+        shape = shape[1:]
+        if len(dims) < len(shape):
+            raise InputError(f"{name}: expected shape (*, {_fmt(shape)}), got {tuple(dims)}")
+        dims = dims[len(dims) - len(shape):]
+    elif len(dims) != len(shape):
+        raise InputError(f"{name}: expected shape ({_fmt(shape)}), got {tuple(x.shape)}")
+    bound: dict[str, int] = {}
+    for want, got in zip(shape, dims):
+        if want is None:
+            continue
+        if isinstance(want, str):
+            if want in bound and bound[want] != got:
+                raise InputError(f"{name}: expected shape ({_fmt(shape)}), got {tuple(x.shape)}")
+            bound[want] = got
+        elif want != got:
+            raise InputError(f"{name}: expected shape ({_fmt(shape)}), got {tuple(x.shape)}")
+
+
+def _fmt(shape: Sequence[int | str | None]) -> str:
+    return ", ".join("?" if s is None else str(s) for s in shape)
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    """Fail if ``x`` holds NaN or inf, saying how many and where the first one is."""
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        first = tuple(int(i) for i in torch.nonzero(bad)[0])
+        raise InputError(f"{name}: {int(bad.sum())} non-finite values (NaN/inf), first at index {first}")
+
+
+def check_rotation(R: torch.Tensor, name: str = "R", atol: float = 1e-4) -> None:
+    """Fail unless ``R`` (..., 3, 3) is a proper rotation: R^T R = I and det R = +1."""
+    check_shape(R, ["*", 3, 3], name)
+    check_finite(R, name)
+    Rd = R.double()
+    eye = torch.eye(3, dtype=Rd.dtype)
+    err = (Rd.transpose(-1, -2) @ Rd - eye).abs().amax()
+    det = torch.linalg.det(Rd)
+    if float(err) > atol or bool(((det - 1).abs() > atol).any()):
+        raise InputError(
+            f"{name}: not a rotation matrix (max |R^T R - I| = {float(err):.2e}, det = "
+            f"{det.flatten()[0].item():.6f}); camera motion must be X_prev = R X_cur + t"
+        )
+
+
+def check_same_size(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) -> None:
+    """Fail unless the last two dims (H, W) of ``a`` and ``b`` agree."""
+    if tuple(a.shape[-2:]) != tuple(b.shape[-2:]):
+        raise InputError(
+            f"{name_a} and {name_b} differ in size: {tuple(a.shape[-2:])} vs {tuple(b.shape[-2:])} (H, W)"
+        )

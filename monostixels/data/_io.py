@@ -1,0 +1,392 @@
+"""File reading helpers shared by the data sources, each failing with an ``InputError`` that names
+the file (SPEC section 7): images, 16-bit PNG ground truth, KITTI calibration files, intrinsics
+files and pose files.
+
+Images are read with OpenCV and converted from BGR to RGB here, at the boundary.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from monostixels._checks import InputError, check_same_size
+from monostixels.data.base import FramePair
+from monostixels.geometry import Camera, Motion, intrinsics
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "read_rgb",
+    "read_png16",
+    "read_image_pair",
+    "list_images",
+    "read_kitti_calib",
+    "projection_matrix",
+    "read_intrinsics_file",
+    "read_poses_file",
+    "relative_motion",
+    "make_camera",
+    "require_dir",
+    "require_file",
+    "LazySource",
+    "limit_frames",
+]
+
+
+#: File name endings accepted as images (lower case).
+IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
+
+#: Largest value of an 8-bit / 16-bit image channel, used to scale images to [0, 1].
+_MAX_U8 = 255.0
+_MAX_U16 = 65535.0
+
+
+def require_dir(path: str | Path, what: str) -> Path:
+    """Return ``path`` as a Path, or raise ``InputError`` naming ``what`` if it is not a folder."""
+    if path is None or str(path) == "":
+        raise InputError(f"{what}: no folder given (set it in the config, e.g. data.root=/path/to/data)")
+    p = Path(path).expanduser()
+    if not p.is_dir():
+        raise InputError(f"{what}: folder {p} does not exist")
+    return p
+
+
+def require_file(path: str | Path, what: str) -> Path:
+    """Return ``path`` as a Path, or raise ``InputError`` naming ``what`` if it is not a file."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise InputError(f"{what}: file {p} does not exist")
+    return p
+
+
+def read_rgb(path: str | Path) -> torch.Tensor:
+    """Read an image file as float RGB.
+
+    Grey images are replicated to three channels, an alpha channel is dropped, 16-bit images are
+    scaled by 65535.
+
+    Args:
+        path: image file (any format OpenCV reads).
+
+    Returns:
+        (3, H, W) float32 RGB in [0, 1].
+
+    Raises:
+        InputError: the file is missing or OpenCV cannot decode it.
+    """
+    p = require_file(path, "image")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise InputError(f"image: cannot read {p} (not an image file OpenCV can decode, or corrupt)")
+    if img.dtype == np.uint8:
+        scale = _MAX_U8
+    elif img.dtype == np.uint16:
+        scale = _MAX_U16
+    else:
+        raise InputError(f"image: {p} has unsupported pixel type {img.dtype} (expected 8 or 16 bit)")
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    elif img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    else:
+        raise InputError(f"image: {p} has {img.shape[2]} channels (expected 1, 3 or 4)")
+    return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float() / scale
+
+
+def read_image_pair(path_cur: str | Path, path_prev: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """Read the current and the previous image and check that they have the same size.
+
+    Returns:
+        (image, image_prev), each (3, H, W) float32 RGB in [0, 1].
+
+    Raises:
+        InputError: a file is unreadable, or the two images differ in size (both paths named).
+    """
+    img = read_rgb(path_cur)
+    img_prev = read_rgb(path_prev)
+    check_same_size(img, img_prev, f"image {path_cur} (current)", f"image {path_prev} (previous)")
+    return img, img_prev
+
+
+def read_png16(path: str | Path, channels: int) -> np.ndarray:
+    """Read a 16-bit PNG ground-truth file (KITTI disparity / flow) without conversion.
+
+    Args:
+        path: the PNG.
+        channels: expected channels (1 for disparity, 3 for flow).
+
+    Returns:
+        (H, W) or (H, W, 3) uint16 array; channel order as stored by OpenCV (BGR).
+    """
+    p = require_file(path, "ground-truth PNG")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"ground-truth PNG: cannot read {p}")
+    got = 1 if img.ndim == 2 else img.shape[2]
+    if img.dtype != np.uint16 or got != channels:
+        raise InputError(
+            f"ground-truth PNG: {p} is {got}-channel {img.dtype}, expected {channels}-channel uint16 (KITTI format)"
+        )
+    return img
+
+
+def list_images(folder: str | Path, what: str = "image folder") -> list[Path]:
+    """Image files of ``folder`` sorted by name; ``InputError`` when the folder is missing or empty."""
+    d = require_dir(folder, what)
+    files = sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise InputError(f"{what}: {d} holds no image files ({', '.join(IMAGE_EXTENSIONS)})")
+    return files
+
+
+def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
+    """Parse a KITTI calibration file of ``key: v1 v2 ...`` lines.
+
+    Lines whose values are not all numbers (e.g. ``calib_time: 09-Jan-2012 13:59:33``) are skipped.
+
+    Returns:
+        key -> float64 vector of that line's numbers.
+
+    Raises:
+        InputError: the file is missing or has no numeric entry.
+    """
+    p = require_file(path, "calibration")
+    out: dict[str, np.ndarray] = {}
+    for line in p.read_text(errors="replace").splitlines():
+        if ":" not in line:
+            continue
+        key, _, rest = line.partition(":")
+        try:
+            vals = np.array([float(x) for x in rest.split()], dtype=np.float64)
+        except ValueError:
+            continue
+        if vals.size:
+            out[key.strip()] = vals
+    if not out:
+        raise InputError(f"calibration: {p} has no 'key: numbers' lines (not a KITTI calibration file)")
+    return out
+
+
+def projection_matrix(calib: Mapping[str, np.ndarray], key: str, path: str | Path) -> np.ndarray:
+    """The 3x4 matrix ``key`` (e.g. ``P_rect_02``) of a parsed calibration file, checked.
+
+    Raises:
+        InputError: the key is missing, has the wrong number of values, or is not a pinhole
+            projection (fx, fy > 0, finite).
+    """
+    if key not in calib:
+        raise InputError(f"calibration: {path} has no {key} entry (have {', '.join(sorted(calib))})")
+    v = calib[key]
+    if v.size != 12 or not np.all(np.isfinite(v)):
+        raise InputError(f"calibration: {path} entry {key} must hold 12 finite numbers, got {v.size}")
+    P = v.reshape(3, 4)
+    if not (P[0, 0] > 0 and P[1, 1] > 0 and P[2, 2] == 1.0):
+        raise InputError(f"calibration: {path} entry {key} is not a rectified projection matrix: {P.tolist()}")
+    return P
+
+
+_INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
+
+
+def read_intrinsics_file(path: str | Path) -> tuple[float, float, float, float]:
+    """Read pinhole intrinsics ``(fx, fy, cx, cy)`` (pixels) from a small file.
+
+    Accepted formats (chosen by the file's content, not only its ending):
+
+    - YAML or JSON mapping with keys ``fx, fy, cx, cy`` (``fy`` may be omitted: ``fy = fx``), or
+      with a key ``K`` holding the 3x3 matrix (nested list or 9 numbers, row-major);
+    - text with ``key: value`` / ``key = value`` lines for ``fx, fy, cx, cy``;
+    - text with just numbers: 4 numbers ``fx fy cx cy`` or 9 numbers (K row-major).
+
+    Raises:
+        InputError: missing file, unparsable content, missing keys, or non-positive focal lengths.
+    """
+    p = require_file(path, "intrinsics")
+    text = p.read_text(errors="replace")
+    vals = _parse_intrinsics(text, p)
+    fx, fy, cx, cy = vals
+    if not all(math.isfinite(v) for v in vals) or fx <= 0 or fy <= 0:
+        raise InputError(f"intrinsics: {p} gives fx={fx}, fy={fy}, cx={cx}, cy={cy}; need finite values, fx, fy > 0")
+    return fx, fy, cx, cy
+
+
+def _parse_intrinsics(text: str, p: Path) -> tuple[float, float, float, float]:
+    data: Any = None
+    stripped = text.strip()
+    if not stripped:
+        raise InputError(f"intrinsics: {p} is empty")
+    if stripped[0] in "{[":
+        try:
+            data = json.loads(stripped)
+        except json.JSONDecodeError as e:
+            raise InputError(f"intrinsics: {p} is not valid JSON ({e})") from e
+    else:
+        nums = stripped.replace(",", " ").split()
+        try:
+            numbers = [float(x) for x in nums]
+        except ValueError:
+            numbers = None
+        if numbers is not None:
+            return _from_numbers(numbers, p)
+        import yaml  # PyYAML ships with Hydra (omegaconf)
+
+        try:
+            data = yaml.safe_load(text.replace("=", ":"))
+        except yaml.YAMLError as e:
+            raise InputError(f"intrinsics: {p} is neither YAML/JSON nor 'fx fy cx cy' numbers ({e})") from e
+    if isinstance(data, list):
+        try:
+            return _from_numbers([float(x) for x in np.asarray(data, dtype=np.float64).ravel()], p)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"intrinsics: {p} holds a list that is not numbers") from e
+    if not isinstance(data, dict):
+        raise InputError(f"intrinsics: {p} must be a mapping with fx, fy, cx, cy (or K)")
+    if "K" in data:
+        try:
+            return _from_numbers([float(x) for x in np.asarray(data["K"], dtype=np.float64).ravel()], p)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"intrinsics: {p} entry K is not a 3x3 matrix of numbers") from e
+    if "fy" not in data and "fx" in data:
+        data = {**data, "fy": data["fx"]}
+    missing = [k for k in _INTRINSIC_KEYS if k not in data]
+    if missing:
+        raise InputError(f"intrinsics: {p} lacks {', '.join(missing)} (need fx, fy, cx, cy in pixels, or K)")
+    try:
+        return tuple(float(data[k]) for k in _INTRINSIC_KEYS)  # type: ignore[return-value]
+    except (TypeError, ValueError) as e:
+        raise InputError(f"intrinsics: {p} has a non-numeric value among fx, fy, cx, cy") from e
+
+
+def _from_numbers(numbers: Sequence[float], p: Path) -> tuple[float, float, float, float]:
+    if len(numbers) == 4:
+        return numbers[0], numbers[1], numbers[2], numbers[3]
+    if len(numbers) == 9:
+        K = np.asarray(numbers).reshape(3, 3)
+        if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+            raise InputError(f"intrinsics: {p} 3x3 matrix is not a pinhole K (no skew, last row 0 0 1): {K.tolist()}")
+        return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    raise InputError(f"intrinsics: {p} holds {len(numbers)} numbers; expected 4 (fx fy cx cy) or 9 (K)")
+
+
+def read_poses_file(path: str | Path) -> tuple[list[str] | None, np.ndarray]:
+    """Read camera-to-world poses ``T_w_cam`` (metres), one per line.
+
+    Line formats (all lines of a file alike; ``#`` starts a comment):
+
+    - 13 values: a frame id (e.g. the 10-digit KITTI raw frame number) then the 3x4 row-major
+      ``T_w_cam`` (the ``poses_cam0.txt`` of the shared KITTI raw sample);
+    - 12 values: the 3x4 row-major ``T_w_cam`` of the i-th frame (KITTI odometry format);
+    - 16 values: the 4x4 row-major ``T_w_cam`` of the i-th frame.
+
+    Returns:
+        (ids, poses): ids = the frame ids as strings (13-value format) or None (order-based
+        formats); poses = (N, 4, 4) float64 camera-to-world matrices.
+
+    Raises:
+        InputError: missing file, non-numeric values, mixed/unknown line lengths, or a rotation
+            block that is not a rotation.
+    """
+    p = require_file(path, "poses")
+    ids: list[str] = []
+    mats: list[np.ndarray] = []
+    width = None
+    for ln, line in enumerate(p.read_text(errors="replace").splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        if width is None:
+            width = len(parts)
+            if width not in (12, 13, 16):
+                raise InputError(f"poses: {p} line {ln} has {width} values; expected 12, 13 (id + 12) or 16")
+        elif len(parts) != width:
+            raise InputError(f"poses: {p} line {ln} has {len(parts)} values, earlier lines {width}")
+        if width == 13:
+            ids.append(parts[0])
+            parts = parts[1:]
+        try:
+            v = np.array([float(x) for x in parts], dtype=np.float64)
+        except ValueError as e:
+            raise InputError(f"poses: {p} line {ln} holds a non-numeric value") from e
+        T = np.eye(4)
+        T[: v.size // 4] = v.reshape(-1, 4)
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"poses: {p} line {ln} holds NaN/inf")
+        if width == 16 and not np.allclose(T[3], [0, 0, 0, 1]):
+            raise InputError(f"poses: {p} line {ln}: last row of a 4x4 pose must be 0 0 0 1")
+        R = T[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1) > 1e-3:
+            raise InputError(f"poses: {p} line {ln}: rotation block is not a rotation matrix")
+        mats.append(T)
+    if not mats:
+        raise InputError(f"poses: {p} holds no poses")
+    return (ids if width == 13 else None), np.stack(mats)
+
+
+def relative_motion(T_w_cur: np.ndarray, T_w_prev: np.ndarray) -> Motion:
+    """Camera motion of a pair from two camera-to-world poses.
+
+    Convention: ``X_prev = R X_cur + t`` (SPEC section 2); ``T_prev_cur = T_w_prev^-1 T_w_cur``,
+    ``R = T_prev_cur[:3, :3]``, ``t = T_prev_cur[:3, 3]`` (metres). The rotation is
+    re-orthonormalised (SVD) to remove the rounding of text files.
+    """
+    T = np.linalg.solve(T_w_prev, T_w_cur)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    return Motion(R=torch.from_numpy(R), t=torch.from_numpy(T[:3, 3].copy()))
+
+
+def make_camera(fx: float, fy: float, cx: float, cy: float, height: float, pitch: float = 0.0,
+                ground_normal: np.ndarray | None = None) -> Camera:
+    """Camera from intrinsics (pixels), mounting height (metres) and pitch (radians) or normal."""
+    K = intrinsics(float(fx), float(fy), float(cx), float(cy))
+    if ground_normal is not None:
+        return Camera(K=K, height=float(height), ground_normal=torch.from_numpy(np.asarray(ground_normal, dtype=np.float64)))
+    return Camera.from_pitch(K, height=float(height), pitch=float(pitch))
+
+
+class LazySource(Sequence[FramePair]):
+    """A sequence of frame pairs that indexes its files up front and reads images on access.
+
+    Subclasses fill ``self._items`` (one record per pair) in ``__init__`` (so that a missing folder
+    or calibration file fails at construction) and implement ``_load(item) -> FramePair`` (so that
+    an unreadable image fails when that pair is used, naming the file).
+    """
+
+    _items: list[Any]
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __getitem__(self, index: int) -> FramePair:  # type: ignore[override]
+        if isinstance(index, slice):
+            raise TypeError(f"{type(self).__name__} does not support slicing; use range(len(source))")
+        n = len(self._items)
+        if not -n <= index < n:
+            raise IndexError(f"{type(self).__name__}: pair index {index} out of range ({n} pairs)")
+        return self._load(self._items[index])
+
+    def __iter__(self) -> Iterator[FramePair]:
+        for item in self._items:
+            yield self._load(item)
+
+    def _load(self, item: Any) -> FramePair:
+        raise NotImplementedError
+
+
+def limit_frames(items: list[Any], frames: int | None, what: str) -> list[Any]:
+    """The first ``frames`` items (all when ``frames`` is None); ``InputError`` when none remain."""
+    if frames is not None:
+        if int(frames) < 1:
+            raise InputError(f"data.frames: must be a positive number of frame pairs or null, got {frames}")
+        items = items[: int(frames)]
+    if not items:
+        raise InputError(f"{what}: no frame pairs found")
+    return items

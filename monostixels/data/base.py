@@ -1,0 +1,72 @@
+"""The frame-pair type every data source yields and every command consumes."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels.geometry import Camera, Motion
+
+__all__ = ["GroundTruth", "FramePair"]
+
+
+@dataclass
+class GroundTruth:
+    """Ground truth of a frame pair; every field is optional (absent = the source lacks it).
+
+    Attributes:
+        depth: (H, W) float32 metres (z in the current camera); 0 where there is no ground truth
+            (sky, LiDAR gaps).
+        flow: (2, H, W) float32 current -> previous, pixels.
+        flow_valid: (H, W) bool, pixels where ``flow`` is defined (visible in both frames).
+        labels: (H, W) int64 class ids 0..9, ``IGNORE_LABEL`` (255) where unknown.
+        instances: (H, W) int64 instance ids (0 = background / stuff).
+        moving: (H, W) bool, pixels of objects that move in the world.
+        bottoms: (N, 2) float32 ``(u, v)`` stixel-bottom labels (first obstacle meets ground).
+    """
+
+    depth: torch.Tensor | None = None
+    flow: torch.Tensor | None = None
+    flow_valid: torch.Tensor | None = None
+    labels: torch.Tensor | None = None
+    instances: torch.Tensor | None = None
+    moving: torch.Tensor | None = None
+    bottoms: torch.Tensor | None = None
+
+
+@dataclass
+class FramePair:
+    """A current image, the previous image, the camera and (when known) the camera motion.
+
+    Attributes:
+        image: current image (3, H, W) float32 RGB in [0, 1].
+        image_prev: previous image (3, H, W) float32 RGB in [0, 1].
+        camera: intrinsics, height and ground normal.
+        motion: camera motion ``X_prev = R X_cur + t`` (ground truth or from a poses file), or None.
+        gt: ground truth, fields absent where the source lacks them.
+        name: a stable identifier (file stem, ``synthetic_000003``...).
+        meta: anything else a source wants to pass on (seed, timestamps).
+    """
+
+    image: torch.Tensor
+    image_prev: torch.Tensor
+    camera: Camera
+    motion: Motion | None = None
+    gt: GroundTruth = field(default_factory=GroundTruth)
+    name: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        check_shape(self.image, [3, "H", "W"], f"{self.name or 'frame'}: image")
+        check_shape(self.image_prev, [3, "H", "W"], f"{self.name or 'frame'}: image_prev")
+        check_same_size(self.image, self.image_prev, "image (current)", "image_prev (previous)")
+        check_finite(self.image, "image")
+        if self.gt.depth is not None:
+            check_same_size(self.gt.depth, self.image, "gt.depth", "image")
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(H, W) in pixels."""
+        return int(self.image.shape[-2]), int(self.image.shape[-1])

@@ -1,0 +1,146 @@
+"""A folder of images from a user's own camera, plus an intrinsics file.
+
+Layout::
+
+    root/000.png, root/001.png, ...   images, sorted by file name = temporal order
+    root/intrinsics.yaml              default intrinsics file (or data.intrinsics = any path)
+
+Pairs: current = image ``i``, previous = image ``i - step`` in name order.
+
+Intrinsics file formats (see :func:`monostixels.data._io.read_intrinsics_file`), pixels:
+
+- YAML / JSON: ``fx: 718.9`` ``fy: 718.9`` ``cx: 607.2`` ``cy: 185.2`` (``fy`` optional = ``fx``),
+  or ``K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``;
+- text: ``fx fy cx cy`` (4 numbers) or the 9 numbers of K (row-major), or ``key: value`` lines.
+
+With ``data.intrinsics`` unset, ``root/intrinsics.{yaml,yml,json,txt}`` is used (the first that
+exists). Camera height from ``data.camera_height`` (metres), else the camera config.
+
+Optional poses (``data.poses``): camera-to-world ``T_w_cam`` per image in the formats of
+:func:`monostixels.data._io.read_poses_file`: 13 values per line (image id = the file stem as a
+number, then 3x4), or 12 / 16 values per line (3x4 / 4x4) for the images in name order (one
+line per image). Then ``motion`` is the ground-truth camera motion ``X_prev = R X_cur + t``;
+without poses ``motion`` is None. No ground truth otherwise.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from monostixels._checks import InputError
+from monostixels.data._io import (
+    LazySource,
+    limit_frames,
+    list_images,
+    make_camera,
+    read_image_pair,
+    read_intrinsics_file,
+    read_poses_file,
+    relative_motion,
+    require_dir,
+)
+from monostixels.data.base import FramePair, GroundTruth
+from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
+
+__all__ = ["FramesSource", "INTRINSICS_NAMES"]
+
+logger = logging.getLogger(__name__)
+
+#: Default intrinsics file names looked up in the image folder, in this order.
+INTRINSICS_NAMES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intrinsics.json", "intrinsics.txt")
+
+
+@dataclass
+class _Pair:
+    index: int
+    path: Path
+    path_prev: Path
+    T_w_cur: np.ndarray | None
+    T_w_prev: np.ndarray | None
+
+
+class FramesSource(LazySource):
+    """Consecutive image pairs of a folder, with intrinsics from a file.
+
+    Args:
+        root: the image folder.
+        intrinsics: intrinsics file; None = ``root/intrinsics.{yaml,yml,json,txt}``.
+        step: index distance of a pair in name order.
+        frames: at most this many pairs (None = all).
+        camera_height: camera height above the road (metres).
+        pitch: camera pitch (radians, positive = looking down).
+        poses: optional poses file (see the module docstring).
+
+    Raises:
+        InputError: missing root, empty folder, missing / malformed intrinsics or poses file,
+            fewer than ``step + 1`` images; at access: unreadable image, images of different sizes.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        intrinsics: str | Path | None = None,
+        step: int = 1,
+        frames: int | None = None,
+        camera_height: float = KITTI_CAMERA_HEIGHT_M,
+        pitch: float = 0.0,
+        poses: str | Path | None = None,
+    ) -> None:
+        self.root = require_dir(root, "frames data.root")
+        if int(step) < 1:
+            raise InputError(f"data.step: must be a positive number of frames, got {step}")
+        images = list_images(self.root, "frames data.root")
+        if intrinsics is None:
+            found = [self.root / n for n in INTRINSICS_NAMES if (self.root / n).is_file()]
+            if not found:
+                raise InputError(
+                    f"frames: no intrinsics file: set data.intrinsics or put one of {', '.join(INTRINSICS_NAMES)} in {self.root}"
+                )
+            intrinsics = found[0]
+        self.intrinsics_path = Path(intrinsics).expanduser()
+        fx, fy, cx, cy = read_intrinsics_file(self.intrinsics_path)
+        self.camera: Camera = make_camera(fx, fy, cx, cy, camera_height, pitch)
+        pose_of: list[np.ndarray | None] = [None] * len(images)
+        if poses is not None:
+            pose_of = self._match_poses(Path(poses).expanduser(), images)
+        items = [
+            _Pair(i, images[i], images[i - int(step)], pose_of[i], pose_of[i - int(step)])
+            for i in range(int(step), len(images))
+        ]
+        self._items = limit_frames(items, frames, f"frames {self.root} ({len(images)} image(s), step {step})")
+        logger.info("frames: %d frame pairs under %s", len(self._items), self.root)
+
+    @staticmethod
+    def _match_poses(path: Path, images: list[Path]) -> list[np.ndarray | None]:
+        ids, T = read_poses_file(path)
+        if ids is None:
+            if len(T) != len(images):
+                raise InputError(f"poses: {path} has {len(T)} poses for {len(images)} images (one line per image, name order)")
+            return list(T)
+        by_id: dict[int, np.ndarray] = {}
+        for i, M in zip(ids, T):
+            try:
+                by_id[int(i)] = M
+            except ValueError as e:
+                raise InputError(f"poses: {path} frame id {i!r} is not a number") from e
+        out: list[np.ndarray | None] = []
+        for img in images:
+            n = int(img.stem) if img.stem.isdigit() else None
+            out.append(by_id.get(n) if n is not None else None)
+        if all(o is None for o in out):
+            raise InputError(f"poses: no frame id of {path} matches an image name (numeric file stems) in {images[0].parent}")
+        return out
+
+    def _load(self, item: _Pair) -> FramePair:
+        image, image_prev = read_image_pair(item.path, item.path_prev)
+        motion = None
+        if item.T_w_cur is not None and item.T_w_prev is not None:
+            motion = relative_motion(item.T_w_cur, item.T_w_prev)
+        meta = {"source": "frames", "index": item.index, "path": str(item.path), "path_prev": str(item.path_prev),
+                "intrinsics": str(self.intrinsics_path)}
+        return FramePair(image=image, image_prev=image_prev, camera=self.camera, motion=motion, gt=GroundTruth(),
+                         name=item.path.stem, meta=meta)

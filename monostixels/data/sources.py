@@ -1,0 +1,153 @@
+"""The one factory that turns the ``data`` config group into a sequence of frame pairs.
+
+``make_source(cfg)`` dispatches on ``cfg.name`` (SPEC section 4): ``synthetic``, ``kitti2015``,
+``kitti_raw``, ``ddad``, ``frames``. ``cfg`` is either the ``data`` group or the whole config (with
+``data`` and ``camera`` entries); the camera group supplies the default mounting height and pitch.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+from monostixels._checks import InputError
+from monostixels.data.base import FramePair
+from monostixels.geometry import KITTI_CAMERA_HEIGHT_M
+
+__all__ = ["SOURCE_NAMES", "make_source"]
+
+logger = logging.getLogger(__name__)
+
+
+def _get(cfg: Any, key: str, default: Any = None) -> Any:
+    """``cfg[key]`` for a dict or an OmegaConf node, ``default`` when absent or null."""
+    if cfg is None:
+        return default
+    try:
+        value = cfg.get(key, default)
+    except AttributeError:
+        value = getattr(cfg, key, default)
+    return default if value is None else value
+
+
+def _camera_mount(data: Any, camera: Any) -> tuple[float, float]:
+    """(height metres, pitch radians): data.camera_height, else camera.height, else KITTI 1.65 m."""
+    height = _get(data, "camera_height", _get(camera, "height", KITTI_CAMERA_HEIGHT_M))
+    pitch = _get(camera, "pitch", 0.0)
+    return float(height), float(pitch)
+
+
+def _frames(data: Any) -> int | None:
+    n = _get(data, "frames")
+    return None if n is None else int(n)
+
+
+def _synthetic(data: Any, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.synthetic import SyntheticSource  # written separately; imported lazily
+
+    return SyntheticSource(
+        int(_get(data, "frames", 1)),
+        seed=int(_get(data, "seed", 0)),
+        scale=float(_get(data, "scale", 1.0)),
+        density=float(_get(data, "density", 1.0)),
+    )
+
+
+def _kitti2015(data: Any, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.kitti2015 import Kitti2015Source
+
+    height, pitch = _camera_mount(data, camera)
+    scenes = _get(data, "scenes")
+    return Kitti2015Source(
+        _get(data, "root"),
+        split=str(_get(data, "split", "training")),
+        previous=str(_get(data, "previous", "auto")),
+        frames=_frames(data),
+        scenes=None if scenes is None else [int(s) for s in scenes],
+        fx=_get(data, "fx"), fy=_get(data, "fy"), cx=_get(data, "cx"), cy=_get(data, "cy"),
+        camera_height=height, pitch=pitch,
+    )
+
+
+def _kitti_raw(data: Any, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.kitti_raw import KittiRawSource
+
+    height, pitch = _camera_mount(data, camera)
+    date = _get(data, "date")
+    return KittiRawSource(
+        _get(data, "root"),
+        date=None if date is None else str(date),
+        drive=_get(data, "drive"),
+        step=int(_get(data, "step", 1)),
+        frames=_frames(data),
+        only_labelled=bool(_get(data, "only_labelled", False)),
+        camera_height=height, pitch=pitch,
+    )
+
+
+def _ddad(data: Any, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.ddad import MOVING_THRESHOLD_M, DDADSource
+
+    h = _get(data, "camera_height")
+    scene = _get(data, "scene")
+    return DDADSource(
+        _get(data, "root"),
+        camera=str(_get(data, "camera", "CAMERA_01")),
+        lidar=str(_get(data, "lidar", "LIDAR")),
+        scene=None if scene is None else str(scene),
+        frames=_frames(data),
+        camera_height=None if h is None else float(h),  # None: estimated from the LiDAR ground
+        moving_threshold=float(_get(data, "moving_threshold", MOVING_THRESHOLD_M)),
+    )
+
+
+def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.frames import FramesSource
+
+    height, pitch = _camera_mount(data, camera)
+    intr = _get(data, "intrinsics")
+    poses = _get(data, "poses")
+    return FramesSource(
+        _get(data, "root"),
+        intrinsics=None if intr is None else Path(str(intr)),
+        step=int(_get(data, "step", 1)),
+        frames=_frames(data),
+        camera_height=height, pitch=pitch,
+        poses=None if poses is None else Path(str(poses)),
+    )
+
+
+_FACTORIES: dict[str, Callable[[Any, Any], Sequence[FramePair]]] = {
+    "synthetic": _synthetic,
+    "kitti2015": _kitti2015,
+    "kitti_raw": _kitti_raw,
+    "ddad": _ddad,
+    "frames": _frames_folder,
+}
+#: Names accepted in ``data.name``.
+SOURCE_NAMES: tuple[str, ...] = tuple(_FACTORIES)
+
+
+def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | None = None) -> Sequence[FramePair]:
+    """Build the data source named by ``cfg.name``.
+
+    Args:
+        cfg: the ``data`` config group (dict or OmegaConf node) — or the whole config, in which
+            case ``cfg.data`` and ``cfg.camera`` are used.
+        camera: the ``camera`` config group (``height`` metres, ``pitch`` radians); optional.
+
+    Returns:
+        A sequence of :class:`FramePair` (``len`` and indexing; images are read on access).
+
+    Raises:
+        InputError: unknown ``name``, or any bad input of the chosen source (missing root, files,
+            calibration...), with a message naming it.
+    """
+    data = cfg
+    if _get(cfg, "data") is not None and _get(cfg, "name") is None:
+        data = _get(cfg, "data")
+        camera = camera if camera is not None else _get(cfg, "camera")
+    name = _get(data, "name")
+    if name not in _FACTORIES:
+        raise InputError(f"data.name: unknown data source {name!r}; choose one of {', '.join(SOURCE_NAMES)}")
+    return _FACTORIES[name](data, camera)

@@ -1,0 +1,259 @@
+"""Optical flow backends (config group ``flow``): one interface, covariance from one place.
+
+Backends (``cfg.name``):
+
+- ``gt``: the data source's ground-truth flow (``pair.gt.flow``), covariance ``sigma^2 I``;
+  pixels without ground truth get flow 0 and the covariance ceiling ``sigma_max^2 I``.
+- ``deepflow``: OpenCV contrib DeepFlow (Weinzaepfel et al. 2013), the paper's choice.
+- ``dis``: OpenCV DIS flow (Kroeger et al. 2016), fast; ``cfg.preset`` ultrafast|fast|medium.
+- ``raft``: torchvision RAFT (small/large) with weights from a local file (``cfg.weights``),
+  run in torch or through ONNX Runtime (``cfg.runtime: torch|onnx``, file ``cfg.onnx``).
+
+Convention: every backend returns the flow from the *current* to the *previous* image,
+``x_prev = x + f(x)`` (SPEC section 2), in pixels; OpenCV backends are called as
+``calc(current, previous)``. The covariance comes from
+:func:`monostixels.inputs.confidence.flow_covariance` (``cfg.confidence``), optionally with
+forward-backward consistency (``cfg.fb_consistency: true`` runs the backend both ways).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+import torch
+
+from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels.data.base import FramePair
+from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
+
+__all__ = [
+    "FLOW_BACKENDS",
+    "KITTI_OUTLIER_PX",
+    "KITTI_OUTLIER_REL",
+    "FlowResult",
+    "estimate_flow",
+    "compute_flow",
+    "confidence_params",
+    "resolve_path",
+    "flow_metrics",
+]
+
+logger = logging.getLogger(__name__)
+
+FLOW_BACKENDS = ("gt", "deepflow", "dis", "raft")
+#: KITTI 2015 flow outlier rule: end-point error above 3 px *and* above 5 % of the true flow length.
+KITTI_OUTLIER_PX = 3.0
+KITTI_OUTLIER_REL = 0.05
+
+_DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+#: Repository root (conf/, models/ live here in a source checkout).
+_REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass
+class FlowResult:
+    """Flow of a frame pair with its per-pixel covariance.
+
+    Attributes:
+        flow: (2, H, W) float32, current -> previous, pixels (``x_prev = x + flow``).
+        cov: (H, W, 2, 2) float32 covariance of the flow, pixels^2 (positive definite).
+        seconds: wall time of the estimate (flow and covariance), seconds.
+        backend: the backend name (``cfg.name``).
+    """
+
+    flow: torch.Tensor
+    cov: torch.Tensor
+    seconds: float
+    backend: str
+
+
+def _get(cfg: Any, key: str, default: Any) -> Any:
+    """``cfg.key`` of a DictConfig / dict / object, or ``default`` when absent or null."""
+    if cfg is None:
+        return default
+    if isinstance(cfg, dict) or hasattr(cfg, "get"):
+        val = cfg.get(key, default)
+    else:
+        val = getattr(cfg, key, default)
+    return default if val is None else val
+
+
+def confidence_params(cfg: Any) -> ConfidenceParams:
+    """The :class:`ConfidenceParams` of a ``flow`` config node (defaults for absent keys)."""
+    d = ConfidenceParams()
+    return ConfidenceParams(
+        method=str(_get(cfg, "confidence", "constant" if _get(cfg, "name", "") == "gt" else d.method)),
+        sigma=float(_get(cfg, "sigma", d.sigma)),
+        noise=float(_get(cfg, "noise", d.noise)),
+        window_sigma=float(_get(cfg, "window_sigma", d.window_sigma)),
+        sigma_min=float(_get(cfg, "sigma_min", min(d.sigma_min, float(_get(cfg, "sigma", d.sigma))))),
+        sigma_max=float(_get(cfg, "sigma_max", d.sigma_max)),
+        fb_weight=float(_get(cfg, "fb_weight", d.fb_weight)),
+    )
+
+
+def resolve_path(path: str | Path) -> Path:
+    """A file path from the config: as given if it exists (absolute or relative to the working
+    directory), else relative to the repository root (where ``models/`` lives)."""
+    p = Path(path).expanduser()
+    if p.is_absolute() or p.exists():
+        return p
+    alt = _REPO_ROOT / p
+    return alt if alt.exists() else p
+
+
+def _gray_u8(image: torch.Tensor) -> np.ndarray:
+    """(3, H, W) RGB in [0, 1] -> (H, W) uint8 grey (OpenCV flow backends work on 8-bit grey)."""
+    rgb = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    algo = cv2.optflow.createOptFlow_DeepFlow()
+    f = algo.calc(_gray_u8(cur), _gray_u8(prev), None)
+    return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
+
+
+def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    preset = str(_get(cfg, "preset", "medium"))
+    if preset not in _DIS_PRESETS:
+        raise InputError(f"flow.preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
+    algo = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
+    f = algo.calc(_gray_u8(cur), _gray_u8(prev), None)
+    return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
+
+
+def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
+
+    runtime = str(_get(cfg, "runtime", "torch"))
+    if runtime == "torch":
+        weights = _get(cfg, "weights", None)
+        if weights is None:
+            raise InputError("flow.weights: the raft backend needs a weights file (flow.weights=PATH)")
+        net = cached_torch_raft(resolve_path(weights), str(_get(cfg, "size", "small")), int(_get(cfg, "iters", 12)))
+    elif runtime == "onnx":
+        onnx = _get(cfg, "onnx", None)
+        if onnx is None:
+            raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
+        net = cached_onnx_raft(resolve_path(onnx))
+    else:
+        raise InputError(f"flow.runtime: must be torch or onnx, got {runtime!r}")
+    return net(cur, prev)
+
+
+_BACKENDS: dict[str, Callable[[torch.Tensor, torch.Tensor, Any], torch.Tensor]] = {
+    "deepflow": _deepflow,
+    "dis": _dis,
+    "raft": _raft,
+}
+
+
+def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    """Flow (2, H, W) float32 from ``image_cur`` to ``image_prev`` ((3, H, W) RGB in [0, 1]) with
+    the image backend ``cfg.name`` (deepflow | dis | raft), no covariance."""
+    name = str(_get(cfg, "name", ""))
+    if name not in _BACKENDS:
+        raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
+    check_shape(image_cur, [3, "H", "W"], "image (current)")
+    check_shape(image_prev, [3, "H", "W"], "image_prev")
+    check_same_size(image_cur, image_prev, "image (current)", "image_prev")
+    check_finite(image_cur, "image (current)")
+    check_finite(image_prev, "image_prev")
+    flow = _BACKENDS[name](image_cur.float(), image_prev.float(), cfg)
+    check_finite(flow, f"flow from backend {name}")
+    return flow
+
+
+def _gt_flow(pair: FramePair, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
+    source = pair.meta.get("source", pair.name or "this data source")
+    flow = pair.gt.flow
+    if flow is None:
+        raise InputError(f"flow=gt: {source} has no ground-truth flow (pair.gt.flow is None); choose flow=deepflow|dis|raft")
+    check_shape(flow, [2, "H", "W"], f"{source}: gt.flow")
+    check_same_size(flow, pair.image, "gt.flow", "image")
+    valid = pair.gt.flow_valid
+    if valid is None:
+        valid = torch.ones(flow.shape[-2:], dtype=torch.bool)
+    check_shape(valid, list(flow.shape[-2:]), f"{source}: gt.flow_valid")
+    valid = valid.bool()
+    check_finite(flow[:, valid], f"{source}: gt.flow (at valid pixels)")
+    flow = torch.where(valid[None], flow.float(), torch.zeros((), dtype=torch.float32))
+    cov = flow_covariance(pair.image, params)
+    # Pixels without ground truth: flow 0 with the covariance ceiling, so they carry no information.
+    ceiling = (params.sigma_max**2) * torch.eye(2)
+    cov = torch.where(valid[..., None, None], cov, ceiling)
+    return flow, cov
+
+
+def estimate_flow(pair: FramePair, cfg: Any) -> FlowResult:
+    """Flow current -> previous and its covariance for a frame pair.
+
+    Args:
+        pair: the frame pair (images (3, H, W) RGB in [0, 1]).
+        cfg: the ``flow`` config group node: ``name`` in gt|deepflow|dis|raft, confidence keys
+            (``confidence``, ``sigma``, ``noise``, ``window_sigma``, ``sigma_min``, ``sigma_max``,
+            ``fb_consistency``, ``fb_weight``) and backend keys (``preset``; ``size``, ``weights``,
+            ``onnx``, ``runtime``, ``iters``).
+
+    Returns:
+        A :class:`FlowResult`: flow (2, H, W) pixels, covariance (H, W, 2, 2) pixels^2.
+
+    Raises:
+        InputError: unknown backend, missing ground truth / weights, bad image shapes, NaN flow.
+    """
+    name = str(_get(cfg, "name", ""))
+    if name not in FLOW_BACKENDS:
+        raise InputError(f"flow.name: unknown flow backend {name!r}, expected one of {FLOW_BACKENDS}")
+    params = confidence_params(cfg)
+    t0 = time.perf_counter()
+    if name == "gt":
+        flow, cov = _gt_flow(pair, params)
+    else:
+        flow = compute_flow(pair.image, pair.image_prev, cfg)
+        fb_err = None
+        if bool(_get(cfg, "fb_consistency", False)):
+            back = compute_flow(pair.image_prev, pair.image, cfg)
+            fb_err = fb_consistency_error(flow, back)
+        cov = flow_covariance(pair.image, params, fb_error=fb_err)
+    seconds = time.perf_counter() - t0
+    logger.debug("flow %s on %s: %.2f s", name, pair.name, seconds)
+    return FlowResult(flow=flow.contiguous(), cov=cov.contiguous(), seconds=seconds, backend=name)
+
+
+def flow_metrics(flow: torch.Tensor, gt_flow: torch.Tensor, valid: torch.Tensor | None = None) -> dict[str, float]:
+    """End-point error and KITTI Fl-all of a flow against ground truth.
+
+    Args:
+        flow: (2, H, W) estimated flow, pixels.
+        gt_flow: (2, H, W) ground-truth flow, pixels (same direction convention).
+        valid: (H, W) bool pixels with ground truth (default: where ``gt_flow`` is finite).
+
+    Returns:
+        ``{"epe": mean end-point error (px), "fl_all": fraction of valid pixels whose error is
+        > 3 px and > 5 % of the true flow length}``; NaN for both when no pixel is valid.
+    """
+    check_shape(flow, [2, "H", "W"], "flow")
+    check_shape(gt_flow, [2, "H", "W"], "gt_flow")
+    check_same_size(flow, gt_flow, "flow", "gt_flow")
+    ok = torch.isfinite(gt_flow).all(0)
+    if valid is not None:
+        check_shape(valid, list(flow.shape[-2:]), "valid")
+        ok = ok & valid.bool()
+    check_finite(flow[:, ok], "flow (at valid pixels)")
+    if not bool(ok.any()):
+        return {"epe": math.nan, "fl_all": math.nan}
+    err = (flow[:, ok].double() - gt_flow[:, ok].double()).norm(dim=0)
+    mag = gt_flow[:, ok].double().norm(dim=0)
+    outlier = (err > KITTI_OUTLIER_PX) & (err > KITTI_OUTLIER_REL * mag)
+    return {"epe": float(err.mean()), "fl_all": float(outlier.double().mean())}

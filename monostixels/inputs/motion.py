@@ -1,0 +1,504 @@
+"""Camera motion (config group ``motion``): ground truth, a poses file, or monocular estimation.
+
+Convention (SPEC section 2): the motion ``(R, t)`` of a frame pair maps current-camera
+coordinates of a static point to previous-camera coordinates, ``X_prev = R X_cur + t``, metres;
+flow maps current to previous pixels, ``x_prev = x + f``.
+
+Backends (``cfg.name``):
+
+- ``gt``: ``pair.motion`` from the data source.
+- ``file``: a KITTI-style poses file (``cfg.path``): per line either 12 numbers (the 3x4
+  row-major ``T_w_cam``, camera to world, metres; line ``i`` = frame ``i``) or a frame number
+  followed by the 12 numbers. Frames are ``pair.meta["frame_index"]`` (current) and
+  ``pair.meta["frame_index_prev"]``. ``cfg.offset`` (3,) is the position of the image camera
+  in the posed camera's frame when the two differ by a translation only (KITTI camera 2 vs the
+  camera-0 poses: ``(P_rect_02[0,3] / fx, 0, 0)``, about 6 cm).
+- ``mono``: from the flow alone.
+
+  1. Likely-static pixels: a grid of flow vectors with a small flow covariance, minus pixels whose
+     semantic argmax is a dynamic class or sky (when scores are given).
+  2. Degeneracy: the best rotation-only motion ``x_prev ~ K R K^-1 x`` is fitted (trimmed
+     Procrustes on viewing rays). If it explains the flow to within ``min_parallax_px``
+     (median residual), the pair has no usable translation (standing still or pure rotation):
+     reported with ``degenerate=True``, ``R`` from that fit and ``t = 0`` — not guessed.
+  3. Rotation and translation direction: essential matrix with RANSAC (OpenCV, five-point) and
+     the cheirality test, then a robust nonlinear refinement of ``(R, t̂)`` on the inliers
+     (Sampson distance, soft-L1 loss).
+  4. Metric scale from the ground: ground pixels (semantic road where given, else the road
+     region in front of the car predicted by the camera height and ground normal) move with the
+     plane homography ``K (R + t̂ m^T) K^-1`` with ``m = (s / h) n``: ``s`` the metric length of
+     ``t``, ``h`` the camera height, ``n`` the ground normal. ``m`` is linear in the flow
+     equations (RANSAC + least squares); ``s = camera.height * |m|``.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from monostixels._checks import InputError, check_finite, check_shape
+from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
+from monostixels.data.base import FramePair
+from monostixels.geometry import Motion
+
+__all__ = [
+    "MOTION_BACKENDS",
+    "MonoParams",
+    "MotionEstimate",
+    "estimate_motion",
+    "estimate_mono",
+    "load_poses",
+    "relative_motion",
+    "motion_errors",
+]
+
+logger = logging.getLogger(__name__)
+
+MOTION_BACKENDS = ("gt", "file", "mono")
+#: Semantic class id of road (classes.CLASS_NAMES): the plane the mounting height refers to.
+_ROAD_CLASS = 0
+
+
+@dataclass
+class MotionEstimate:
+    """Result of a camera-motion backend.
+
+    Attributes:
+        motion: ``X_prev = R X_cur + t`` (metres); for a degenerate pair ``R`` is estimated and
+            ``t = 0``; None when it cannot be determined at all.
+        degenerate: standing still / pure rotation: translation direction and scale unknown.
+        reason: human-readable ("ok", "no translation: median parallax 0.2 px", ...).
+        inlier_ratio: fraction of the used flow vectors consistent with the estimate (1 for gt/file).
+    """
+
+    motion: Motion | None
+    degenerate: bool
+    reason: str
+    inlier_ratio: float
+
+
+@dataclass
+class MonoParams:
+    """Parameters of the ``mono`` estimator (keys of the ``motion`` config group).
+
+    Attributes:
+        step: stride (pixels) of the grid of flow vectors used.
+        max_points: at most this many vectors (random subset, seeded) for the essential matrix.
+        max_flow_sigma: vectors whose flow standard deviation (sqrt of the largest covariance
+            eigenvalue, pixels) exceeds this are not used.
+        ransac_threshold: RANSAC inlier threshold of the essential matrix (pixels).
+        ransac_confidence: RANSAC confidence.
+        min_parallax: median residual (pixels) of the rotation-only fit below which the pair
+            counts as degenerate (no translation).
+        min_points: fewest usable flow vectors (and ground vectors) for an estimate.
+        ground_max_distance: ground region ahead of the car (no semantics), metres along z.
+        ground_half_width: half width of that region, metres.
+        ground_threshold: inlier threshold of the ground-plane fit (pixels).
+        ground_max_tilt: largest angle (degrees) between the fitted and the configured ground normal.
+        seed: RNG seed of the subsampling and RANSAC.
+    """
+
+    step: int = 4
+    max_points: int = 4000
+    max_flow_sigma: float = 2.0
+    ransac_threshold: float = 0.5
+    ransac_confidence: float = 0.999
+    min_parallax: float = 1.0
+    min_points: int = 50
+    ground_max_distance: float = 25.0
+    ground_half_width: float = 2.5
+    ground_threshold: float = 0.5
+    ground_max_tilt: float = 10.0
+    seed: int = 0
+
+
+def _get(cfg: Any, key: str, default: Any) -> Any:
+    if cfg is None:
+        return default
+    val = cfg.get(key, default) if hasattr(cfg, "get") else getattr(cfg, key, default)
+    return default if val is None else val
+
+
+def _mono_params(cfg: Any) -> MonoParams:
+    d = MonoParams()
+    kw = {k: type(getattr(d, k))(_get(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
+    return MonoParams(**kw)
+
+
+# ----------------------------------------------------------------------------------------------
+# gt / file
+
+
+def _gt_motion(pair: FramePair) -> MotionEstimate:
+    if pair.motion is None:
+        source = pair.meta.get("source", pair.name or "this data source")
+        raise InputError(f"motion=gt: {source} has no ground-truth camera motion (pair.motion is None); use motion=file or motion=mono")
+    return MotionEstimate(pair.motion, pair.motion.translation_norm < 1e-9, "ok (ground truth)", 1.0)
+
+
+@lru_cache(maxsize=8)
+def _load_poses_cached(path: str, mtime: float) -> dict[int, np.ndarray]:
+    poses: dict[int, np.ndarray] = {}
+    with open(path, encoding="utf-8") as fh:
+        for lineno, line in enumerate(fh):
+            parts = line.split()
+            if not parts:
+                continue
+            try:
+                vals = [float(x) for x in parts]
+            except ValueError as exc:
+                raise InputError(f"motion.path: {path!r} line {lineno + 1}: not numbers ({exc})") from exc
+            if len(vals) == 12:
+                frame = len(poses)
+            elif len(vals) == 13 and float(vals[0]).is_integer():
+                frame, vals = int(vals[0]), vals[1:]
+            else:
+                raise InputError(
+                    f"motion.path: {path!r} line {lineno + 1}: expected 12 numbers (3x4 T_w_cam) or a frame number "
+                    f"and 12 numbers, got {len(vals)}"
+                )
+            T = np.eye(4)
+            T[:3, :] = np.asarray(vals).reshape(3, 4)
+            if not np.isfinite(T).all():
+                raise InputError(f"motion.path: {path!r} line {lineno + 1}: non-finite pose")
+            poses[frame] = T
+    if not poses:
+        raise InputError(f"motion.path: {path!r} holds no poses")
+    return poses
+
+
+def load_poses(path: str | Path) -> dict[int, np.ndarray]:
+    """Poses ``T_w_cam`` (4, 4) float64 (camera to world, metres) by frame number from a KITTI poses file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"motion.path: poses file not found: {str(p)!r}")
+    return _load_poses_cached(str(p.resolve()), p.stat().st_mtime)
+
+
+def relative_motion(T_w_cur: np.ndarray, T_w_prev: np.ndarray, offset: np.ndarray | None = None) -> Motion:
+    """Camera motion ``X_prev = R X_cur + t`` from two poses ``T_w_cam`` (4, 4).
+
+    ``offset`` (3,): position of the image camera relative to the posed camera, ``X_img = X_pose + offset``
+    (same orientation).
+    """
+    T = np.linalg.inv(T_w_prev) @ T_w_cur  # current camera -> previous camera
+    R, t = T[:3, :3], T[:3, 3]
+    if offset is not None:
+        # X_img_prev = R (X_img_cur - o) + t + o.
+        t = t + (np.eye(3) - R) @ offset
+    # Re-orthonormalise: poses files are printed with ~7 digits.
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return Motion(R=torch.from_numpy(R), t=torch.from_numpy(np.ascontiguousarray(t)))
+
+
+def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
+    path = _get(cfg, "path", None)
+    if path is None:
+        raise InputError("motion.path: motion=file needs a poses file (motion.path=PATH)")
+    poses = load_poses(path)
+    for key in ("frame_index", "frame_index_prev"):
+        if key not in pair.meta:
+            raise InputError(f"motion=file: frame pair {pair.name!r} has no meta[{key!r}] to look up in {str(path)!r}")
+    cur, prev = int(pair.meta["frame_index"]), int(pair.meta["frame_index_prev"])
+    for f in (cur, prev):
+        if f not in poses:
+            raise InputError(f"motion.path: {str(path)!r} has no pose for frame {f} (frames {min(poses)}..{max(poses)})")
+    offset = _get(cfg, "offset", None)
+    off = None if offset is None else np.asarray(list(offset), dtype=np.float64)
+    if off is not None and off.shape != (3,):
+        raise InputError(f"motion.offset: expected 3 numbers (metres), got {list(offset)}")
+    motion = relative_motion(poses[cur], poses[prev], off)
+    return MotionEstimate(motion, motion.translation_norm < 1e-9, f"ok (poses file, frames {cur} <- {prev})", 1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# mono
+
+
+def _rays(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Viewing rays (N, 3) with z = 1 of pixels (N, 2)."""
+    return np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(K).T
+
+
+def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
+    x = X @ K.T
+    return x[:, :2] / x[:, 2:3]
+
+
+def _fit_rotation(K: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, iters: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Best rotation-only motion (trimmed Procrustes on unit rays); returns R and pixel residuals (N,)."""
+    a = _rays(K, p_cur)
+    b = _rays(K, p_prev)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    use = np.ones(len(a), dtype=bool)
+    R = np.eye(3)
+    for _ in range(iters):
+        U, _, Vt = np.linalg.svd(b[use].T @ a[use])  # maximise sum b^T R a
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        res = np.linalg.norm(_project(K, a @ R.T) - p_prev, axis=1)
+        use = res <= max(np.median(res) * 2.0, 1e-6)
+    return R, res
+
+
+def _sampson(E: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Sampson distance (N,) of ray pairs (z = 1) under ``b^T E a = 0``, in normalised units."""
+    Ea = a @ E.T
+    Etb = b @ E
+    num = np.sum(b * Ea, axis=1)
+    den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Etb[:, 0] ** 2 + Etb[:, 1] ** 2
+    return num / np.sqrt(np.maximum(den, 1e-30))
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Nonlinear refinement of ``(R, t̂)`` minimising the Sampson distance (soft-L1) over ray pairs."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    # t on the unit sphere: t = normalize(t0 + B beta), B a basis of the tangent plane at t0.
+    t0 = t / np.linalg.norm(t)
+    B = np.linalg.svd(t0[None])[2][1:].T  # (3, 2)
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Rx = Rotation.from_rotvec(x[:3]).as_matrix() @ R
+        tx = t0 + B @ x[3:]
+        return Rx, tx / np.linalg.norm(tx)
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        Rx, tx = unpack(x)
+        return _sampson(_skew(tx) @ Rx, a, b)
+
+    sol = least_squares(fun, np.zeros(5), loss="soft_l1", f_scale=f_scale, method="trf", x_scale="jac")
+    return unpack(sol.x)
+
+
+def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndarray, prm: MonoParams) -> np.ndarray:
+    """Mask (N,) of pixels whose ray meets the reference ground ahead within the road region."""
+    r = _rays(K, pts)
+    rn = r @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.where(rn > 1e-6, height / rn, np.inf)  # X = lam r on the ground n^T X = h
+    X = r * lam[:, None]
+    return np.isfinite(lam) & (X[:, 2] < prm.ground_max_distance) & (np.abs(X[:, 0]) < prm.ground_half_width)
+
+
+def _ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear equations ``A m = b`` (2N, 3), (2N,) of ground pixels for ``H = K (R + t m^T) K^-1``.
+
+    With ``y = K^-1 x``, ``a = K R y``, ``c = K t``: ``H x = a + c (m^T y)`` and ``x_prev × H x = 0``
+    give ``(u' c_3 - c_1) y^T m = a_1 - u' a_3`` and the same in ``v'``; dividing by ``a_3``
+    (≈ the third coordinate of ``H x``) makes the residuals close to pixels.
+    """
+    y = _rays(K, p_cur)
+    a = y @ (K @ R).T
+    c = K @ t
+    up, vp = p_prev[:, 0], p_prev[:, 1]
+    w = 1.0 / a[:, 2:3]
+    A = np.concatenate([y * ((up * c[2] - c[0])[:, None]) * w, y * ((vp * c[2] - c[1])[:, None]) * w])
+    b = np.concatenate([(a[:, 0] - up * a[:, 2]) * w[:, 0], (a[:, 1] - vp * a[:, 2]) * w[:, 0]])
+    return A, b
+
+
+def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator, hypotheses: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC (2 pixels = 4 equations per hypothesis) + least squares of ``A m = b``; returns m and inliers (N,)."""
+    N = len(A) // 2
+    best, best_count = None, -1
+    for _ in range(hypotheses):
+        idx = rng.choice(N, size=2, replace=False)
+        rows = np.r_[idx, idx + N]
+        m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
+        res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
+        count = int((res < thr).sum())
+        if count > best_count:
+            best, best_count = m, count
+    m = best
+    for _ in range(3):
+        res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
+        inl = res < thr
+        if inl.sum() < 3:
+            break
+        rows = np.r_[np.nonzero(inl)[0], np.nonzero(inl)[0] + N]
+        m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
+    res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
+    return m, res < thr
+
+
+def estimate_mono(
+    K: torch.Tensor,
+    height: float,
+    ground_normal: torch.Tensor,
+    flow: torch.Tensor,
+    cov: torch.Tensor | None,
+    params: MonoParams,
+    semantic: torch.Tensor | None = None,
+) -> MotionEstimate:
+    """Monocular camera motion from dense flow (see the module docstring for the method).
+
+    Args:
+        K: (3, 3) intrinsics, pixels.
+        height: camera height above the road (metres) — fixes the metric scale.
+        ground_normal: (3,) unit ground normal in the current camera (points down).
+        flow: (2, H, W) current -> previous, pixels.
+        cov: (H, W, 2, 2) flow covariance, pixels^2, or None (all vectors used).
+        params: estimator parameters.
+        semantic: (10, H, W) class scores or None.
+
+    Returns:
+        A :class:`MotionEstimate` (metres).
+    """
+    check_shape(flow, [2, "H", "W"], "flow")
+    check_finite(flow, "flow")
+    _, H, W = flow.shape
+    if cov is not None:
+        check_shape(cov, [H, W, 2, 2], "flow covariance")
+    if semantic is not None:
+        check_shape(semantic, [NUM_CLASSES, H, W], "semantic scores")
+    Kn = K.double().numpy()
+    n_g = ground_normal.double().numpy()
+    rng = np.random.default_rng(params.seed)
+
+    # 1. Grid of usable vectors.
+    off = params.step // 2
+    vs, us = np.meshgrid(np.arange(off, H, params.step), np.arange(off, W, params.step), indexing="ij")
+    us, vs = us.ravel(), vs.ravel()
+    f = flow.double().numpy()[:, vs, us].T  # N x 2
+    ok = np.ones(len(us), dtype=bool)
+    if cov is not None:
+        lam_max = torch.linalg.eigvalsh(cov[vs, us].double()).numpy()[:, -1]
+        ok &= lam_max <= params.max_flow_sigma**2
+    labels = None
+    if semantic is not None:
+        labels = semantic.argmax(0).numpy()[vs, us]
+        ctype = np.asarray(CLASS_TYPE)[labels]
+        ok &= (ctype != DYNAMIC_OBJECT) & (ctype != SKY)
+    p_cur = np.c_[us, vs].astype(np.float64)
+    p_prev = p_cur + f
+    # The flow must land inside the previous image.
+    ok &= (p_prev[:, 0] >= 0) & (p_prev[:, 0] <= W - 1) & (p_prev[:, 1] >= 0) & (p_prev[:, 1] <= H - 1)
+    if ok.sum() < params.min_points:
+        return MotionEstimate(None, False, f"too few usable flow vectors: {int(ok.sum())} < {params.min_points}", 0.0)
+    idx = np.nonzero(ok)[0]
+    if len(idx) > params.max_points:
+        idx = np.sort(rng.choice(idx, size=params.max_points, replace=False))
+    pc, pp = p_cur[idx], p_prev[idx]
+
+    # 2. Degeneracy: does a rotation alone explain the flow?
+    R0, res0 = _fit_rotation(Kn, pc, pp)
+    parallax = float(np.median(res0))
+    if parallax < params.min_parallax:
+        still = float(np.median(np.linalg.norm(pp - pc, axis=1))) < params.min_parallax
+        kind = "standing still" if still else "pure rotation"
+        inl = float((res0 < params.ransac_threshold * 2).mean())
+        reason = f"no translation ({kind}): median parallax {parallax:.2f} px < {params.min_parallax} px"
+        return MotionEstimate(Motion(torch.from_numpy(R0), torch.zeros(3, dtype=torch.float64)), True, reason, inl)
+
+    # 3. Essential matrix (points1 = current, points2 = previous: X_prev = R X_cur + t).
+    E, mask = cv2.findEssentialMat(pc, pp, Kn, method=cv2.RANSAC, prob=params.ransac_confidence, threshold=params.ransac_threshold)
+    if E is None or E.shape != (3, 3):
+        return MotionEstimate(None, False, "essential matrix: RANSAC found no model", 0.0)
+    _, R, t, mask = cv2.recoverPose(E, pc, pp, Kn, mask=mask.copy())
+    inl = mask.ravel() > 0
+    if inl.sum() < params.min_points:
+        return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers", float(inl.mean()))
+    a_all, b_all = _rays(Kn, pc), _rays(Kn, pp)
+    f_scale = params.ransac_threshold / Kn[0, 0]  # pixels -> normalised image units
+    t = t.ravel()
+    # Refine, then re-select inliers with the refined model (the RANSAC set is from a 5-point
+    # hypothesis and misses good vectors), and refine once more on them.
+    for _ in range(2):
+        R, t = _refine_pose(R, t, a_all[inl], b_all[inl], f_scale=f_scale)
+        inl = np.abs(_sampson(_skew(t) @ R, a_all, b_all)) < f_scale
+        if inl.sum() < params.min_points:
+            return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement", float(inl.mean()))
+    inlier_ratio = float(inl.mean())
+
+    # 4. Metric scale from the ground.
+    if labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points:
+        gmask = (labels == _ROAD_CLASS) & ok
+        src = "road pixels"
+    else:
+        gmask = ok.copy()
+        src = "road region ahead"
+    gmask &= _ground_candidates(Kn, n_g, height, p_cur, params)
+    gidx = np.nonzero(gmask)[0]
+    if len(gidx) < params.min_points:
+        return MotionEstimate(None, False, f"no metric scale: {len(gidx)} ground vectors ({src}) < {params.min_points}", inlier_ratio)
+    A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
+    m, ginl = _fit_ground(A, bb, params.ground_threshold, rng)
+    q = float(np.linalg.norm(m))
+    tilt = math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
+    if not (q > 0) or tilt > params.ground_max_tilt:
+        return MotionEstimate(
+            None, False, f"no metric scale: ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})",
+            inlier_ratio,
+        )
+    scale = height * q
+    motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
+    reason = (
+        f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px, "
+        f"scale from {int(ginl.sum())} ground vectors ({src}, normal tilt {tilt:.1f} deg)"
+    )
+    return MotionEstimate(motion, False, reason, inlier_ratio)
+
+
+def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor | None = None) -> MotionEstimate:
+    """Camera motion of a frame pair with the backend ``cfg.name`` (gt | file | mono).
+
+    Args:
+        pair: the frame pair (camera intrinsics, height and ground normal; ``motion`` for gt;
+            ``meta["frame_index"]`` / ``["frame_index_prev"]`` for file).
+        flow: the :class:`~monostixels.inputs.flow.FlowResult` of the pair (used by mono).
+        cfg: the ``motion`` config group node.
+        semantic: (10, H, W) class scores or None.
+
+    Returns:
+        A :class:`MotionEstimate`.
+    """
+    name = str(_get(cfg, "name", ""))
+    if name == "gt":
+        return _gt_motion(pair)
+    if name == "file":
+        return _file_motion(pair, cfg)
+    if name == "mono":
+        if flow is None:
+            raise InputError("motion=mono: needs the flow of the pair (flow is None)")
+        check_shape(flow.flow, [2, *pair.size], "flow")
+        return estimate_mono(
+            pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, _mono_params(cfg), semantic
+        )
+    raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
+
+
+def motion_errors(est: Motion, gt: Motion) -> dict[str, float]:
+    """Errors of an estimated camera motion against ground truth.
+
+    Returns:
+        ``rot_err_deg``: angle of ``R_est R_gt^T`` (degrees); ``trans_dir_err_deg``: angle between
+        the translations (degrees; NaN if either is zero); ``scale_rel_err``: ``|‖t‖/‖t_gt‖ - 1|``
+        (NaN if ``t_gt = 0``).
+    """
+    Rd = est.R.double() @ gt.R.double().T
+    # ||R - I||_F = 2 sqrt(2) sin(theta / 2): accurate for small angles, unlike acos of the trace.
+    s = float(torch.linalg.norm(Rd - torch.eye(3, dtype=Rd.dtype))) / (2.0 * math.sqrt(2.0))
+    rot = math.degrees(2.0 * math.asin(min(1.0, s)))
+    te, tg = est.t.double(), gt.t.double()
+    ne, ng = float(te.norm()), float(tg.norm())
+    if ne > 0 and ng > 0:
+        cd = float((te @ tg) / (ne * ng))
+        tdir = math.degrees(math.acos(max(-1.0, min(1.0, cd))))
+    else:
+        tdir = math.nan
+    scale = abs(ne / ng - 1.0) if ng > 0 else math.nan
+    return {"rot_err_deg": rot, "trans_dir_err_deg": tdir, "scale_rel_err": scale}

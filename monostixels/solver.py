@@ -1,0 +1,629 @@
+"""Batched column solver: the mono-stixel DP over (segment top, type), vectorised over columns.
+
+Structure (paper section C; Cordts et al. 2017 simplification):
+
+1. Each column of width ``w_s`` is cut into cells of ``r`` pixel rows, counted from the image
+   bottom (cell 0). Flow, covariance and semantic scores are averaged per cell; every data term
+   of a cell is weighted by its number of rows, so energies are per pixel row as in the paper.
+2. Hypotheses. The paper's MLESAC step draws one homography from every flow vector of a segment
+   and keeps the best. We use the per-column superset (SPEC section 3): one hypothesis from every
+   ``hypothesis_stride``-th cell of the column (``A p = b`` for ground and static objects,
+   ``A (t̃x, t̃y) = b`` for dynamic objects), plus the reference ground for the ground type. The
+   flow cost of every hypothesis on every cell is prefix-summed over the cells.
+3. Labels of a segment. The paper picks the hypothesis with the lowest flow term, then adds the
+   priors. We pick the hypothesis (and class) that minimise the segment's whole energy — flow,
+   semantic and structural prior given the best predecessor. This never gives a higher energy
+   than the paper's rule, and it makes the DP separable: for every hypothesis and class we keep
+   a running minimum over segment bottoms, so a column costs O(cells x hypotheses) instead of
+   O(cells^2 x hypotheses). Dynamic-object depth follows the paper: standing on the reference
+   ground below, or the depth of the object stixel below.
+4. The DP state at a cell boundary is (type of the last stixel); the last stixel's inverse depth
+   and the reference ground (last ground stixel, else the camera height) are taken from the
+   best predecessor through back-pointers. ``tau > 0`` replaces every min by a soft-min
+   ``-tau log sum exp(-x / tau)`` (values only; back-pointers follow the hard minimum), so the
+   optimal energy becomes differentiable in the prior parameters and tends to the hard DP as
+   ``tau -> 0``.
+
+The Python loop runs over DP stages (cells, ``n`` iterations); every iteration works on all
+columns, hypotheses and classes at once.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, fields
+from typing import Any, Mapping, Sequence
+
+import torch
+
+from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
+from monostixels.energy import PriorParams, flow_cost, gravity, ordering_from_depths
+from monostixels.geometry import (
+    Camera,
+    Motion,
+    dynamic_dof_system,
+    dynamic_motion,
+    ground_basis,
+    object_normals,
+    pixel_rays,
+    solve_dynamic_dof,
+    solve_static_dof,
+    static_dof_system,
+)
+from monostixels.stixels import StixelWorld
+
+__all__ = ["SolverConfig", "ColumnProblem", "ColumnSolution", "prepare_columns", "solve_columns", "solve", "solve_batch"]
+
+logger = logging.getLogger(__name__)
+
+#: Default class of each type when there is no semantic input (road, building, vehicle, sky).
+_DEFAULT_CLASS = (0, 3, 6, 9)
+#: Which predecessor types are objects (the ordering prior applies above them).
+_IS_OBJECT = torch.tensor([False, True, True, False])
+
+
+@dataclass
+class SolverConfig:
+    """Solver settings (config group ``solver``; see conf/solver/default.yaml for units)."""
+
+    column_width: int = 5
+    cell_rows: int = 3
+    hypothesis_stride: int = 1
+    min_depth: float = 0.5
+    max_depth: float = 300.0
+    tau: float = 0.0
+    dtype: str = "float32"
+    min_translation: float = 0.05
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> "SolverConfig":
+        """Build from the ``solver`` config node, checking every value."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(cfg.keys()) - names
+        if unknown:
+            raise InputError(f"solver config: unknown keys {sorted(unknown)}")
+        out = cls(**{k: cfg[k] for k in cfg.keys()})
+        out.validate()
+        return out
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` naming the first bad setting."""
+        for k in ("column_width", "cell_rows", "hypothesis_stride"):
+            v = getattr(self, k)
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"solver.{k}: must be an integer >= 1, got {v!r}")
+        if not (0 < self.min_depth < self.max_depth and math.isfinite(self.max_depth)):
+            raise InputError(f"solver.min_depth/max_depth: need 0 < min_depth < max_depth < inf, got {self.min_depth}, {self.max_depth}")
+        if not (self.tau >= 0 and math.isfinite(self.tau)):
+            raise InputError(f"solver.tau: must be >= 0, got {self.tau}")
+        if self.dtype not in ("float32", "float64"):
+            raise InputError(f"solver.dtype: float32 or float64, got {self.dtype!r}")
+        if not self.min_translation >= 0:
+            raise InputError(f"solver.min_translation: must be >= 0, got {self.min_translation}")
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        return torch.float64 if self.dtype == "float64" else torch.float32
+
+
+@dataclass
+class ColumnProblem:
+    """Per-column, per-cell inputs of the DP for C columns (of one or several frames), n cells each.
+
+    Cell 0 is at the image bottom. Attributes (``C`` columns, ``n`` cells):
+        K, R: (C, 3, 3); t, n_g, n_obj: (C, 3); h_cam: (C,) metres; u: (C,) column-centre u (px).
+        v: (n,) cell-centre rows; v_edge: (n,) row of each cell's bottom boundary; rows: (n,)
+        pixel rows per cell. flow: (C, n, 2) px; cov_inv: (C, n, 2, 2); logdet: (C, n).
+        nll: (C, n, 10) ``-log`` of the cell-mean class scores, or None without semantics.
+        degenerate: (C,) bool, frames whose camera translation carries no depth.
+        frame: (C,) int64 frame index; column: (C,) int64 column index within its frame.
+        image_size: (H, W).
+    """
+
+    K: torch.Tensor
+    R: torch.Tensor
+    t: torch.Tensor
+    n_g: torch.Tensor
+    n_obj: torch.Tensor
+    h_cam: torch.Tensor
+    u: torch.Tensor
+    v: torch.Tensor
+    v_edge: torch.Tensor
+    rows: torch.Tensor
+    flow: torch.Tensor
+    cov_inv: torch.Tensor
+    logdet: torch.Tensor
+    nll: torch.Tensor | None
+    degenerate: torch.Tensor
+    frame: torch.Tensor
+    column: torch.Tensor
+    image_size: tuple[int, int]
+
+    @property
+    def num_columns(self) -> int:
+        return int(self.u.shape[0])
+
+    @property
+    def num_cells(self) -> int:
+        return int(self.v.shape[0])
+
+
+@dataclass
+class ColumnSolution:
+    """Stixels of all columns as a flat table (see :class:`monostixels.stixels.StixelWorld`).
+
+    Attributes:
+        col: (N,) index into the problem's columns. b, t: (N,) bottom / top cell (inclusive).
+        type, cls: (N,). p: (N,) inverse depth. p_ground: (N,) reference ground. tau: (N, 2).
+        cost: (N,) energy of each stixel. energy: (C,) optimal (soft, if tau > 0) energy per column.
+    """
+
+    col: torch.Tensor
+    b: torch.Tensor
+    t: torch.Tensor
+    type: torch.Tensor
+    cls: torch.Tensor
+    p: torch.Tensor
+    p_ground: torch.Tensor
+    tau: torch.Tensor
+    cost: torch.Tensor
+    energy: torch.Tensor
+
+
+# ---------------------------------------------------------------------------------------------
+# Column preparation
+# ---------------------------------------------------------------------------------------------
+def _block_sum(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
+    """Sum (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the bottom and columns of w."""
+    B, ch, H, W = x.shape
+    n, C = -(-H // r), -(-W // w)
+    xf = torch.nn.functional.pad(x.flip(-2), (0, C * w - W, 0, n * r - H))
+    return xf.reshape(B, ch, n, r, C, w).sum(dim=(3, 5))
+
+
+def prepare_columns(
+    flow: torch.Tensor,
+    cov: torch.Tensor,
+    scores: torch.Tensor | None,
+    cameras: Sequence[Camera],
+    motions: Sequence[Motion],
+    cfg: SolverConfig,
+) -> ColumnProblem:
+    """Cut frames into columns and cells and average the inputs per cell.
+
+    Args:
+        flow: (B, 2, H, W) current -> previous, pixels.
+        cov: (B, H, W, 2, 2) flow covariance, pixels^2.
+        scores: (B, 10, H, W) class scores or None.
+        cameras, motions: one per frame.
+        cfg: solver settings (column width, cell rows, dtype, min_translation).
+    """
+    dt = cfg.torch_dtype
+    B, _, H, W = flow.shape
+    r, w = cfg.cell_rows, cfg.column_width
+    n, C = -(-H // r), -(-W // w)
+    ones = torch.ones(1, 1, H, W, dtype=dt)
+    count = _block_sum(ones, r, w)[0, 0]  # n x C
+    fl = _block_sum(flow.to(dt), r, w) / count  # B x 2 x n x C
+    cv = cov.to(dt).permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
+    cv = (_block_sum(cv, r, w) / count).permute(0, 3, 2, 1).reshape(B, C, n, 2, 2)
+    nll = None
+    if scores is not None:
+        sc = _block_sum(scores.to(dt), r, w) / count  # B x 10 x n x C
+        nll = -torch.log(sc.clamp(min=1e-12)).permute(0, 3, 2, 1).reshape(B * C, n, NUM_CLASSES)
+
+    rows = torch.clamp(torch.tensor(H, dtype=dt) - torch.arange(n, dtype=dt) * r, max=r)
+    j0 = torch.arange(n, dtype=dt) * r  # bottom-based index of each cell's lowest row
+    v = (H - 1) - (j0 + (rows - 1) / 2)
+    v_edge = H - j0 - 0.5
+    widths = torch.clamp(torch.tensor(W, dtype=dt) - torch.arange(C, dtype=dt) * w, max=w)
+    u = torch.arange(C, dtype=dt) * w + (widths - 1) / 2
+
+    K = torch.stack([c.K.to(dt) for c in cameras])
+    n_g = torch.stack([c.ground_normal.to(dt) for c in cameras])
+    h = torch.tensor([c.height for c in cameras], dtype=dt)
+    R = torch.stack([m.R.to(dt) for m in motions])
+    t = torch.stack([m.t.to(dt) for m in motions])
+    degenerate = torch.tensor([m.translation_norm < cfg.min_translation for m in motions])
+
+    rep = lambda x: x.repeat_interleave(C, dim=0)  # noqa: E731  (per frame -> per column)
+    K_c, n_g_c = rep(K), rep(n_g)
+    u_c = u.repeat(B)
+    cov_c = cv.reshape(B * C, n, 2, 2)
+    det = cov_c[..., 0, 0] * cov_c[..., 1, 1] - cov_c[..., 0, 1] * cov_c[..., 1, 0]
+    inv = torch.stack([torch.stack([cov_c[..., 1, 1], -cov_c[..., 0, 1]], -1),
+                       torch.stack([-cov_c[..., 1, 0], cov_c[..., 0, 0]], -1)], -2) / det[..., None, None]
+    return ColumnProblem(
+        K=K_c, R=rep(R), t=rep(t), n_g=n_g_c, n_obj=object_normals(K_c, n_g_c, u_c), h_cam=rep(h),
+        u=u_c, v=v, v_edge=v_edge, rows=rows,
+        flow=fl.permute(0, 3, 2, 1).reshape(B * C, n, 2), cov_inv=inv, logdet=torch.log(det),
+        nll=nll, degenerate=rep(degenerate), frame=torch.arange(B).repeat_interleave(C),
+        column=torch.arange(C).repeat(B), image_size=(H, W),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Hypotheses and their prefix-summed flow costs
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Hypotheses:
+    p_ground: torch.Tensor   # C x Kg
+    p_object: torch.Tensor   # C x Ko
+    tau: torch.Tensor        # C x Kd x 2
+    B: torch.Tensor          # C x 3 x 2 ground-plane basis
+
+
+def _window_median(x: torch.Tensor, stride: int) -> torch.Tensor:
+    """Median over windows of ``stride`` cells along dim 1 of x (C, n, ...) -> (C, ceil(n / stride), ...).
+
+    NaNs (cells without a solution) are ignored; a window without any value gives NaN.
+    """
+    C, n = x.shape[:2]
+    m = -(-n // stride)
+    pad = m * stride - n
+    if pad:
+        x = torch.cat([x, x.new_full((C, pad) + tuple(x.shape[2:]), float("nan"))], dim=1)
+    return x.reshape((C, m, stride) + tuple(x.shape[2:])).nanmedian(dim=2).values
+
+
+def _hypotheses(prob: ColumnProblem, cfg: SolverConfig) -> _Hypotheses:
+    """Per-column hypothesis sets of the three flow-fitted types (see module docstring).
+
+    Every cell gives one hypothesis per type from its own flow vector. With
+    ``hypothesis_stride = s > 1`` the cells are grouped in windows of ``s`` and each window gives
+    the median of its cells' hypotheses: exact for a plane that covers most of a window, robust
+    to flow noise, and ``s`` times fewer hypotheses (the DP cost is linear in their number).
+    """
+    C, n = prob.num_columns, prob.num_cells
+    s = cfg.hypothesis_stride
+    u = prob.u[:, None].expand(C, n)
+    v = prob.v[None].expand(C, n)
+    f = prob.flow
+    K, R, t = prob.K[:, None], prob.R[:, None], prob.t[:, None]
+    p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
+    p_ref = (1.0 / prob.h_cam)[:, None]
+
+    def valid(p: torch.Tensor) -> torch.Tensor:
+        ok = torch.isfinite(p) & (p >= p_min) & (p <= p_max)
+        return torch.where(ok, p, torch.full_like(p, float("nan")))
+
+    p_g = valid(solve_static_dof(*static_dof_system(K, R, t, prob.n_g[:, None], u, v, f)))
+    p_o = valid(solve_static_dof(*static_dof_system(K, R, t, prob.n_obj[:, None], u, v, f)))
+    Bm = ground_basis(prob.n_g)
+    tau = solve_dynamic_dof(*dynamic_dof_system(K, R, Bm[:, None], prob.n_obj[:, None], u, v, f))
+    if s > 1:
+        p_g, p_o, tau = _window_median(p_g, s), _window_median(p_o, s), _window_median(tau, s)
+    # Without translation the flow says nothing about depth: the ground is the reference ground.
+    p_g = torch.where(prob.degenerate[:, None], torch.full_like(p_g, float("nan")), p_g)
+    # Missing hypotheses are replaced by the reference ground (always in the ground set), by
+    # the farthest object, and by tau = 0: duplicates never change a minimum.
+    p_g = torch.cat([torch.where(torch.isnan(p_g), p_ref, p_g), p_ref], dim=1)
+    p_o = torch.where(torch.isnan(p_o), torch.full_like(p_o, p_min), p_o)
+    tau = torch.where(torch.isfinite(tau), tau, torch.zeros_like(tau))
+    return _Hypotheses(p_ground=p_g, p_object=p_o, tau=tau, B=Bm)
+
+
+def _row_costs(prob: ColumnProblem, Hx: torch.Tensor, prm: PriorParams) -> torch.Tensor:
+    """Flow cost (C, K, n) per cell of predicted points ``H x`` (C, K, n, 3), weighted by rows."""
+    z = Hx[..., 2]
+    ok = z > 1e-9
+    zs = torch.where(ok, z, torch.ones_like(z))
+    up = prob.u[:, None, None] + prob.flow[:, None, :, 0]
+    vp = prob.v[None, None, :] + prob.flow[:, None, :, 1]
+    res = torch.stack([up - Hx[..., 0] / zs, vp - Hx[..., 1] / zs], -1)
+    c = flow_cost(res, prob.cov_inv[:, None], prob.logdet[:, None], prm.alpha_F)
+    c = torch.where(ok, c, torch.as_tensor(prm.alpha_F, dtype=c.dtype).expand_as(c))
+    return c * prob.rows * prm.delta_F
+
+
+def _prefix(x: torch.Tensor) -> torch.Tensor:
+    """Prefix sums over the last dim with a leading zero: (..., n) -> (..., n + 1)."""
+    return torch.nn.functional.pad(torch.cumsum(x, -1), (1, 0))
+
+
+def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> list[torch.Tensor]:
+    """Prefix-summed flow cost (C, K_T, n + 1) of every hypothesis of every type."""
+    ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
+    a = ((prob.K @ prob.R)[:, None] @ ray[..., None])[..., 0]  # C x n x 3: K R K^-1 x
+    cK = (prob.K @ prob.t[..., None])[..., 0]  # C x 3
+    s_g = (ray * prob.n_g[:, None]).sum(-1)  # C x n
+    s_o = (ray * prob.n_obj[:, None]).sum(-1)
+
+    def static(p: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        Hx = a[:, None] + (p[:, :, None] * s[:, None, :])[..., None] * cK[:, None, None, :]
+        return _prefix(_row_costs(prob, Hx, prm))
+
+    M = prob.K @ hyp.B  # C x 3 x 2
+    g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
+    Hx = a[:, None] + s_o[:, None, :, None] * g[:, :, None, :]
+    dyn = _prefix(_row_costs(prob, Hx, prm) + prm.alpha_dyn * prob.rows)
+    sky = _prefix(_row_costs(prob, a[:, None], prm))
+    return [static(hyp.p_ground, s_g), static(hyp.p_object, s_o), dyn, sky]
+
+
+# ---------------------------------------------------------------------------------------------
+# The DP
+# ---------------------------------------------------------------------------------------------
+def _softmin(x: torch.Tensor, dim: int | tuple[int, ...], tau: float) -> torch.Tensor:
+    if tau == 0:
+        return x.amin(dim)
+    return -tau * torch.logsumexp(-x / tau, dim)
+
+
+def _softmin2(a: torch.Tensor, b: torch.Tensor, tau: float) -> torch.Tensor:
+    if tau == 0:
+        return torch.minimum(a, b)
+    return -tau * torch.logaddexp(-a / tau, -b / tau)
+
+
+def _structural_object(inv_p: torch.Tensor, q: torch.Tensor, inv_pp: torch.Tensor, inv_gp: torch.Tensor,
+                       prm: PriorParams) -> torch.Tensor:
+    """Ψ_str (C, X, 4') of an object stixel with inverse depth ``1 / inv_p`` (C, X, 1) above each predecessor type.
+
+    q: (C,) bottom-ray ratio (see :func:`height_over_ground`); inv_pp, inv_gp: (C, 4') the
+    predecessor's depth ``1/p`` (1 for non-objects) and reference-ground height ``1/p_g``.
+    Above ground/sky: gravity; above an object: min(gravity, ordering) (paper).
+    """
+    grav = gravity(inv_gp[:, None, :] - q[:, None, None] * inv_p, prm)
+    ordv = ordering_from_depths(inv_pp[:, None, :] - inv_p, prm)
+    return torch.where(_IS_OBJECT, torch.minimum(grav, ordv), grav)
+
+
+def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:
+    """Run the DP on every column of ``prob`` at once (see the module docstring).
+
+    Returns:
+        the optimal stixels of every column and the optimal energy (C,) — soft when ``cfg.tau > 0``.
+    """
+    dt = cfg.torch_dtype
+    prm = prm.as_tensors(dt)
+    tau_T = float(cfg.tau)
+    C, n = prob.num_columns, prob.num_cells
+    hyp = _hypotheses(prob, cfg)
+    P = _flow_prefix(prob, hyp, prm)  # per type: C x K_T x (n + 1)
+    p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
+
+    if prob.nll is not None:
+        sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
+        Lp = _prefix(sem.transpose(1, 2))  # C x 10 x (n + 1)
+        classes = [list(cs) for cs in TYPE_CLASSES]
+    else:
+        Lp = torch.zeros(C, 1, n + 1, dtype=dt)
+        classes = [[c] for c in _DEFAULT_CLASS]
+    cls_idx = [torch.tensor(cs) if prob.nll is not None else torch.tensor([0]) for cs in classes]
+    L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
+
+    # Bottom-edge ray ratio q_b = n_g.r / n_obj.r of every cell (for gravity / standing on ground).
+    ray_b = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v_edge[None, :])
+    q = (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)  # C x n
+
+    inf = torch.tensor(float("inf"), dtype=dt)
+    p_ref = 1.0 / prob.h_cam
+    # State index i = number of cells consumed. Index 0 is a virtual ground stixel at the camera height.
+    E = torch.full((C, n + 1, NUM_TYPES), float("inf"), dtype=dt)
+    E[:, 0, GROUND] = 0.0
+    EH = E.clone() if tau_T > 0 else E
+    pS = p_ref[:, None, None].expand(C, n + 1, NUM_TYPES).clone()
+    gS = pS.clone()
+    bpB = torch.zeros(C, n + 1, NUM_TYPES, dtype=torch.long)
+    bpK = torch.zeros_like(bpB)
+    bpH = torch.zeros_like(bpB)
+    bpC = torch.zeros_like(bpB)
+    tauS = torch.zeros(C, n + 1, NUM_TYPES, 2, dtype=dt)
+
+    Ks = [x.shape[1] for x in P]
+    ncs = [len(c) for c in classes]
+    MS = [torch.full((C, Ks[T], ncs[T]), float("inf"), dtype=dt) for T in range(NUM_TYPES)]
+    MH = [m.clone() for m in MS]
+    MB = [torch.zeros(C, Ks[T], ncs[T], dtype=torch.long) for T in range(NUM_TYPES)]
+    kbest = [torch.zeros(C, n, Ks[T] if T in (GROUND, STATIC_OBJECT) else 1, dtype=torch.long) for T in range(NUM_TYPES)]
+    p_rule = torch.zeros(C, n, NUM_TYPES, dtype=dt)
+    deg = prob.degenerate[:, None, None]
+    cols = torch.arange(C)
+    inv_pg = (1.0 / hyp.p_ground)[:, :, None]  # C x Kg x 1: ground heights of the hypotheses
+    inv_po = (1.0 / hyp.p_object)[:, :, None]  # C x Ko x 1: object distances
+    one = torch.ones((), dtype=dt)
+    # Writes go to row i + 1 of the state arrays; every read of iteration i is of rows <= i.
+    for i in range(n):
+        Ep, EpH, pp, gp = E[:, i], EH[:, i], pS[:, i], gS[:, i]
+        qi = q[:, i]
+        inv_gp = 1.0 / gp
+        inv_pp = torch.where(_IS_OBJECT, 1.0 / pp.clamp(min=p_min), one)
+        # Inverse depth of an object standing on the reference ground (or on the object below).
+        pr = torch.where(_IS_OBJECT, pp, qi[:, None] * gp).clamp(p_min, p_max)  # C x 4'
+        p_rule[:, i] = pr
+        st_rule = _structural_object((1.0 / pr)[:, None, :], qi, inv_pp, inv_gp, prm)  # C x 1 x 4'
+        dh_g = inv_gp[:, None, :] - inv_pg
+        st = [
+            prm.alpha_flat + prm.beta_flat * dh_g * dh_g,  # flat ground (paper Ψ_flat)
+            torch.where(deg, st_rule, _structural_object(inv_po, qi, inv_pp, inv_gp, prm)),
+            st_rule,
+            None,
+        ]
+        for T in range(NUM_TYPES):
+            candH = EpH[:, None, :] if st[T] is None else EpH[:, None, :] + st[T]
+            GH, kb = candH.min(-1)
+            kbest[T][:, i] = kb
+            cH = (GH - P[T][:, :, i])[..., None] - L[T][:, None, :, i]
+            upd = cH < MH[T]
+            torch.minimum(MH[T], cH, out=MH[T])
+            MB[T].masked_fill_(upd, i)
+            if tau_T > 0:
+                candS = Ep[:, None, :] if st[T] is None else Ep[:, None, :] + st[T]
+                GS = _softmin(candS, -1, tau_T) - P[T][:, :, i]
+                MS[T] = _softmin2(MS[T], GS[..., None] - L[T][:, None, :, i], tau_T)
+            # Segments ending at cell i: close them with the prefix sums at i + 1.
+            end = P[T][:, :, i + 1, None] + L[T][:, None, :, i + 1]
+            val, arg = (MH[T] + end).flatten(1).min(1)
+            EH[:, i + 1, T] = val + prm.beta_mc
+            if tau_T > 0:
+                E[:, i + 1, T] = _softmin((MS[T] + end).flatten(1), 1, tau_T) + prm.beta_mc
+            h_star, c_star = arg // ncs[T], arg % ncs[T]
+            b_star = MB[T].flatten(1).gather(1, arg[:, None])[:, 0]
+            kb_all = kbest[T][cols, b_star]  # C x K'
+            k_star = kb_all[cols, h_star] if kb_all.shape[1] > 1 else kb_all[:, 0]
+            g_pred = gS[cols, b_star, k_star]
+            if T == GROUND:
+                p_new = hyp.p_ground[cols, h_star]
+                g_new = p_new
+            elif T == STATIC_OBJECT:
+                p_new = torch.where(prob.degenerate, p_rule[cols, b_star, k_star], hyp.p_object[cols, h_star])
+                g_new = g_pred
+            elif T == DYNAMIC_OBJECT:
+                p_new = p_rule[cols, b_star, k_star]
+                g_new = g_pred
+                tauS[:, i + 1, T] = hyp.tau[cols, h_star]
+            else:
+                p_new = torch.zeros_like(g_pred)
+                g_new = g_pred
+            pS[:, i + 1, T] = p_new
+            gS[:, i + 1, T] = g_new
+            bpB[:, i + 1, T] = b_star
+            bpK[:, i + 1, T] = k_star
+            bpH[:, i + 1, T] = h_star
+            bpC[:, i + 1, T] = cls_idx[T][c_star] if prob.nll is not None else classes[T][0]
+
+    energy = _softmin(E[:, n], 1, tau_T)
+    return _backtrack(prob, E if tau_T == 0 else EH, pS, gS, tauS, bpB, bpK, bpC, energy)
+
+
+def _backtrack(prob: ColumnProblem, EH: torch.Tensor, pS, gS, tauS, bpB, bpK, bpC, energy) -> ColumnSolution:
+    """Follow the back-pointers of every column from the top cell down to the virtual start."""
+    C, n = prob.num_columns, prob.num_cells
+    cols = torch.arange(C)
+    cur_i = torch.full((C,), n, dtype=torch.long)
+    cur_T = EH[:, n].argmin(1)
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in ("col", "b", "t", "type", "cls", "p", "g", "tau", "cost")}
+    while bool((cur_i > 0).any()):
+        act = cur_i > 0
+        c, i, T = cols[act], cur_i[act], cur_T[act]
+        b, k = bpB[c, i, T], bpK[c, i, T]
+        out["col"].append(c)
+        out["b"].append(b)
+        out["t"].append(i - 1)
+        out["type"].append(T)
+        out["cls"].append(bpC[c, i, T])
+        out["p"].append(pS[c, i, T])
+        out["g"].append(gS[c, i, T])
+        out["tau"].append(tauS[c, i, T])
+        out["cost"].append(EH[c, i, T] - EH[c, b, k])
+        cur_i = cur_i.clone()
+        cur_T = cur_T.clone()
+        cur_i[act] = b
+        cur_T[act] = k
+    cat = {k: torch.cat(v) for k, v in out.items()}
+    order = torch.argsort(cat["col"] * (n + 1) + cat["b"])
+    cat = {k: v[order] for k, v in cat.items()}
+    return ColumnSolution(col=cat["col"], b=cat["b"], t=cat["t"], type=cat["type"], cls=cat["cls"],
+                          p=cat["p"], p_ground=cat["g"], tau=cat["tau"], cost=cat["cost"], energy=energy)
+
+
+# ---------------------------------------------------------------------------------------------
+# Frame-level API
+# ---------------------------------------------------------------------------------------------
+def _check_inputs(flow: torch.Tensor, cov: torch.Tensor, scores: torch.Tensor | None, name: str) -> None:
+    check_shape(flow, [2, "H", "W"], f"{name}flow")
+    check_finite(flow, f"{name}flow")
+    check_shape(cov, ["H", "W", 2, 2], f"{name}flow covariance")
+    check_same_size(flow, cov.permute(2, 3, 0, 1), f"{name}flow", f"{name}flow covariance")
+    check_finite(cov, f"{name}flow covariance")
+    det = cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] * cov[..., 1, 0]
+    if bool((cov[..., 0, 0] <= 0).any() or (det <= 0).any()):
+        raise InputError(f"{name}flow covariance: must be positive definite at every pixel")
+    if scores is not None:
+        if scores.dim() != 3 or scores.shape[0] != NUM_CLASSES:
+            raise InputError(f"{name}semantic scores: expected ({NUM_CLASSES}, H, W) class scores, got shape {tuple(scores.shape)}")
+        check_same_size(scores, flow, f"{name}semantic scores", f"{name}flow")
+        check_finite(scores, f"{name}semantic scores")
+        if bool((scores < 0).any()):
+            raise InputError(f"{name}semantic scores: must be non-negative pseudo-probabilities")
+
+
+def solve_batch(
+    flows: Sequence[torch.Tensor],
+    covs: Sequence[torch.Tensor],
+    scores: Sequence[torch.Tensor | None],
+    cameras: Sequence[Camera],
+    motions: Sequence[Motion],
+    prior: PriorParams,
+    cfg: SolverConfig,
+) -> list[StixelWorld]:
+    """Stixels of several frames of equal size, solved in one batch.
+
+    Args:
+        flows: per frame (2, H, W) flow current -> previous (pixels).
+        covs: per frame (H, W, 2, 2) flow covariance (pixels^2).
+        scores: per frame (10, H, W) class scores, or None (semantic mode ``none``: δ_L = 0).
+        cameras, motions: per frame; motion ``X_prev = R X_cur + t`` (metres).
+        prior, cfg: prior parameters and solver settings.
+
+    Returns:
+        one :class:`StixelWorld` per frame. A frame whose camera translation is below
+        ``cfg.min_translation`` is flagged ``degenerate_motion``: its depths come from the scene model.
+    """
+    cfg.validate()
+    if not flows:
+        raise InputError("solve_batch: no frames given")
+    if not (len(flows) == len(covs) == len(scores) == len(cameras) == len(motions)):
+        raise InputError("solve_batch: flows, covs, scores, cameras and motions must have one entry per frame")
+    for k, (f, c, s) in enumerate(zip(flows, covs, scores)):
+        _check_inputs(f, c, s, f"frame {k}: " if len(flows) > 1 else "")
+        check_same_size(f, flows[0], f"frame {k}: flow", "frame 0: flow")
+    if any(s is None for s in scores) and not all(s is None for s in scores):
+        raise InputError("solve_batch: semantic scores must be given for all frames or for none")
+    has_sem = scores[0] is not None
+    prob = prepare_columns(
+        torch.stack(list(flows)), torch.stack(list(covs)),
+        torch.stack(list(scores)) if has_sem else None, cameras, motions, cfg,
+    )
+    sol = solve_columns(prob, prior, cfg)
+    return _to_worlds(prob, sol, cameras, motions, cfg)
+
+
+def solve(
+    flow: torch.Tensor,
+    cov: torch.Tensor,
+    scores: torch.Tensor | None,
+    camera: Camera,
+    motion: Motion,
+    prior: PriorParams,
+    cfg: SolverConfig,
+) -> StixelWorld:
+    """Stixels of one frame; see :func:`solve_batch` for the arguments (without the frame lists)."""
+    return solve_batch([flow], [cov], [scores], [camera], [motion], prior, cfg)[0]
+
+
+def _to_worlds(prob: ColumnProblem, sol: ColumnSolution, cameras, motions, cfg: SolverConfig) -> list[StixelWorld]:
+    H, W = prob.image_size
+    r = cfg.cell_rows
+    frame = prob.frame[sol.col]
+    worlds = []
+    B = len(cameras)
+    C = prob.num_columns // B
+    for f in range(B):
+        m = frame == f
+        col = prob.column[sol.col[m]]
+        b, t = sol.b[m], sol.t[m]
+        typ, p, tau = sol.type[m], sol.p[m], sol.tau[m]
+        motion = torch.zeros(int(m.sum()), 3, dtype=torch.float64)
+        dyn = typ == DYNAMIC_OBJECT
+        if bool(dyn.any()):
+            Bm = ground_basis(cameras[f].ground_normal.double())
+            g = tau[dyn].double() @ Bm.T
+            Rm, tm = motions[f].R.double(), motions[f].t.double()
+            motion[dyn] = dynamic_motion(Rm.expand(g.shape[0], 3, 3), tm.expand_as(g), g, p[dyn].double())
+        flags: dict[str, Any] = {"degenerate_motion": bool(prob.degenerate[f * C])}
+        if flags["degenerate_motion"]:
+            flags["reason"] = (f"camera translation {motions[f].translation_norm:.3f} m < solver.min_translation "
+                               f"{cfg.min_translation} m: flow carries no depth; depths come from the scene model "
+                               "(ground at the camera height, objects standing on the ground or on the object below)")
+        worlds.append(StixelWorld(
+            column_width=cfg.column_width, image_size=(H, W), K=cameras[f].K.double(),
+            ground_normal=cameras[f].ground_normal.double(), column=col,
+            v_top=torch.clamp(H - (t + 1) * r, min=0), v_bottom=H - 1 - b * r,
+            type=typ, cls=sol.cls[m], inverse_depth=p.double(), motion=motion,
+            cost=sol.cost[m].double(), tau=tau.double(),
+            energy=sol.energy[f * C:(f + 1) * C].detach().double(), flags=flags,
+        ))
+    return worlds

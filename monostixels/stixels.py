@@ -1,0 +1,234 @@
+"""The result type: a multi-layer stixel world, its dense maps and its serialisation."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from monostixels._checks import InputError
+from monostixels.classes import CLASS_NAMES, SKY, TYPE_NAMES
+from monostixels.geometry import object_normals, pixel_rays
+
+__all__ = ["StixelWorld"]
+
+_TENSOR_FIELDS = ("column", "v_top", "v_bottom", "type", "cls", "inverse_depth", "motion", "cost", "tau")
+
+
+@dataclass
+class StixelWorld:
+    """Stixels of one frame: a flat table of N stixels, sorted by column, then bottom to top.
+
+    Convention: column ``c`` spans pixels ``u`` in ``[c w_s, min((c+1) w_s, W))``; rows are pixel
+    rows with ``v`` downward, ``v_top <= v_bottom``, both inclusive. A stixel lies on the plane
+    ``p n^T X = 1`` (``p`` = ``inverse_depth``, 1/metres): ground ``n = n_g``, objects ``n`` = the
+    column's horizontal viewing direction, sky ``p = 0``.
+
+    Attributes:
+        column_width: ``w_s`` in pixels.
+        image_size: ``(H, W)`` pixels.
+        K: intrinsics (3, 3). ground_normal: ``n_g`` (3,).
+        column, v_top, v_bottom, type, cls: (N,) int64.
+        inverse_depth: (N,) 1/metres. motion: (N, 3) metres, ``Δ`` of dynamic stixels (0 otherwise).
+        cost: (N,) energy of each stixel (data + prior terms). tau: (N, 2) ``(t̃x, t̃y)`` of dynamic stixels.
+        energy: (C,) optimal energy of every column.
+        flags: frame-level flags, e.g. ``{"degenerate_motion": True, "reason": ...}``.
+    """
+
+    column_width: int
+    image_size: tuple[int, int]
+    K: torch.Tensor
+    ground_normal: torch.Tensor
+    column: torch.Tensor
+    v_top: torch.Tensor
+    v_bottom: torch.Tensor
+    type: torch.Tensor
+    cls: torch.Tensor
+    inverse_depth: torch.Tensor
+    motion: torch.Tensor
+    cost: torch.Tensor
+    tau: torch.Tensor
+    energy: torch.Tensor
+    flags: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------------ derived quantities
+    def __len__(self) -> int:
+        return int(self.column.numel())
+
+    @property
+    def num_columns(self) -> int:
+        W = self.image_size[1]
+        return -(-W // self.column_width)
+
+    @property
+    def compactness(self) -> int:
+        """Number of values needed to represent the depth: 3 per stixel (paper, section Metric)."""
+        return 3 * len(self)
+
+    def normals(self) -> torch.Tensor:
+        """Plane normal (N, 3) of each stixel (ground: ``n_g``; objects: column direction)."""
+        K = self.K.double()
+        ng = self.ground_normal.double()
+        W = self.image_size[1]
+        u0 = self.column.double() * self.column_width
+        u1 = torch.clamp(u0 + self.column_width, max=W)
+        uc = (u0 + u1 - 1) / 2
+        n_obj = object_normals(K, ng, uc)
+        is_ground = (self.type == 0)[:, None]
+        return torch.where(is_ground, ng.expand_as(n_obj), n_obj)
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """Representative depth z (N,) of each stixel: at its bottom-centre pixel, inf for sky (metres)."""
+        H, W = self.image_size
+        u0 = self.column.double() * self.column_width
+        uc = (u0 + torch.clamp(u0 + self.column_width, max=W) - 1) / 2
+        v = torch.where(self.type == 0, self.v_bottom, (self.v_top + self.v_bottom) // 2).double()
+        ray = pixel_rays(self.K.double(), uc, v)
+        z = 1.0 / (self.inverse_depth.double() * (ray * self.normals()).sum(-1))
+        return torch.where(self.type == SKY, torch.full_like(z, float("inf")), z).float()
+
+    def depth_map(self) -> torch.Tensor:
+        """Dense depth z (H, W) in metres from ray-plane intersection per pixel.
+
+        Sky pixels are ``inf``; ground pixels above the horizon (the ray never meets the plane)
+        get a negative depth: both are invalid estimates that evaluation clamps.
+        """
+        H, W = self.image_size
+        idx = self.index_map()
+        K = self.K.double()
+        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+        ray = pixel_rays(K, u, v)  # H x W x 3
+        ng = self.ground_normal.double()
+        n_obj = object_normals(K, ng, u[0])  # W x 3: every pixel uses its own column direction
+        safe = idx.clamp(min=0)
+        typ = self.type[safe]
+        p = self.inverse_depth.double()[safe]
+        n = torch.where((typ == 0)[..., None], ng.expand(H, W, 3), n_obj[None].expand(H, W, 3))
+        z = 1.0 / (p * (ray * n).sum(-1))
+        z = torch.where(typ == SKY, torch.full_like(z, float("inf")), z)
+        z = torch.where(idx < 0, torch.full_like(z, float("nan")), z)
+        return z.float()
+
+    def index_map(self) -> torch.Tensor:
+        """Index (H, W) int64 of the stixel covering each pixel (-1 where none)."""
+        H, W = self.image_size
+        idx = torch.full((H, W), -1, dtype=torch.long)
+        for i in range(len(self)):  # N is small (a few thousand); each paints a rectangle
+            c = int(self.column[i])
+            u0, u1 = c * self.column_width, min((c + 1) * self.column_width, W)
+            idx[int(self.v_top[i]):int(self.v_bottom[i]) + 1, u0:u1] = i
+        return idx
+
+    def semantic_map(self) -> torch.Tensor:
+        """Class id (H, W) int64 of every pixel (255 where no stixel)."""
+        idx = self.index_map()
+        out = self.cls[idx.clamp(min=0)]
+        return torch.where(idx < 0, torch.full_like(out, 255), out)
+
+    def type_map(self) -> torch.Tensor:
+        """Stixel type (H, W) int64 of every pixel (-1 where no stixel)."""
+        idx = self.index_map()
+        out = self.type[idx.clamp(min=0)]
+        return torch.where(idx < 0, torch.full_like(out, -1), out)
+
+    def column_stixels(self, c: int) -> list[dict[str, Any]]:
+        """The stixels of column ``c`` bottom to top, as dicts (see :meth:`to_dict`)."""
+        return [s for s in self.to_dict()["stixels"] if s["column"] == c]
+
+    # ------------------------------------------------------------------ serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict: frame metadata and one entry per stixel."""
+        depth = self.depth
+        stixels = []
+        for i in range(len(self)):
+            stixels.append({
+                "column": int(self.column[i]),
+                "v_bottom": int(self.v_bottom[i]),
+                "v_top": int(self.v_top[i]),
+                "type": TYPE_NAMES[int(self.type[i])],
+                "class": CLASS_NAMES[int(self.cls[i])],
+                "inverse_depth": float(self.inverse_depth[i]),
+                "depth": float(depth[i]) if torch.isfinite(depth[i]) else None,
+                "motion": [float(x) for x in self.motion[i]],
+                "tau": [float(x) for x in self.tau[i]],
+                "cost": float(self.cost[i]),
+            })
+        return {
+            "format": "monostixels/1",
+            "column_width": self.column_width,
+            "image_size": list(self.image_size),
+            "K": self.K.double().tolist(),
+            "ground_normal": self.ground_normal.double().tolist(),
+            "energy": [float(e) for e in self.energy],
+            "flags": self.flags,
+            "compactness": self.compactness,
+            "stixels": stixels,
+        }
+
+    def save_json(self, path: str | Path) -> None:
+        """Write :meth:`to_dict` as JSON."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> "StixelWorld":
+        """Inverse of :meth:`to_dict`."""
+        if d.get("format") != "monostixels/1":
+            raise InputError(f"stixels: unknown format {d.get('format')!r}, expected 'monostixels/1'")
+        st = d["stixels"]
+        L = lambda k, dt=torch.long: torch.tensor([s[k] for s in st], dtype=dt)  # noqa: E731
+        return StixelWorld(
+            column_width=int(d["column_width"]),
+            image_size=(int(d["image_size"][0]), int(d["image_size"][1])),
+            K=torch.tensor(d["K"], dtype=torch.float64),
+            ground_normal=torch.tensor(d["ground_normal"], dtype=torch.float64),
+            column=L("column"), v_top=L("v_top"), v_bottom=L("v_bottom"),
+            type=torch.tensor([TYPE_NAMES.index(s["type"]) for s in st], dtype=torch.long),
+            cls=torch.tensor([CLASS_NAMES.index(s["class"]) for s in st], dtype=torch.long),
+            inverse_depth=L("inverse_depth", torch.float64),
+            motion=torch.tensor([s["motion"] for s in st], dtype=torch.float64).reshape(-1, 3),
+            cost=L("cost", torch.float64),
+            tau=torch.tensor([s["tau"] for s in st], dtype=torch.float64).reshape(-1, 2),
+            energy=torch.tensor(d["energy"], dtype=torch.float64),
+            flags=dict(d.get("flags", {})),
+        )
+
+    @staticmethod
+    def load_json(path: str | Path) -> "StixelWorld":
+        """Read a file written by :meth:`save_json`."""
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise InputError(f"stixels file {path}: cannot read ({e})") from e
+        return StixelWorld.from_dict(d)
+
+    def save_npz(self, path: str | Path) -> None:
+        """Write all fields as arrays to a ``.npz`` file (flags as a JSON string)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {k: getattr(self, k).detach().cpu().numpy() for k in _TENSOR_FIELDS}
+        np.savez(
+            path, column_width=self.column_width, image_size=np.array(self.image_size),
+            K=self.K.detach().cpu().numpy(), ground_normal=self.ground_normal.detach().cpu().numpy(),
+            energy=self.energy.detach().cpu().numpy(), flags=json.dumps(self.flags), **arrays,
+        )
+
+    @staticmethod
+    def load_npz(path: str | Path) -> "StixelWorld":
+        """Read a file written by :meth:`save_npz`."""
+        try:
+            z = np.load(Path(path), allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise InputError(f"stixels file {path}: cannot read ({e})") from e
+        t = {k: torch.from_numpy(z[k]) for k in _TENSOR_FIELDS}
+        return StixelWorld(
+            column_width=int(z["column_width"]), image_size=tuple(int(x) for x in z["image_size"]),
+            K=torch.from_numpy(z["K"]), ground_normal=torch.from_numpy(z["ground_normal"]),
+            energy=torch.from_numpy(z["energy"]), flags=json.loads(str(z["flags"])), **t,
+        )

@@ -1,0 +1,230 @@
+"""Flow backends, the flow covariance and the flow metrics (monostixels.inputs.flow / confidence / raft)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from monostixels._checks import InputError
+from monostixels.data.base import FramePair, GroundTruth
+from monostixels.geometry import Camera, intrinsics
+from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
+from monostixels.inputs.flow import estimate_flow, flow_metrics
+from monostixels.inputs.raft import OnnxRaft, RaftFlow, TorchRaft, build_raft, export_onnx, load_raft_weights, padded_size
+
+
+def _camera(H: int, W: int) -> Camera:
+    return Camera(K=intrinsics(0.9 * W, 0.85 * W, 0.47 * W, 0.52 * H))
+
+
+def _texture(H: int, W: int, seed: int = 0) -> torch.Tensor:
+    """Smooth random texture (3, H, W) in [0, 1] (sum of blurred noise octaves)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = np.zeros((H, W), np.float32)
+    for k, amp in ((3, 0.5), (7, 0.3), (15, 0.2)):
+        img += amp * cv2.GaussianBlur(rng.random((H, W)).astype(np.float32), (0, 0), k / 3.0)
+    img = (img - img.min()) / (img.max() - img.min())
+    return torch.from_numpy(img)[None].repeat(3, 1, 1)
+
+
+# --- covariance ---------------------------------------------------------------------------------
+
+
+def test_structure_tensor_covariance_edge_and_textureless():
+    H, W = 48, 64
+    img = torch.zeros(3, H, W)
+    img[:, :, 32:] = 1.0  # vertical edge at u = 31.5
+    p = ConfidenceParams(method="structure_tensor", noise=0.01, window_sigma=2.0, sigma_min=0.1, sigma_max=20.0)
+    cov = flow_covariance(img, p)
+    on_edge = cov[24, 31]
+    # Along the edge (v direction) the flow is unknown: the ceiling; across it (u) it is well known.
+    assert on_edge[1, 1] == pytest.approx(p.sigma_max**2, rel=1e-3)
+    assert float(on_edge[0, 0]) < 0.05 * p.sigma_max**2
+    assert abs(float(on_edge[0, 1])) < 1e-4
+    # Textureless: ceiling in every direction.
+    flat = cov[24, 5]
+    assert torch.allclose(flat, torch.eye(2) * p.sigma_max**2, rtol=1e-3)
+    # Positive definite everywhere, eigenvalues within [sigma_min^2, sigma_max^2].
+    ev = torch.linalg.eigvalsh(cov.double())
+    assert float(ev.min()) >= p.sigma_min**2 * (1 - 1e-4)
+    assert float(ev.max()) <= p.sigma_max**2 * (1 + 1e-4)
+
+
+def test_structure_tensor_covariance_matches_forstner_formula():
+    # A linear ramp I = g u has J = diag(g^2, 0) exactly (away from the border): C_uu = noise^2 / (N g^2).
+    H, W = 40, 80
+    g = 0.01  # intensity per pixel
+    u = torch.arange(W, dtype=torch.float32)
+    img = (g * u)[None, None].expand(3, H, W).clone()
+    p = ConfidenceParams(method="structure_tensor", noise=0.02, window_sigma=1.5, sigma_min=0.01, sigma_max=50.0)
+    cov = flow_covariance(img, p)
+    n_eff = 4 * math.pi * p.window_sigma**2
+    info = n_eff * g**2 / p.noise**2 + 1.0 / p.sigma_max**2
+    assert float(cov[20, 40, 0, 0]) == pytest.approx(1.0 / info, rel=1e-3)
+    assert float(cov[20, 40, 1, 1]) == pytest.approx(p.sigma_max**2, rel=1e-3)
+
+
+def test_constant_covariance_and_fb_inflation():
+    H, W = 20, 30
+    img = _texture(H, W)
+    p = ConfidenceParams(method="constant", sigma=0.7, sigma_min=0.1, sigma_max=10.0, fb_weight=2.0)
+    cov = flow_covariance(img, p)
+    assert torch.allclose(cov, 0.49 * torch.eye(2).expand(H, W, 2, 2))
+    err = torch.zeros(H, W)
+    err[3, 4] = 1.5
+    err[5, 6] = float("inf")
+    cov = flow_covariance(img, p, fb_error=err)
+    assert float(cov[3, 4, 0, 0]) == pytest.approx(0.49 + (2.0 * 1.5) ** 2, rel=1e-5)
+    assert float(cov[5, 6, 1, 1]) == pytest.approx(p.sigma_max**2, rel=1e-5)
+    assert float(cov[0, 0, 0, 0]) == pytest.approx(0.49, rel=1e-5)
+
+
+def test_fb_consistency_error():
+    H, W = 24, 32
+    fwd = torch.zeros(2, H, W)
+    fwd[0], fwd[1] = -2.0, 1.0
+    back = -fwd.clone()
+    err = fb_consistency_error(fwd, back)
+    assert float(err[5:15, 5:25].abs().max()) < 1e-5
+    # Leaving the image: unchecked (inf) at the left border where u - 2 < 0.
+    assert bool(torch.isinf(err[10, 0]))
+    err_bad = fb_consistency_error(fwd, torch.zeros(2, H, W))
+    assert float(err_bad[10, 10]) == pytest.approx(math.hypot(2.0, 1.0), rel=1e-5)
+
+
+# --- backends -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["deepflow", "dis"])
+def test_opencv_backends_direction(name):
+    # cur(x) = prev(x - d): the pixel x of the current image is at x - d in the previous one.
+    H, W = 96, 128
+    big = _texture(H + 20, W + 20, seed=1)
+    d = (3, 2)  # (du, dv) pixels
+    prev = big[:, 10:10 + H, 10:10 + W]
+    cur = big[:, 10 - d[1]:10 - d[1] + H, 10 - d[0]:10 - d[0] + W]
+    pair = FramePair(image=cur.contiguous(), image_prev=prev.contiguous(), camera=_camera(H, W), name="shift")
+    cfg = OmegaConf.create({"name": name, "confidence": "structure_tensor"})
+    res = estimate_flow(pair, cfg)
+    assert res.flow.shape == (2, H, W) and res.cov.shape == (H, W, 2, 2)
+    inner = res.flow[:, 15:-15, 15:-15]
+    assert float(inner[0].median()) == pytest.approx(-d[0], abs=0.25)
+    assert float(inner[1].median()) == pytest.approx(-d[1], abs=0.25)
+    assert res.backend == name and res.seconds > 0
+    assert float(torch.linalg.eigvalsh(res.cov.double()).min()) > 0
+
+
+def test_gt_backend_and_missing_gt():
+    H, W = 16, 20
+    img = _texture(H, W)
+    flow = torch.randn(2, H, W)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    valid[0, 0] = False
+    flow[:, 0, 0] = float("nan")  # NaN where there is no ground truth is fine
+    pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), gt=GroundTruth(flow=flow, flow_valid=valid), name="p")
+    res = estimate_flow(pair, OmegaConf.create({"name": "gt", "sigma": 0.5, "sigma_max": 20.0}))
+    assert torch.equal(res.flow[:, 1:, 1:], flow[:, 1:, 1:])
+    assert torch.allclose(res.cov[3, 4], 0.25 * torch.eye(2))
+    assert float(res.flow[0, 0, 0]) == 0.0 and float(res.cov[0, 0, 0, 0]) == pytest.approx(400.0)
+    bad = FramePair(image=img, image_prev=img, camera=_camera(H, W), name="p", meta={"source": "kitti_raw"})
+    with pytest.raises(InputError, match="kitti_raw"):
+        estimate_flow(bad, OmegaConf.create({"name": "gt", "sigma": 0.5}))
+    nan_flow = torch.randn(2, H, W)
+    nan_flow[1, 5, 5] = float("nan")
+    nan_pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), gt=GroundTruth(flow=nan_flow), name="p")
+    with pytest.raises(InputError, match="non-finite"):
+        estimate_flow(nan_pair, OmegaConf.create({"name": "gt", "sigma": 0.5}))
+
+
+def test_bad_inputs():
+    H, W = 16, 20
+    img = _texture(H, W)
+    pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), name="p")
+    with pytest.raises(InputError, match="flow.name"):
+        estimate_flow(pair, OmegaConf.create({"name": "farneback"}))
+    with pytest.raises(InputError, match="flow.preset"):
+        estimate_flow(pair, OmegaConf.create({"name": "dis", "preset": "turbo"}))
+    with pytest.raises(InputError, match="confidence"):
+        estimate_flow(pair, OmegaConf.create({"name": "dis", "confidence": "magic"}))
+    with pytest.raises(InputError, match="shape"):
+        flow_metrics(torch.zeros(3, H, W), torch.zeros(2, H, W))
+    nan = torch.zeros(2, H, W)
+    nan[0, 1, 1] = float("nan")
+    with pytest.raises(InputError, match="non-finite"):
+        flow_metrics(nan, torch.zeros(2, H, W))
+
+
+# --- RAFT -----------------------------------------------------------------------------------------
+
+
+def test_raft_padded_size():
+    assert padded_size(375, 1242) == (376, 1248)
+    assert padded_size(100, 50) == (128, 128)
+    assert padded_size(128, 160) == (128, 160)
+
+
+def test_raft_missing_and_wrong_weights(tmp_path):
+    missing = tmp_path / "nope.pt"
+    with pytest.raises(InputError, match="nope.pt"):
+        load_raft_weights(missing)
+    H, W = 16, 20
+    img = _texture(H, W)
+    pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), name="p")
+    with pytest.raises(InputError, match="nope.pt"):
+        estimate_flow(pair, OmegaConf.create({"name": "raft", "weights": str(missing)}))
+    with pytest.raises(InputError, match="nope.onnx"):
+        estimate_flow(pair, OmegaConf.create({"name": "raft", "runtime": "onnx", "onnx": str(tmp_path / "nope.onnx")}))
+    wrong = tmp_path / "wrong.pt"
+    torch.save({"conv.weight": torch.zeros(3)}, wrong)
+    with pytest.raises(InputError, match="does not fit RAFT-small"):
+        load_raft_weights(wrong, "small")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="cannot read"):
+        load_raft_weights(garbage)
+
+
+def test_raft_torch_and_onnx_agree(tmp_path):
+    torch.manual_seed(0)
+    net = RaftFlow(build_raft("small"), num_flow_updates=3).eval()
+    H, W = 128, 160
+    path = export_onnx(net, tmp_path / "raft.onnx", H, W)
+    a, b = _texture(H, W, seed=2), _texture(H, W, seed=3)
+    f_torch = TorchRaft(net)(a, b)
+    f_onnx = OnnxRaft(path)(a, b)
+    assert f_torch.shape == (2, H, W)
+    assert float(f_torch.abs().max()) > 1e-2  # random weights still give a non-trivial output
+    assert torch.allclose(f_torch, f_onnx, atol=1e-3)
+    # The ONNX file is for one size: another size fails clearly.
+    with pytest.raises(InputError, match="exported for 128x160"):
+        OnnxRaft(path)(_texture(136, 160), _texture(136, 160))
+    # The state dict round-trips through load_raft_weights and the flow backend.
+    wpath = tmp_path / "w.pt"
+    torch.save({"model": net.raft.state_dict()}, wpath)
+    pair = FramePair(image=a, image_prev=b, camera=_camera(H, W), name="p")
+    res = estimate_flow(pair, OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 3}))
+    assert torch.allclose(res.flow, f_torch, atol=1e-4)
+    res_onnx = estimate_flow(pair, OmegaConf.create({"name": "raft", "runtime": "onnx", "onnx": str(path)}))
+    assert torch.allclose(res_onnx.flow, f_torch, atol=1e-3)
+
+
+# --- metrics --------------------------------------------------------------------------------------
+
+
+def test_flow_metrics_hand_computed():
+    gt = torch.zeros(2, 1, 4)
+    gt[0] = torch.tensor([[10.0, 100.0, 1.0, 50.0]])
+    est = gt.clone()
+    est[0, 0, 0] += 4.0   # err 4 > 3 and > 0.5: outlier
+    est[0, 0, 1] += 4.0   # err 4 > 3 but < 5 % of 100: inlier
+    est[1, 0, 2] += 2.0   # err 2 < 3: inlier
+    valid = torch.tensor([[True, True, True, False]])
+    est[0, 0, 3] += 30.0  # invalid pixel: ignored
+    m = flow_metrics(est, gt, valid)
+    assert m["epe"] == pytest.approx((4 + 4 + 2) / 3)
+    assert m["fl_all"] == pytest.approx(1 / 3)

@@ -1,0 +1,231 @@
+"""Camera motion backends (monostixels.inputs.motion): mono on analytic flow, poses files, errors."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from monostixels._checks import InputError
+from monostixels.data.base import FramePair
+from monostixels.geometry import Camera, Motion, homography, intrinsics, pixel_rays, rotation_yaw
+from monostixels.inputs.flow import FlowResult
+from monostixels.inputs.motion import estimate_motion, load_poses, motion_errors
+
+H, W = 375, 1242
+HEIGHT = 1.65
+
+
+def _rot(yaw_deg: float, pitch_deg: float, roll_deg: float) -> torch.Tensor:
+    p, r = math.radians(pitch_deg), math.radians(roll_deg)
+    Rx = torch.tensor([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]], dtype=torch.float64)
+    Rz = torch.tensor([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]], dtype=torch.float64)
+    return rotation_yaw(math.radians(yaw_deg)) @ Rx @ Rz
+
+
+def _camera() -> Camera:
+    # Asymmetric intrinsics (fx != fy, cx != W/2, cy != H/2) so a transposition cannot pass.
+    return Camera(K=intrinsics(720.0, 705.0, 600.0, 170.0), height=HEIGHT)
+
+
+def _scene_planes() -> list[tuple[torch.Tensor, float]]:
+    """Ground, left/right walls, a far wall: planes n^T X = d (current camera, metres)."""
+    return [
+        (torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), HEIGHT),   # ground, 1.65 m below
+        (torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64), 6.0),     # left wall x = -6
+        (torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), 8.0),      # right wall x = 8
+        (torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), 60.0),     # far wall z = 60
+    ]
+
+
+def _analytic_flow(cam: Camera, motion: Motion, noise_px: float = 0.0, seed: int = 0) -> torch.Tensor:
+    """Flow (2, H, W) current -> previous of the plane scene, via the stixel homographies."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(cam.K, u, v)
+    best = torch.full((H, W), math.inf, dtype=torch.float64)
+    flow = torch.zeros(2, H, W, dtype=torch.float64)
+    x = torch.stack([u, v, torch.ones_like(u)], -1)
+    for n, d in _scene_planes():
+        z = d / (ray @ n)  # depth along the unit-z ray
+        hit = (z > 0) & (z < best)
+        Hm = homography(cam.K, motion.R, motion.t, n, torch.tensor(1.0 / d, dtype=torch.float64))
+        y = x @ Hm.T
+        fu, fv = y[..., 0] / y[..., 2] - u, y[..., 1] / y[..., 2] - v
+        flow[0] = torch.where(hit, fu, flow[0])
+        flow[1] = torch.where(hit, fv, flow[1])
+        best = torch.where(hit, z, best)
+    if noise_px > 0:
+        gen = torch.Generator().manual_seed(seed)
+        flow = flow + noise_px * torch.randn(flow.shape, generator=gen, dtype=torch.float64)
+    return flow.float()
+
+
+def _pair_and_flow(motion: Motion, noise_px: float = 0.05, flow: torch.Tensor | None = None):
+    cam = _camera()
+    img = torch.zeros(3, H, W)
+    pair = FramePair(image=img, image_prev=img, camera=cam, name="planes")
+    f = _analytic_flow(cam, motion, noise_px) if flow is None else flow
+    cov = (0.25 * torch.eye(2)).expand(H, W, 2, 2).contiguous()
+    return pair, FlowResult(flow=f, cov=cov, seconds=0.0, backend="analytic")
+
+
+MONO = OmegaConf.create({"name": "mono"})
+
+
+def test_mono_recovers_known_motion_with_metric_scale():
+    gt = Motion(R=_rot(0.8, -0.3, 0.1), t=torch.tensor([0.06, 0.01, 0.95], dtype=torch.float64))
+    pair, fr = _pair_and_flow(gt)
+    est = estimate_motion(pair, fr, MONO)
+    assert est.motion is not None and not est.degenerate, est.reason
+    e = motion_errors(est.motion, gt)
+    assert e["rot_err_deg"] < 0.01
+    assert e["trans_dir_err_deg"] < 0.2
+    # Metric scale from the ground and the 1.65 m mounting height.
+    assert e["scale_rel_err"] < 0.01
+    assert est.inlier_ratio > 0.9
+
+
+def test_mono_ignores_a_moving_object_and_uses_semantics():
+    gt = Motion(R=_rot(-0.5, 0.2, 0.0), t=torch.tensor([-0.03, 0.0, 0.7], dtype=torch.float64))
+    cam = _camera()
+    flow = _analytic_flow(cam, gt, 0.05)
+    # A "vehicle" in the lower middle moving on its own: its flow is shifted by 6 px to the left.
+    flow[0, 200:330, 500:800] -= 6.0
+    pair, fr = _pair_and_flow(gt, flow=flow)
+    est = estimate_motion(pair, fr, MONO)
+    e = motion_errors(est.motion, gt)
+    assert e["rot_err_deg"] < 0.02 and e["trans_dir_err_deg"] < 0.5 and e["scale_rel_err"] < 0.02, est.reason
+    # With semantic scores marking it as a vehicle (class 6) and the rest as road (class 0).
+    sem = torch.zeros(10, H, W)
+    sem[0] = 1.0
+    sem[0, 200:330, 500:800] = 0.0
+    sem[6, 200:330, 500:800] = 1.0
+    est_s = estimate_motion(pair, fr, MONO, semantic=sem)
+    e_s = motion_errors(est_s.motion, gt)
+    assert e_s["rot_err_deg"] < 0.02 and e_s["trans_dir_err_deg"] < 0.5 and e_s["scale_rel_err"] < 0.02, est_s.reason
+
+
+def test_mono_flags_pure_rotation_and_standing_still():
+    R = _rot(1.0, 0.4, 0.0)
+    gt = Motion(R=R, t=torch.zeros(3, dtype=torch.float64))
+    pair, fr = _pair_and_flow(gt, noise_px=0.05)
+    est = estimate_motion(pair, fr, MONO)
+    assert est.degenerate and "pure rotation" in est.reason
+    assert est.motion is not None and float(est.motion.t.abs().max()) == 0.0
+    assert motion_errors(est.motion, gt)["rot_err_deg"] < 0.01
+    still = Motion(R=torch.eye(3, dtype=torch.float64), t=torch.zeros(3, dtype=torch.float64))
+    pair, fr = _pair_and_flow(still, noise_px=0.1)
+    est = estimate_motion(pair, fr, MONO)
+    assert est.degenerate and "standing still" in est.reason
+
+
+def test_mono_bad_flow():
+    gt = Motion(R=torch.eye(3, dtype=torch.float64), t=torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    pair, fr = _pair_and_flow(gt, noise_px=0.0)
+    fr.flow[0, 10, 10] = float("nan")
+    with pytest.raises(InputError, match="non-finite"):
+        estimate_motion(pair, fr, MONO)
+    fr.flow = torch.zeros(2, 10, 10)
+    with pytest.raises(InputError, match="flow"):
+        estimate_motion(pair, fr, MONO)
+    with pytest.raises(InputError, match="motion.name"):
+        estimate_motion(pair, fr, OmegaConf.create({"name": "imu"}))
+
+
+def test_motion_errors_hand_computed():
+    a = Motion(R=rotation_yaw(math.radians(1.0)), t=torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64))
+    b = Motion(R=torch.eye(3, dtype=torch.float64), t=torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    e = motion_errors(a, b)
+    assert e["rot_err_deg"] == pytest.approx(1.0, rel=1e-9)
+    assert e["trans_dir_err_deg"] == pytest.approx(90.0)
+    assert e["scale_rel_err"] == pytest.approx(1.0)
+    assert motion_errors(b, b)["rot_err_deg"] == pytest.approx(0.0, abs=1e-9)
+
+
+def _pose(R: np.ndarray, c: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, c
+    return T
+
+
+@pytest.mark.parametrize("numbered", [False, True])
+def test_file_backend(tmp_path, numbered):
+    R1 = rotation_yaw(math.radians(2.0)).numpy()
+    poses = [_pose(np.eye(3), np.zeros(3)), _pose(np.eye(3), np.array([0.0, 0.0, 1.0])), _pose(R1, np.array([0.1, 0.0, 2.0]))]
+    lines = []
+    for i, T in enumerate(poses):
+        nums = " ".join(f"{x:.9e}" for x in T[:3].ravel())
+        lines.append(f"{i + 100:010d} {nums}" if numbered else nums)
+    path = tmp_path / "poses.txt"
+    path.write_text("\n".join(lines) + "\n")
+    base = 100 if numbered else 0
+    assert sorted(load_poses(path)) == [base, base + 1, base + 2]
+    img = torch.zeros(3, 8, 8)
+    cam = Camera(K=intrinsics(10.0, 10.0, 4.0, 4.0))
+    pair = FramePair(image=img, image_prev=img, camera=cam, name="f", meta={"frame_index": base + 2, "frame_index_prev": base + 1})
+    est = estimate_motion(pair, None, OmegaConf.create({"name": "file", "path": str(path)}))
+    # X_prev = T_w_prev^-1 T_w_cur X_cur: prev camera at z = 1, current at (0.1, 0, 2) yawed 2 deg.
+    assert torch.allclose(est.motion.R, torch.from_numpy(R1), atol=1e-8)
+    assert torch.allclose(est.motion.t, torch.tensor([0.1, 0.0, 1.0], dtype=torch.float64), atol=1e-8)
+    # A camera offset (KITTI camera 2 vs camera 0): t' = t + (I - R) o.
+    est_o = estimate_motion(pair, None, OmegaConf.create({"name": "file", "path": str(path), "offset": [0.5, 0.0, 0.0]}))
+    want = torch.tensor([0.1, 0.0, 1.0], dtype=torch.float64) + (torch.eye(3, dtype=torch.float64) - torch.from_numpy(R1)) @ torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(est_o.motion.t, want, atol=1e-8)
+    with pytest.raises(InputError, match="no pose for frame 7"):
+        estimate_motion(FramePair(image=img, image_prev=img, camera=cam, meta={"frame_index": 7, "frame_index_prev": base}),
+                        None, OmegaConf.create({"name": "file", "path": str(path)}))
+    with pytest.raises(InputError, match="frame_index"):
+        estimate_motion(FramePair(image=img, image_prev=img, camera=cam), None, OmegaConf.create({"name": "file", "path": str(path)}))
+    with pytest.raises(InputError, match="not found"):
+        estimate_motion(pair, None, OmegaConf.create({"name": "file", "path": str(tmp_path / "missing.txt")}))
+    bad = tmp_path / "bad.txt"
+    bad.write_text("1 2 3\n")
+    with pytest.raises(InputError, match="expected 12 numbers"):
+        load_poses(bad)
+
+
+def test_gt_backend_requires_motion():
+    img = torch.zeros(3, 8, 8)
+    cam = Camera(K=intrinsics(10.0, 10.0, 4.0, 4.0))
+    with pytest.raises(InputError, match="ground-truth camera motion"):
+        estimate_motion(FramePair(image=img, image_prev=img, camera=cam, name="x"), None, OmegaConf.create({"name": "gt"}))
+    m = Motion(R=torch.eye(3, dtype=torch.float64), t=torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    est = estimate_motion(FramePair(image=img, image_prev=img, camera=cam, motion=m), None, OmegaConf.create({"name": "gt"}))
+    assert est.motion is m and not est.degenerate
+
+
+@pytest.mark.slow
+def test_mono_on_real_kitti_frames():
+    """Real KITTI raw frames: rotation and scale against the poses (translation direction: see report)."""
+    from pathlib import Path
+
+    import cv2
+
+    root = Path(__file__).parents[2] / "shared" / "data" / "kitti_raw" / "2011_09_30"
+    if not root.is_dir():
+        pytest.skip(f"KITTI raw sample not found at {root} (shared development data)")
+    drive = root / "2011_09_30_drive_0028_sync"
+    P = None
+    for line in (root / "calib_cam_to_cam.txt").read_text().splitlines():
+        if line.startswith("P_rect_02:"):
+            P = np.array([float(x) for x in line.split()[1:]]).reshape(3, 4)
+    cam = Camera(K=torch.from_numpy(P[:, :3].copy()), height=HEIGHT)
+
+    def rgb(path: Path) -> torch.Tensor:
+        return torch.from_numpy(cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)).permute(2, 0, 1).float() / 255.0
+
+    from monostixels.inputs.flow import estimate_flow
+    from monostixels.inputs.motion import relative_motion
+
+    poses = load_poses(drive / "poses_cam0.txt")
+    i = 1114
+    cur, prev = drive / "image_02" / "data" / f"{i:010d}.jpg", drive / "image_02" / "data" / f"{i - 1:010d}.jpg"
+    gt = relative_motion(poses[i], poses[i - 1], np.array([P[0, 3] / P[0, 0], 0.0, 0.0]))
+    pair = FramePair(image=rgb(cur), image_prev=rgb(prev), camera=cam, name=str(i))
+    fr = estimate_flow(pair, OmegaConf.create({"name": "dis", "preset": "medium"}))
+    est = estimate_motion(pair, fr, MONO)
+    e = motion_errors(est.motion, gt)
+    assert e["rot_err_deg"] < 0.1, est.reason
+    assert e["scale_rel_err"] < 0.1, est.reason

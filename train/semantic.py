@@ -1,0 +1,534 @@
+"""Train the FCN-8s semantic net on synthetic renders, validate per epoch, export to ONNX.
+
+Run from the repository root (config: ``conf/train_semantic.yaml``; any key can be overridden)::
+
+    nice -n 10 python -m train.semantic                       # train + validate + export
+    nice -n 10 python -m train.semantic resume=true           # continue from <run_dir>/last.pt
+    python -m train.semantic train.epochs=0 resume=true       # evaluate + export the best checkpoint
+
+Data: frames of the built-in synthetic benchmark (``monostixels.data.synthetic.render_pair``),
+scene seed = source seed x 100_000 + frame. Training uses source seeds >= 10 with domain
+randomisation: the renderer's appearance randomisation (textures, colours, lighting, via
+``appearance_seed``) on a fraction of the frames, plus photometric augmentation here (brightness,
+contrast, saturation, colour cast, gamma, blur, noise) and geometric augmentation (scale jitter,
+random crops, horizontal flips), so the net learns the classes, not a lookup of our textures.
+Validation: ``val_frames`` frames of source seed 9 (never trained on), default appearance, mIoU
+per epoch. Evaluation seeds 0-2 are never touched.
+
+Outputs (``run_dir``): ``last.pt`` (resume state), ``best.pt`` (best validation mIoU),
+``history.json`` (loss and mIoU per epoch), ``result.json`` (final validation of the exported ONNX
+model through ``monostixels.inputs.semantic``, per-class IoU, the exact command).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import hydra
+import numpy as np
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.data.base import FramePair
+from monostixels.geometry import Camera
+from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_vgg16_backbone, save_fcn8s
+from monostixels.inputs.semantic import confusion_matrix, estimate_semantics, iou_from_confusion
+
+__all__ = [
+    "SEED_STRIDE",
+    "scene_seed",
+    "SyntheticSegmentation",
+    "augment",
+    "build_model",
+    "train_steps",
+    "Schedule",
+    "evaluate",
+    "main",
+]
+
+logger = logging.getLogger("train.semantic")
+
+#: Scene seed of frame i of source seed s is s * SEED_STRIDE + i (monostixels.data.synthetic).
+SEED_STRIDE = 100_000
+#: Name of the Hydra config (conf/train_semantic.yaml).
+CONFIG_NAME = "train_semantic"
+
+
+def scene_seed(source_seed: int, frame: int) -> int:
+    """Scene seed of ``frame`` of the synthetic source with seed ``source_seed``."""
+    return int(source_seed) * SEED_STRIDE + int(frame)
+
+
+def _default_render(seed: int, scale: float, appearance_seed: int | None) -> tuple[np.ndarray, np.ndarray]:
+    from monostixels.data.synthetic import render_pair  # written alongside; imported when needed
+
+    pair = render_pair(seed, scale=scale, appearance_seed=appearance_seed)
+    if pair.gt.labels is None:
+        raise RuntimeError(f"render_pair({seed}) returned no labels")
+    img = (pair.image.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return img, pair.gt.labels.numpy().astype(np.uint8)
+
+
+class SyntheticSegmentation(Dataset):
+    """(image, labels) of synthetic frames, cached as PNG files; missing ones are rendered.
+
+    Args:
+        items: (scene seed, appearance seed or None) per sample.
+        cache: cache folder (created).
+        scale: render scale.
+        transform: optional ``(image, labels, index) -> (image, labels)`` (augmentation).
+        render: ``(seed, scale, appearance_seed) -> (uint8 (H, W, 3) RGB, uint8 (H, W) labels)``.
+
+    Returns per item:
+        image (3, H, W) float32 RGB [0, 1], labels (H, W) int64 (``IGNORE_LABEL`` = unknown).
+    """
+
+    def __init__(
+        self,
+        items: list[tuple[int, int | None]],
+        *,
+        cache: str | Path,
+        scale: float,
+        transform: Callable[[torch.Tensor, torch.Tensor, int], tuple[torch.Tensor, torch.Tensor]] | None = None,
+        render: Callable[[int, float, int | None], tuple[np.ndarray, np.ndarray]] = _default_render,
+    ) -> None:
+        self.items = list(items)
+        self.cache = Path(cache) / f"scale{scale:g}"
+        self.cache.mkdir(parents=True, exist_ok=True)
+        self.scale = float(scale)
+        self.transform = transform
+        self.render = render
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _paths(self, i: int) -> tuple[Path, Path]:
+        seed, app = self.items[i]
+        stem = f"{seed}_{'default' if app is None else app}"
+        return self.cache / f"{stem}.png", self.cache / f"{stem}_labels.png"
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """uint8 (H, W, 3) RGB and uint8 (H, W) labels of item ``i`` (rendered if not cached)."""
+        img_path, lab_path = self._paths(i)
+        if img_path.is_file() and lab_path.is_file():
+            bgr = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
+            lab = cv2.imread(str(lab_path), cv2.IMREAD_UNCHANGED)
+            if bgr is not None and lab is not None:
+                return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), lab
+        seed, app = self.items[i]
+        img, lab = self.render(seed, self.scale, app)
+        # Write then rename, so a reader never sees half a file (loader workers run in parallel).
+        for path, arr in ((img_path, cv2.cvtColor(img, cv2.COLOR_RGB2BGR)), (lab_path, lab)):
+            tmp = path.with_name(f".{path.stem}.{os.getpid()}.png")
+            cv2.imwrite(str(tmp), arr)
+            tmp.replace(path)
+        return img, lab
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        img, lab = self.load(i)
+        image = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255.0
+        labels = torch.from_numpy(lab.astype(np.int64))
+        if self.transform is not None:
+            image, labels = self.transform(image, labels, i)
+        return image, labels
+
+
+def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
+    return lo + (hi - lo) * float(torch.rand((), generator=g))
+
+
+def augment(image: torch.Tensor, labels: torch.Tensor, g: torch.Generator, aug: DictConfig | dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """Geometric and photometric augmentation of one training sample.
+
+    Args:
+        image: (3, H, W) RGB [0, 1].
+        labels: (H, W) int64 class ids.
+        g: random generator.
+        aug: the ``augment`` config (see conf/train_semantic.yaml).
+
+    Returns:
+        (3, h, w) augmented image and (h, w) labels, (h, w) = ``aug.crop``; padded areas are
+        ``IGNORE_LABEL``.
+    """
+    # Scale jitter (labels: nearest neighbour, never interpolated).
+    s = _uniform(g, *aug["scale_jitter"])
+    H, W = image.shape[-2:]
+    size = (max(8, round(H * s)), max(8, round(W * s)))
+    image = F.interpolate(image[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)[0]
+    labels = F.interpolate(labels[None, None].float(), size=size, mode="nearest")[0, 0].long()
+    # Random crop, padding with ignore where the image is smaller than the crop.
+    ch, cw = int(aug["crop"][0]), int(aug["crop"][1])
+    ph, pw = max(0, ch - size[0]), max(0, cw - size[1])
+    if ph or pw:
+        image = F.pad(image, (0, pw, 0, ph), value=0.5)
+        labels = F.pad(labels, (0, pw, 0, ph), value=IGNORE_LABEL)
+    y0 = int(torch.randint(0, image.shape[-2] - ch + 1, (), generator=g))
+    x0 = int(torch.randint(0, image.shape[-1] - cw + 1, (), generator=g))
+    image = image[:, y0:y0 + ch, x0:x0 + cw]
+    labels = labels[y0:y0 + ch, x0:x0 + cw]
+    if float(torch.rand((), generator=g)) < aug["hflip"]:
+        image, labels = image.flip(-1), labels.flip(-1)
+    # Photometric: brightness, contrast, saturation, colour cast, gamma.
+    image = image * (1 + _uniform(g, -aug["brightness"], aug["brightness"]))
+    mean = image.mean()
+    image = (image - mean) * (1 + _uniform(g, -aug["contrast"], aug["contrast"])) + mean
+    grey = image.mean(0, keepdim=True)
+    image = (image - grey) * (1 + _uniform(g, -aug["saturation"], aug["saturation"])) + grey
+    gains = 1 + (torch.rand(3, 1, 1, generator=g) * 2 - 1) * aug["channel_gain"]
+    image = (image * gains).clamp(0, 1)
+    image = image ** _uniform(g, *aug["gamma"])
+    if float(torch.rand((), generator=g)) < aug["blur_prob"]:
+        sigma = _uniform(g, *aug["blur_sigma"])
+        image = _gaussian_blur(image, sigma)
+    noise = _uniform(g, *aug["noise_std"])
+    image = image + noise * torch.randn(image.shape, generator=g)
+    return image.clamp(0, 1).contiguous(), labels.contiguous()
+
+
+def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of (3, H, W) with std ``sigma`` pixels (kernel +-3 sigma)."""
+    r = max(1, int(math.ceil(3 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=image.dtype)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = k / k.sum()
+    img = F.pad(image[:, None], (r, r, r, r), mode="replicate")
+    img = F.conv2d(img, k.view(1, 1, 1, -1))
+    img = F.conv2d(img, k.view(1, 1, -1, 1))
+    return img[:, 0]
+
+
+class _Augment:
+    """Picklable transform for loader workers: a generator per (epoch seed, item)."""
+
+    def __init__(self, aug: dict, seed: int) -> None:
+        self.aug, self.seed, self.epoch = aug, seed, 0
+
+    def __call__(self, image: torch.Tensor, labels: torch.Tensor, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch * 100_003 + i)
+        return augment(image, labels, g, self.aug)
+
+
+def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
+    """The network of the ``model`` config and the builder kwargs that rebuild it."""
+    arch = {
+        "num_classes": NUM_CLASSES,
+        "width_mult": float(mcfg["width_mult"]),
+        "batch_norm": bool(mcfg["batch_norm"]),
+        "fc_kernel": int(mcfg["fc_kernel"]),
+        "fc_channels": None if mcfg.get("fc_channels") is None else int(mcfg["fc_channels"]),
+        "dropout": float(mcfg["dropout"]),
+    }
+    model = fcn8s_vgg16(**arch)
+    if mcfg.get("vgg16_weights"):
+        load_vgg16_backbone(model, mcfg["vgg16_weights"])
+    return model, arch
+
+
+def class_weights(labels: list[torch.Tensor], power: float) -> torch.Tensor:
+    """(10,) loss weights ``(1 / frequency) ** power`` normalised to mean 1 over present classes.
+
+    Args:
+        labels: label maps (H, W) int64.
+        power: 0 = uniform; 0.5 = inverse square root (softens the rarity of poles, persons).
+    """
+    counts = torch.zeros(NUM_CLASSES, dtype=torch.float64)
+    for lab in labels:
+        valid = lab[lab != IGNORE_LABEL]
+        counts += torch.bincount(valid, minlength=NUM_CLASSES).double()[:NUM_CLASSES]
+    freq = counts / counts.sum().clamp_min(1)
+    w = torch.where(freq > 0, freq.clamp_min(1e-6) ** -power, torch.zeros_like(freq))
+    present = freq > 0
+    return (w / w[present].mean()).float()
+
+
+def train_steps(
+    model: FCN8s,
+    batches,
+    optimizer: torch.optim.Optimizer,
+    *,
+    schedule: "Schedule | None" = None,
+    weight: torch.Tensor | None = None,
+    progress: tqdm | None = None,
+) -> list[float]:
+    """Run one optimisation step per batch; returns the losses (cross-entropy, ignore 255).
+
+    With a ``schedule``, the learning rate is set from it before each step and the loop stops
+    when the schedule is done.
+    """
+    model.train()
+    losses: list[float] = []
+    for image, labels in batches:
+        if schedule is not None:
+            if schedule.done():
+                break
+            for group in optimizer.param_groups:
+                group["lr"] = schedule.lr()
+        logits = model(image)
+        loss = F.cross_entropy(logits, labels, weight=weight, ignore_index=IGNORE_LABEL)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if schedule is not None:
+            schedule.step += 1
+        losses.append(float(loss.detach()))
+        if progress is not None:
+            progress.update(1)
+            progress.set_postfix(loss=f"{losses[-1]:.3f}", lr=f"{optimizer.param_groups[0]['lr']:.1e}")
+    return losses
+
+
+class Schedule:
+    """One-cycle learning rate (linear warm-up, cosine decay) over steps or wall time.
+
+    Progress is ``max(step / total_steps, seconds / time_limit_s)``: with a time limit, the whole
+    schedule (warm-up and annealing) fits into it even when the shared CPU is slower than
+    planned, and training ends when progress reaches 1.
+
+    Args:
+        max_lr: peak learning rate.
+        total_steps: optimisation steps of the full schedule.
+        time_limit_s: wall-time budget in seconds (None = steps only).
+        warmup: fraction of the schedule spent warming up from ``max_lr / 10``.
+        final_div: the last learning rate is ``max_lr / final_div``.
+    """
+
+    def __init__(self, max_lr: float, total_steps: int, *, time_limit_s: float | None = None,
+                 warmup: float = 0.1, final_div: float = 100.0) -> None:
+        self.max_lr, self.total_steps, self.time_limit_s = max_lr, max(1, total_steps), time_limit_s
+        self.warmup, self.final_div = warmup, final_div
+        self.step = 0
+        self.seconds_before = 0.0  # wall time of earlier (resumed) runs
+        self._t0 = time.monotonic()
+
+    def seconds(self) -> float:
+        return self.seconds_before + time.monotonic() - self._t0
+
+    def progress(self) -> float:
+        p = self.step / self.total_steps
+        if self.time_limit_s:
+            p = max(p, self.seconds() / float(self.time_limit_s))
+        return min(1.0, p)
+
+    def done(self) -> bool:
+        return self.progress() >= 1.0
+
+    def lr(self) -> float:
+        p = self.progress()
+        lo = self.max_lr / 10
+        if p < self.warmup:
+            return lo + (self.max_lr - lo) * p / self.warmup
+        q = (p - self.warmup) / max(1e-9, 1 - self.warmup)
+        end = self.max_lr / self.final_div
+        return end + 0.5 * (self.max_lr - end) * (1 + math.cos(math.pi * q))
+
+    def state_dict(self) -> dict[str, float]:
+        return {"step": self.step, "seconds": self.seconds()}
+
+    def load_state_dict(self, state: dict[str, float]) -> None:
+        self.step = int(state["step"])
+        self.seconds_before = float(state["seconds"])
+        self._t0 = time.monotonic()
+
+
+@torch.no_grad()
+def evaluate(predict: Callable[[torch.Tensor], torch.Tensor], data: Dataset, desc: str = "val") -> tuple[float, dict[str, float]]:
+    """mIoU of ``predict`` ((3, H, W) -> (H, W) class ids) over ``data``.
+
+    Returns:
+        ``(miou, per-class IoU)`` from the confusion matrix accumulated over all frames.
+    """
+    conf = torch.zeros(NUM_CLASSES, NUM_CLASSES, dtype=torch.int64)
+    for i in tqdm(range(len(data)), desc=desc, leave=False):
+        image, labels = data[i]
+        conf += confusion_matrix(predict(image), labels)
+    return iou_from_confusion(conf)
+
+
+def _torch_predict(model: FCN8s) -> Callable[[torch.Tensor], torch.Tensor]:
+    def predict(image: torch.Tensor) -> torch.Tensor:
+        model.eval()
+        return model(image[None])[0].argmax(0)
+    return predict
+
+
+def _items(cfg: DictConfig) -> tuple[list[tuple[int, int | None]], list[tuple[int, int | None]]]:
+    d = cfg.data
+    train: list[tuple[int, int | None]] = []
+    for s in d.train_source_seeds:
+        if int(s) == int(d.val_source_seed) or int(s) < 10:
+            raise ValueError(f"data.train_source_seeds: {s} is reserved (validation {d.val_source_seed}, evaluation < 10)")
+        for i in range(int(d.frames_per_seed)):
+            seed = scene_seed(int(s), i)
+            # Every other frame with a randomised appearance (textures, colours, lighting).
+            app = None if d.appearance_offset is None or i % 2 == 0 else int(d.appearance_offset) + seed
+            train.append((seed, app))
+    val = [(scene_seed(int(d.val_source_seed), i), None) for i in range(int(d.val_frames))]
+    return train, val
+
+
+def _command() -> str:
+    return "nice -n 10 python -m train.semantic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def prerender(cfg: DictConfig) -> None:
+    """Fill the cache (validation frames first, then training frames) without training."""
+    train_items, val_items = _items(cfg)
+    sets = [
+        SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.scale)),
+        SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.final_eval_scale)),
+        SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale)),
+    ]
+    for data in sets:
+        for i in tqdm(range(len(data)), desc=f"render {data.cache.name}", mininterval=10):
+            data.load(i)
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Train (or resume), validate per epoch, export the best model, evaluate the export."""
+    torch.set_num_threads(int(cfg.train.threads))
+    torch.manual_seed(int(cfg.train.seed))
+    if cfg.get("prerender_only", False):
+        prerender(cfg)
+        return {"command": _command(), "prerendered": True}
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    train_items, val_items = _items(cfg)
+    aug = OmegaConf.to_container(cfg.augment, resolve=True)
+    transform = _Augment(aug, int(cfg.train.seed))
+    train_set = SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale), transform=transform)
+    val_set = SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.scale))
+
+    model, arch = build_model(cfg.model)
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay))
+    bs = int(cfg.train.batch_size)
+    steps_per_epoch = max(1, len(train_set) // bs)
+    epochs = int(cfg.train.epochs)
+    total = max(1, epochs * steps_per_epoch)
+    schedule = Schedule(float(cfg.train.lr), total, time_limit_s=cfg.train.time_limit_s)
+    state: dict[str, Any] = {"epoch": 0, "best_miou": -1.0, "history": [], "weight": None}
+    last = run_dir / "last.pt"
+    if cfg.resume and last.is_file():
+        ck = torch.load(last, map_location="cpu", weights_only=False)
+        model.load_state_dict(ck["model"])
+        optimizer.load_state_dict(ck["optimizer"])
+        schedule.load_state_dict(ck["schedule"])
+        state.update({k: ck[k] for k in ("epoch", "best_miou", "history", "weight")})
+        logger.info("resumed from %s at epoch %d (best mIoU %.4f)", last, state["epoch"], state["best_miou"])
+
+    if state["weight"] is None:
+        power = float(cfg.train.class_weight_power)
+        sample = [val_set.__class__(train_items[:: max(1, len(train_items) // 40)], cache=cfg.data.cache,
+                                    scale=float(cfg.data.scale))[j][1] for j in range(min(40, len(train_items)))]
+        state["weight"] = class_weights(sample, power).tolist()
+    weight = torch.tensor(state["weight"], dtype=torch.float32)
+    logger.info("class weights %s", dict(zip(CLASS_NAMES, [round(w, 3) for w in state["weight"]])))
+
+    for epoch in range(int(state["epoch"]), epochs):
+        if schedule.done():
+            break
+        transform.epoch = epoch
+        loader = DataLoader(
+            train_set, batch_size=bs, shuffle=True, drop_last=True, num_workers=int(cfg.data.workers),
+            generator=torch.Generator().manual_seed(int(cfg.train.seed) + epoch),
+            persistent_workers=False,
+        )
+        t0 = time.monotonic()
+        with tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{epochs}", mininterval=10) as bar:
+            losses = train_steps(model, loader, optimizer, schedule=schedule, weight=weight, progress=bar)
+        complete = len(losses) == steps_per_epoch or schedule.done()
+        miou, per_class = evaluate(_torch_predict(model), val_set)
+        entry = {"epoch": epoch + 1, "loss": float(np.mean(losses)) if losses else float("nan"),
+                 "val_miou": miou, "val_per_class_iou": per_class, "seconds": time.monotonic() - t0,
+                 "steps": len(losses), "step": schedule.step, "wall_s": schedule.seconds()}
+        state["history"].append(entry)
+        logger.info("epoch %d: loss %.4f, val mIoU %.4f (%s)", epoch + 1, entry["loss"], miou,
+                    ", ".join(f"{k} {v:.2f}" for k, v in per_class.items()))
+        if miou > state["best_miou"]:
+            state["best_miou"] = miou
+            torch.save({"arch": arch, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_miou": miou}, run_dir / "best.pt")
+        if complete:
+            state["epoch"] = epoch + 1
+        tmp = run_dir / "last.pt.tmp"
+        torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                    "schedule": schedule.state_dict(), **{k: state[k] for k in ("epoch", "best_miou", "history", "weight")}}, tmp)
+        tmp.replace(last)
+        (run_dir / "history.json").write_text(json.dumps(state["history"], indent=1))
+        if schedule.done():
+            logger.info("schedule done after %d steps, %.0f s", schedule.step, schedule.seconds())
+            break
+
+    result: dict[str, Any] = {"best_val_miou_torch": state["best_miou"], "history": state["history"]}
+    if cfg.export.enabled and (run_dir / "best.pt").is_file():
+        result.update(_export_and_evaluate(cfg, run_dir, val_items))
+    result["command"] = _command()
+    (run_dir / "result.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dict[str, Any]:
+    best = torch.load(run_dir / "best.pt", map_location="cpu", weights_only=True)
+    model = fcn8s_vgg16(**best["arch"])
+    model.load_state_dict(best["state_dict"])
+    model.eval()
+    meta = {
+        "classes": ",".join(CLASS_NAMES),
+        "input": "RGB float32 [0,1], (B,3,H,W), H and W multiples of 32; normalisation inside",
+        "scale": f"{float(cfg.data.scale):g}",
+        "arch": json.dumps(best["arch"]),
+        "epoch": str(best["epoch"]),
+        "val_miou_torch": f"{best['val_miou']:.4f}",
+        "command": _command(),
+        "data": f"synthetic source seeds {list(cfg.data.train_source_seeds)} x {cfg.data.frames_per_seed} frames",
+    }
+    onnx_path = export_onnx(model, cfg.export.onnx, sample_size=tuple(cfg.export.sample_size), metadata=meta)
+    pt_path = save_fcn8s(model, cfg.export.pt, arch=best["arch"], meta=meta, half=bool(cfg.export.half_pt))
+    # Final check of the shipped file through the backend the pipeline calls: validation frames
+    # rendered at `final_eval_scale` (1.0 = full KITTI size), the backend resizing them to the
+    # training scale and upsampling the scores back.
+    eval_scale = float(cfg.data.final_eval_scale)
+    sem_cfg = OmegaConf.create({"name": "fcn8s", "runtime": "onnx", "model": str(Path(onnx_path).resolve()),
+                                "scale": float(cfg.data.scale) / eval_scale})
+    val_set = SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=eval_scale)
+
+    def predict(image: torch.Tensor) -> torch.Tensor:
+        pair = FramePair(image=image, image_prev=image, camera=_dummy_camera(image))
+        return estimate_semantics(pair, sem_cfg).argmax(0)
+
+    miou, per_class = evaluate(predict, val_set, desc="val (onnx)")
+    logger.info("exported %s (%.1f MB) and %s; ONNX val mIoU %.4f", onnx_path,
+                Path(onnx_path).stat().st_size / 1e6, pt_path, miou)
+    return {"onnx": str(onnx_path), "pt": str(pt_path), "epoch": best["epoch"],
+            "val_miou_onnx": miou, "val_per_class_iou_onnx": per_class,
+            "val": f"source seed {cfg.data.val_source_seed}, frames 0..{int(cfg.data.val_frames) - 1}, "
+                   f"rendered at scale {eval_scale:g}, default appearance, backend scale {sem_cfg.scale:g}"}
+
+
+def _dummy_camera(image: torch.Tensor) -> Camera:
+    """A camera for wrapping a bare image into a FramePair (semantics ignore the camera)."""
+    H, W = image.shape[-2:]
+    K = torch.tensor([[float(W), 0.0, W / 2], [0.0, float(W), H / 2], [0.0, 0.0, 1.0]])
+    return Camera(K=K, height=1.65)
+
+
+@hydra.main(config_path="../conf", config_name=CONFIG_NAME, version_base=None)
+def main(cfg: DictConfig) -> None:
+    """Hydra entry point (``python -m train.semantic key=value ...``)."""
+    result = run(cfg)
+    print(json.dumps({k: v for k, v in result.items() if k != "history"}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
