@@ -3,7 +3,7 @@
 Reads the 15 frames of 2011_09_30_drive_0028_sync directly (camera 2, K from P_rect_02),
 runs a flow backend (DeepFlow by default) and the ``mono`` estimator on each consecutive pair,
 and compares with the ground-truth poses (poses_cam0.txt; camera 2 = camera 0 rotation, offset
-P_rect_02[0,3]/fx along x). Prints per-pair errors and the medians (SPEC section 4 ``motion``).
+K^-1 P_rect_02[:, 3]). Prints per-pair errors and the medians (SPEC section 4 ``motion``).
 
 Command (repository root):
     nice -n 10 python -m benchmarks.motion_kitti [--flow deepflow|dis] [--root ../shared/data/kitti_raw]
@@ -52,7 +52,7 @@ def main() -> None:
     root = Path(args.root)
     P = read_p_rect_02(root / DRIVE.split("/")[0] / "calib_cam_to_cam.txt")
     K = torch.from_numpy(P[:, :3].copy())
-    offset = np.array([P[0, 3] / P[0, 0], 0.0, 0.0])  # camera 2 centre in the camera-0 frame
+    offset = np.linalg.solve(P[:, :3], P[:, 3])  # X_cam2 = X_cam0 + offset (as data/kitti_raw.py)
     poses = load_poses(root / DRIVE / "poses_cam0.txt")
     frames = sorted((root / DRIVE / "image_02" / "data").glob("*.*"))
     flow_cfg = OmegaConf.load(CONF / "flow" / f"{args.flow}.yaml")

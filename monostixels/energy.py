@@ -15,6 +15,7 @@ from monostixels._checks import InputError
 
 __all__ = [
     "GRAVITY_TOLERANCE_M",
+    "load_config_group",
     "PriorParams",
     "flow_cost",
     "semantic_nll",
@@ -36,23 +37,29 @@ GRAVITY_TOLERANCE_M = 1e-4
 class PriorParams:
     """Prior parameters and data-term weights (config group ``prior``; units in conf/prior/default.yaml).
 
-    Fields may be floats or 0-d tensors (for learning them through the soft DP).
+    There are no defaults in code: :meth:`from_yaml` reads ``conf/prior/<name>.yaml``. Fields may
+    be floats or 0-d tensors (for learning them through the soft DP).
     """
 
-    beta_mc: Any = 8.0
-    alpha_grav_below: Any = 2.0
-    beta_grav_below: Any = 20.0
-    alpha_grav_above: Any = 1.0
-    beta_grav_above: Any = 10.0
-    alpha_ord: Any = 4.0
-    beta_ord: Any = 1.0
-    alpha_flat: Any = 0.0
-    beta_flat: Any = 200.0
-    alpha_F: Any = 6.0
-    alpha_L: Any = 4.0
-    delta_F: Any = 1.0
-    delta_L: Any = 1.0
-    alpha_dyn: Any = 0.0
+    beta_mc: Any
+    alpha_grav_below: Any
+    beta_grav_below: Any
+    alpha_grav_above: Any
+    beta_grav_above: Any
+    alpha_ord: Any
+    beta_ord: Any
+    alpha_flat: Any
+    beta_flat: Any
+    alpha_F: Any
+    alpha_L: Any
+    delta_F: Any
+    delta_L: Any
+    alpha_dyn: Any
+
+    @classmethod
+    def from_yaml(cls, name: str = "default", **overrides: float) -> "PriorParams":
+        """Parameters of ``conf/prior/<name>.yaml`` (as packaged), with keyword overrides."""
+        return cls.from_config({**load_config_group("prior", name), **overrides})
 
     @staticmethod
     def names() -> list[str]:
@@ -86,6 +93,18 @@ class PriorParams:
     def to_dict(self) -> dict[str, float]:
         """Plain floats, e.g. for writing a yaml file."""
         return {k: float(getattr(self, k)) for k in self.names()}
+
+
+def load_config_group(group: str, name: str) -> dict[str, Any]:
+    """The packaged config file ``conf/<group>/<name>.yaml`` as a plain dict."""
+    from importlib.resources import files
+
+    from omegaconf import OmegaConf
+
+    res = files("monostixels.conf").joinpath(group, f"{name}.yaml")
+    if not res.is_file():
+        raise InputError(f"config {group}={name}: no file conf/{group}/{name}.yaml")
+    return OmegaConf.to_container(OmegaConf.create(res.read_text()), resolve=True)  # type: ignore[return-value]
 
 
 def flow_cost(residual: torch.Tensor, cov_inv: torch.Tensor, logdet: torch.Tensor, alpha_F: Any) -> torch.Tensor:

@@ -102,19 +102,21 @@ class _Column:
     def sem_cost(self, cls: int, b: int, t: int) -> float:
         if self.prob.nll is None:
             return 0.0
-        total = 0.0
-        for j in range(b, t + 1):
-            nll = _f(self.prob.nll[self.c, j, cls])
-            total += min(_f(self.prm.alpha_L), nll) * _f(self.prob.rows[j]) * _f(self.prm.delta_L)
-        return total
+        key = ("L", cls)
+        if key not in self._cache:
+            self._cache[key] = [min(_f(self.prm.alpha_L), _f(self.prob.nll[self.c, j, cls])) * _f(self.prob.rows[j])
+                                * _f(self.prm.delta_L) for j in range(self.n)]
+        return sum(self._cache[key][b:t + 1])
 
     def n_hyp(self, T: int) -> int:
         return [len(self.p_ground), len(self.p_object), len(self.tau), 1][T]
 
     # -- priors --------------------------------------------------------------------------------
     def q(self, b: int) -> float:
-        ray = pixel_rays(self.K, self.prob.u[self.c].double(), self.prob.v_edge[b].double())
-        return float(ray @ self.n_g) / float(ray @ self.n_obj)
+        if ("q", b) not in self._cache:
+            ray = pixel_rays(self.K, self.prob.u[self.c].double(), self.prob.v_edge[b].double())
+            self._cache[("q", b)] = float(ray @ self.n_g) / float(ray @ self.n_obj)
+        return self._cache[("q", b)]
 
     def gravity(self, p: float, b: int, p_g: float) -> float:
         prm = self.prm
@@ -208,7 +210,11 @@ def column_energy(prob: ColumnProblem, c: int, prm: PriorParams, cfg: SolverConf
             hypothesis index (ignored for sky). Inverse depths follow from the labels and the
             structural rules exactly as in the solver.
     """
-    col = _Column(prob, c, prm, cfg)
+    return _segmentation_energy(_Column(prob, c, prm, cfg), segments)
+
+
+def _segmentation_energy(col: _Column, segments: list[tuple[int, int, int, int, int]]) -> float:
+    prm = col.prm
     k_prev, p_prev, g_prev = GROUND, 1.0 / col.h_cam, 1.0 / col.h_cam
     total = 0.0
     expect_b = 0
@@ -244,5 +250,5 @@ def exhaustive_column(prob: ColumnProblem, c: int, prm: PriorParams, cfg: Solver
             choices = [[(cls, h) for cls in col.classes[T] for h in range(col.n_hyp(T))] for T in types]
             for lab in itertools.product(*choices):
                 segments = [(b, t, T, cls, h) for (b, t), T, (cls, h) in zip(segs, types, lab)]
-                best = min(best, column_energy(prob, c, prm, cfg, segments))
+                best = min(best, _segmentation_energy(col, segments))
     return best

@@ -38,7 +38,7 @@ import torch
 
 from monostixels._checks import InputError, check_finite, check_same_size, check_shape
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
-from monostixels.energy import PriorParams, flow_cost, gravity, ordering_from_depths
+from monostixels.energy import PriorParams, flow_cost, gravity, load_config_group, ordering_from_depths
 from monostixels.geometry import (
     Camera,
     Motion,
@@ -65,24 +65,33 @@ _IS_OBJECT = torch.tensor([False, True, True, False])
 
 @dataclass
 class SolverConfig:
-    """Solver settings (config group ``solver``; see conf/solver/default.yaml for units)."""
+    """Solver settings (config group ``solver``; units in conf/solver/default.yaml).
 
-    column_width: int = 5
-    cell_rows: int = 3
-    hypothesis_stride: int = 1
-    min_depth: float = 0.5
-    max_depth: float = 300.0
-    tau: float = 0.0
-    dtype: str = "float32"
-    min_translation: float = 0.05
+    No defaults in code: :meth:`from_yaml` reads ``conf/solver/<name>.yaml``.
+    """
+
+    column_width: int
+    cell_rows: int
+    hypothesis_stride: int
+    min_depth: float
+    max_depth: float
+    tau: float
+    dtype: str
+    min_translation: float
+
+    @classmethod
+    def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
+        """Settings of ``conf/solver/<name>.yaml`` (as packaged), with keyword overrides."""
+        return cls.from_config({**load_config_group("solver", name), **overrides})
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "SolverConfig":
         """Build from the ``solver`` config node, checking every value."""
         names = {f.name for f in fields(cls)}
         unknown = set(cfg.keys()) - names
-        if unknown:
-            raise InputError(f"solver config: unknown keys {sorted(unknown)}")
+        missing = names - set(cfg.keys())
+        if unknown or missing:
+            raise InputError(f"solver config: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
         out = cls(**{k: cfg[k] for k in cfg.keys()})
         out.validate()
         return out
@@ -447,7 +456,7 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
             kbest[T][:, i] = kb
             cH = (GH - P[T][:, :, i])[..., None] - L[T][:, None, :, i]
             upd = cH < MH[T]
-            torch.minimum(MH[T], cH, out=MH[T])
+            MH[T] = torch.minimum(MH[T], cH)
             MB[T].masked_fill_(upd, i)
             if tau_T > 0:
                 candS = Ep[:, None, :] if st[T] is None else Ep[:, None, :] + st[T]

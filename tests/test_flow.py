@@ -119,6 +119,23 @@ def test_opencv_backends_direction(name):
     assert float(torch.linalg.eigvalsh(res.cov.double()).min()) > 0
 
 
+def test_fb_consistency_marks_pixels_that_leave_the_image():
+    H, W = 96, 128
+    big = _texture(H + 20, W + 20, seed=4)
+    prev = big[:, 10:10 + H, 10:10 + W].contiguous()
+    cur = big[:, 8:8 + H, 7:7 + W].contiguous()  # d = (3, 2): flow = (-3, -2)
+    pair = FramePair(image=cur, image_prev=prev, camera=_camera(H, W), name="shift")
+    base = {"name": "dis", "confidence": "structure_tensor", "sigma_max": 20.0}
+    plain = estimate_flow(pair, OmegaConf.create(base))
+    fb = estimate_flow(pair, OmegaConf.create({**base, "fb_consistency": True}))
+    # u + f_u < 0 for u < 3: the round trip cannot be checked -> the covariance ceiling.
+    assert torch.allclose(fb.cov[40:60, 0], 400.0 * torch.eye(2).expand(20, 2, 2), rtol=1e-3)
+    # Interior: consistent flow, covariance close to the structure-tensor one (< 0.5 px^2 added).
+    inner = (slice(20, -20), slice(20, -20))
+    added = (fb.cov[inner][..., 0, 0] - plain.cov[inner][..., 0, 0]).median()
+    assert 0.0 <= float(added) < 0.5
+
+
 def test_gt_backend_and_missing_gt():
     H, W = 16, 20
     img = _texture(H, W)

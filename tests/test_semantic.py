@@ -77,8 +77,13 @@ def _load_train_module():
 def test_backbone_state_dict_matches_torchvision(batch_norm: bool) -> None:
     from monostixels._torchvision import torchvision
 
-    tv = (torchvision.models.vgg16_bn if batch_norm else torchvision.models.vgg16)(weights=None)
-    ref = tv.features.state_dict()
+    if batch_norm:
+        # vgg16_bn().features is make_layers(cfgs["D"], batch_norm=True); building only the trunk
+        # skips the 120M-parameter classifier.
+        tv_features = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"], batch_norm=True)
+    else:
+        tv_features = torchvision.models.vgg16(weights=None).features
+    ref = tv_features.state_dict()
     # fc_channels small: only the backbone is compared (keeps the test light).
     model = fcn8s_vgg16(width_mult=1.0, batch_norm=batch_norm, fc_channels=8)
     own = model.backbone.state_dict()
@@ -88,7 +93,7 @@ def test_backbone_state_dict_matches_torchvision(batch_norm: bool) -> None:
         # Conv layers at torchvision's indices.
         assert [k for k in own if k.endswith(".weight")][:3] == ["0.weight", "2.weight", "5.weight"]
     model.backbone.load_state_dict(ref)  # strict: names and shapes fit
-    assert torch.equal(model.backbone[0].weight, tv.features[0].weight)
+    assert torch.equal(model.backbone[0].weight, tv_features[0].weight)
 
 
 def test_load_vgg16_backbone_from_file_reshapes_classifier(tmp_path: Path) -> None:

@@ -26,8 +26,8 @@ SEEDS = (0, 1, 2)
 #: Photometric bounds of the warping test (RGB in [0, 1], valid pixels, scale 0.5): the residual
 #: comes only from bilinear interpolation of the previous image between pixel centres (the
 #: texture is band-limited to periods >= 2 pixels, so this stays small).
-PHOTO_MEAN_BOUND = 0.02
-PHOTO_P95_BOUND = 0.06
+PHOTO_MEAN_BOUND = 0.01
+PHOTO_P95_BOUND = 0.03
 ROAD, SIDEWALK, TERRAIN, SKY = 0, 1, 2, 9
 H_CAM, KERB = 1.65, 0.15
 

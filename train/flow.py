@@ -40,7 +40,13 @@ __all__ = ["main", "render_pool", "sample_batch", "sequence_loss", "export"]
 
 
 def render_pool(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
-    """Render ``cfg.pairs`` synthetic pairs: (image_cur, image_prev (3, H, W), flow (2, H, W), valid (H, W))."""
+    """Render ``cfg.pairs`` synthetic pairs: (image_cur, image_prev (3, H, W), flow (2, H, W), valid (H, W)).
+
+    The pool is cached in ``run_dir`` (rendering is the slow part of a resume)."""
+    cache = Path(cfg.run_dir) / f"pool_s{cfg.source_seed}_n{cfg.pairs}_x{cfg.scale}_r{int(bool(cfg.randomise_appearance))}.pt"
+    if cache.is_file():
+        logger.info("training pairs from %s", cache)
+        return torch.load(cache, weights_only=True)
     pool = []
     for i in tqdm(range(int(cfg.pairs)), desc="render training pairs", leave=False):
         scene = int(cfg.source_seed) * SOURCE_SEED_STRIDE + i
@@ -48,6 +54,7 @@ def render_pool(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor, torch
         app = scene if (cfg.randomise_appearance and i % 2 == 1) else None
         p = render_pair(scene, scale=float(cfg.scale), appearance_seed=app)
         pool.append((p.image, p.image_prev, p.gt.flow, p.gt.flow_valid))
+    torch.save(pool, cache)
     return pool
 
 
@@ -122,6 +129,7 @@ def main(cfg: DictConfig) -> None:
         logger.info("resumed from %s at step %d", ckpt_path, step)
     gen = torch.Generator().manual_seed(int(cfg.seed) + step)
 
+    run_dir.mkdir(parents=True, exist_ok=True)
     crop_ok = crop[0] <= round(375 * float(cfg.scale)) and crop[1] <= round(1242 * float(cfg.scale))
     if not crop_ok:
         raise ValueError(f"crop {crop} larger than the rendered images at scale {cfg.scale}")

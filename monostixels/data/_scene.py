@@ -336,7 +336,7 @@ def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
                 continue
             depth = rng.uniform(8.0, 15.0)
             front = kerb + sw + terr + rng.uniform(0.0, 1.5)
-            height = rng.uniform(6.0, 22.0)
+            height = rng.uniform(5.0, 16.0)
             length = min(length, l_end - l)
             b.box(side * (front + depth / 2), l + length / 2, h_raised, (depth, height, length), 0.0,
                   BUILDING, STYLE_FACADE)
@@ -345,7 +345,7 @@ def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
     while e < GROUND_HALF_WIDTH_M:
         width = rng.uniform(10.0, 30.0)
         width = min(width, GROUND_HALF_WIDTH_M - e)
-        b.box(e + width / 2, l_end + 6.0, road.height, (width, rng.uniform(10.0, 28.0), 12.0),
+        b.box(e + width / 2, l_end + 6.0, road.height, (width, rng.uniform(6.0, 18.0), 12.0),
               0.0, BUILDING, STYLE_FACADE)
         e += width
 
@@ -404,7 +404,7 @@ def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
         for k in range(n_prec):
             v = speed + rng.uniform(-2.0, 2.0)
             lane_e = ego_e if k == 0 or not extra_lane else LANE_WIDTH_M
-            rng_l = (8.0, 30.0) if k == 0 else (10.0, 50.0)
+            rng_l = (7.0, 25.0) if k == 0 else (10.0, 50.0)
             add_vehicle(lane_e + rng.uniform(-0.3, 0.3), rng.uniform(*rng_l), 0.0, 0.0, v * dt, rng_l)
         if extra_lane:
             v = speed + rng.uniform(-4.0, 3.0)
@@ -413,7 +413,7 @@ def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
         n_onc = max(1, _count(rng, 1.5, density))
         for k in range(n_onc):
             v = rng.uniform(7.0, 14.0)
-            rng_l = (10.0, 35.0) if k == 0 else (10.0, 60.0)
+            rng_l = (8.0, 30.0) if k == 0 else (10.0, 60.0)
             add_vehicle(-LANE_WIDTH_M + rng.uniform(-0.3, 0.3), rng.uniform(*rng_l), math.pi, 0.0, -v * dt, rng_l)
         # Crossing traffic: a vehicle or a two-wheeler moving laterally.
         if rng.random() < min(1.0, 0.45 * density):

@@ -34,7 +34,7 @@ import kornia
 import torch
 import torch.nn.functional as F
 
-from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels._checks import InputError, check_finite, check_shape
 
 __all__ = [
     "ConfidenceParams",

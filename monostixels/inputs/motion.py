@@ -10,7 +10,7 @@ Backends (``cfg.name``):
 - ``file``: a KITTI-style poses file (``cfg.path``): per line either 12 numbers (the 3x4
   row-major ``T_w_cam``, camera to world, metres; line ``i`` = frame ``i``) or a frame number
   followed by the 12 numbers. Frames are ``pair.meta["frame_index"]`` (current) and
-  ``pair.meta["frame_index_prev"]``. ``cfg.offset`` (3,) is the position of the image camera
+  ``pair.meta["frame_index_prev"]`` (or ``"frame"`` / ``"frame_prev"``, as kitti_raw writes them). ``cfg.offset`` (3,) is the position of the image camera
   in the posed camera's frame when the two differ by a translation only (KITTI camera 2 vs the
   camera-0 poses: ``(P_rect_02[0,3] / fx, 0, 0)``, about 6 cm).
 - ``mono``: from the flow alone.
@@ -50,6 +50,7 @@ from monostixels.geometry import Motion
 
 __all__ = [
     "MOTION_BACKENDS",
+    "MIN_TRANSLATION_M",
     "MonoParams",
     "MotionEstimate",
     "estimate_motion",
@@ -62,6 +63,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 MOTION_BACKENDS = ("gt", "file", "mono")
+#: Below this camera translation (metres) a known motion (gt / file) counts as standing still:
+#: 1 mm moves a point 5 m away by ~0.15 px at KITTI focal length — no usable parallax.
+MIN_TRANSLATION_M = 1e-3
 #: Semantic class id of road (classes.CLASS_NAMES): the plane the mounting height refers to.
 _ROAD_CLASS = 0
 
@@ -140,7 +144,15 @@ def _gt_motion(pair: FramePair) -> MotionEstimate:
     if pair.motion is None:
         source = pair.meta.get("source", pair.name or "this data source")
         raise InputError(f"motion=gt: {source} has no ground-truth camera motion (pair.motion is None); use motion=file or motion=mono")
-    return MotionEstimate(pair.motion, pair.motion.translation_norm < 1e-9, "ok (ground truth)", 1.0)
+    return _known(pair.motion, "ground truth")
+
+
+def _known(motion: Motion, what: str) -> MotionEstimate:
+    """A known motion, flagged degenerate when it has no translation to speak of."""
+    tn = motion.translation_norm
+    if tn < MIN_TRANSLATION_M:
+        return MotionEstimate(motion, True, f"no translation ({what}): |t| = {tn:.2e} m < {MIN_TRANSLATION_M} m", 1.0)
+    return MotionEstimate(motion, False, f"ok ({what})", 1.0)
 
 
 @lru_cache(maxsize=8)
@@ -204,10 +216,15 @@ def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
     if path is None:
         raise InputError("motion.path: motion=file needs a poses file (motion.path=PATH)")
     poses = load_poses(path)
-    for key in ("frame_index", "frame_index_prev"):
-        if key not in pair.meta:
-            raise InputError(f"motion=file: frame pair {pair.name!r} has no meta[{key!r}] to look up in {str(path)!r}")
-    cur, prev = int(pair.meta["frame_index"]), int(pair.meta["frame_index_prev"])
+    # Our sources put raw frame numbers in meta: "frame_index"/"frame_index_prev", or (kitti_raw)
+    # "frame"/"frame_prev".
+    keys = next((k for k in (("frame_index", "frame_index_prev"), ("frame", "frame_prev")) if all(x in pair.meta for x in k)), None)
+    if keys is None:
+        raise InputError(
+            f"motion=file: frame pair {pair.name!r} has no meta['frame_index'] / ['frame_index_prev'] (or 'frame' / "
+            f"'frame_prev') to look up in {str(path)!r}"
+        )
+    cur, prev = int(pair.meta[keys[0]]), int(pair.meta[keys[1]])
     for f in (cur, prev):
         if f not in poses:
             raise InputError(f"motion.path: {str(path)!r} has no pose for frame {f} (frames {min(poses)}..{max(poses)})")
@@ -216,7 +233,7 @@ def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
     if off is not None and off.shape != (3,):
         raise InputError(f"motion.offset: expected 3 numbers (metres), got {list(offset)}")
     motion = relative_motion(poses[cur], poses[prev], off)
-    return MotionEstimate(motion, motion.translation_norm < 1e-9, f"ok (poses file, frames {cur} <- {prev})", 1.0)
+    return _known(motion, f"poses file, frames {cur} <- {prev}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -290,7 +307,7 @@ def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndar
     rn = r @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = np.where(rn > 1e-6, height / rn, np.inf)  # X = lam r on the ground n^T X = h
-    X = r * lam[:, None]
+    X = r * np.where(np.isfinite(lam), lam, 0.0)[:, None]
     return np.isfinite(lam) & (X[:, 2] < prm.ground_max_distance) & (np.abs(X[:, 0]) < prm.ground_half_width)
 
 

@@ -14,8 +14,9 @@ resolution needs at least 16 cells per side, so inputs are padded (edge replicat
 multiples of 8 and at least 128 pixels, and the flow is cropped back.
 
 ONNX: :func:`export_onnx` traces :class:`RaftFlow` for one padded input size (the traced
-coordinate grid fixes it); :class:`OnnxRaft` runs such a file with ONNX Runtime and re-exports
-nothing — a size other than the file's is an :class:`InputError` naming the file and the size.
+coordinate grid fixes it); :class:`OnnxRaft` runs such a file with ONNX Runtime: smaller images
+are padded up to the exported size, a larger one is an :class:`InputError` naming the file and
+the size (and the command that exports a file for it).
 """
 from __future__ import annotations
 
@@ -223,13 +224,16 @@ class OnnxRaft:
         """Flow (2, H, W) current -> previous, pixels."""
         _check_pair(image_cur, image_prev)
         H, W = image_cur.shape[-2:]
-        if padded_size(H, W) != self.size:
+        Hp, Wp = padded_size(H, W)
+        if Hp > self.size[0] or Wp > self.size[1]:
             raise InputError(
                 f"flow.onnx: {str(self.path)!r} was exported for {self.size[0]}x{self.size[1]} inputs, the images are "
-                f"{H}x{W} (padded {padded_size(H, W)[0]}x{padded_size(H, W)[1]}); export it for this size with "
-                f"`python -m train.flow export_only=true export.height={H} export.width={W}`"
+                f"{H}x{W} (padded {Hp}x{Wp}); export it for this size with "
+                f"`python -m train.flow export_only=true export.height={H} export.width={W} export.onnx=OUT.onnx`"
             )
-        (a, b), _ = pad_images(image_cur[None].float(), image_prev[None].float())
+        # Smaller images are padded up to the exported size (edge replication, as for torch); the
+        # flow then differs slightly from the torch path, which pads only to a multiple of 8.
+        (a, b), _ = pad_images(image_cur[None].float(), image_prev[None].float(), size=self.size)
         out = self.session.run(["flow"], {"image_cur": a.numpy(), "image_prev": b.numpy()})[0]
         return torch.from_numpy(out[0, :, :H, :W]).contiguous()
 

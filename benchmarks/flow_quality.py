@@ -1,0 +1,108 @@
+"""Flow quality of the backends on the built-in synthetic benchmark (README table).
+
+EPE (mean end-point error, px) and Fl-all (KITTI outlier rule: error > 3 px and > 5 % of the
+true flow) over pixels with valid ground-truth flow, and seconds per frame of the flow
+computation alone (the covariance, shared by all backends, is timed separately), on synthetic
+evaluation source seed 0 at full KITTI resolution 1242x375.
+
+Command (repository root; the RAFT rows need models/raft_small_synthetic.pt / .onnx from
+``python -m train.flow``):
+
+    nice -n 10 python -m benchmarks.flow_quality --frames 20
+
+Results (20 frames, source seed 0, 1242x375; 2-core CPU shared with other jobs, so the
+timings are upper bounds): see the table printed by the command and the README.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from tqdm import tqdm
+
+from monostixels.data.synthetic import SyntheticSource
+from monostixels.inputs.confidence import flow_covariance
+from monostixels.inputs.flow import compute_flow, confidence_params, flow_metrics, resolve_path
+
+CONF = Path(__file__).resolve().parents[1] / "conf" / "flow"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description="EPE / Fl-all / seconds of the flow backends on synthetic frames")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0, help="synthetic source seed (evaluation: 0, 1, 2)")
+    ap.add_argument("--scale", type=float, default=1.0)
+    ap.add_argument("--backends", default="deepflow,dis,raft,raft_onnx")
+    ap.add_argument("--cache", default=None,
+                    help="folder for rendered frames and per-backend results (lets backends run in separate calls; "
+                         "the table then lists every backend measured there)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+
+    cfgs = {}
+    for b in args.backends.split(","):
+        if b == "raft_onnx":
+            cfg = OmegaConf.load(CONF / "raft.yaml")
+            cfg.runtime = "onnx"
+        else:
+            cfg = OmegaConf.load(CONF / f"{b}.yaml")
+        if cfg.name == "raft":
+            needed = cfg.onnx if cfg.runtime == "onnx" else cfg.weights
+            if not resolve_path(needed).is_file():
+                print(f"skipping {b}: {needed} not found (train it with `python -m train.flow`)")
+                continue
+        cfgs[b] = cfg
+
+    src = SyntheticSource(args.frames, seed=args.seed, scale=args.scale)
+    cache = Path(args.cache) if args.cache else None
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+    rows: dict[str, dict[str, list[float]]] = {b: {"epe": [], "fl_all": [], "seconds": []} for b in cfgs}
+    cov_seconds = []
+    size = None
+    for i in tqdm(range(len(src)), desc="frames"):
+        frame_file = None if cache is None else cache / f"frame_s{args.seed}_x{args.scale}_{i:03d}.pt"
+        if frame_file is not None and frame_file.is_file():
+            pair = torch.load(frame_file, weights_only=False)
+        else:
+            pair = src[i]
+            if frame_file is not None:
+                torch.save(pair, frame_file)
+        size = pair.size
+        for b, cfg in cfgs.items():
+            t0 = time.perf_counter()
+            flow = compute_flow(pair.image, pair.image_prev, cfg)
+            rows[b]["seconds"].append(time.perf_counter() - t0)
+            m = flow_metrics(flow, pair.gt.flow, pair.gt.flow_valid)
+            rows[b]["epe"].append(m["epe"])
+            rows[b]["fl_all"].append(m["fl_all"])
+        t0 = time.perf_counter()
+        flow_covariance(pair.image, confidence_params(OmegaConf.load(CONF / "deepflow.yaml")))
+        cov_seconds.append(time.perf_counter() - t0)
+
+    if cache is not None:
+        res_file = cache / f"results_s{args.seed}_x{args.scale}_n{args.frames}.json"
+        stored = json.loads(res_file.read_text()) if res_file.is_file() else {}
+        stored.update(rows)
+        stored["_size"] = list(size)
+        stored["_cov_seconds"] = stored.get("_cov_seconds", []) + cov_seconds
+        res_file.write_text(json.dumps(stored))
+        rows = {k: v for k, v in stored.items() if not k.startswith("_")}
+        cov_seconds = stored["_cov_seconds"]
+    print(f"\n{len(src)} synthetic frames (source seed {args.seed}), {size[1]}x{size[0]}; "
+          "EPE and Fl-all averaged over frames, seconds = flow only, median per frame\n")
+    print("| backend | EPE (px) | Fl-all (%) | seconds / frame |")
+    print("|---|---:|---:|---:|")
+    for b, r in rows.items():
+        print(f"| {b} | {np.mean(r['epe']):.2f} | {100 * np.mean(r['fl_all']):.1f} | {np.median(r['seconds']):.2f} |")
+    print(f"\nstructure-tensor covariance: {np.median(cov_seconds):.2f} s / frame (all backends)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,133 @@
+"""The one call a user makes: a frame pair and its camera in, stixels (and the SfM baseline) out.
+
+Data flows one way: images -> inputs (flow, semantics, camera motion) -> per-column costs ->
+DP -> stixels -> depth / evaluation / pictures.
+
+Example:
+    >>> from omegaconf import OmegaConf
+    >>> from monostixels.pipeline import Pipeline, load_config
+    >>> cfg = load_config(["flow=gt", "semantic=gt", "motion=gt"])
+    >>> from monostixels.data.synthetic import render_pair
+    >>> result = Pipeline(cfg).run(render_pair(0, scale=0.25))
+    >>> result.stixels.depth_map().shape
+    torch.Size([94, 310])
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from monostixels._checks import InputError
+from monostixels.data.base import FramePair
+from monostixels.energy import PriorParams
+from monostixels.eval.sfm import triangulate
+from monostixels.geometry import Motion
+from monostixels.inputs.flow import FlowResult, estimate_flow
+from monostixels.inputs.motion import MotionEstimate, estimate_motion
+from monostixels.inputs.semantic import estimate_semantics
+from monostixels.solver import SolverConfig, solve
+from monostixels.stixels import StixelWorld
+
+__all__ = ["PipelineResult", "Pipeline", "load_config"]
+
+logger = logging.getLogger(__name__)
+
+
+def load_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """Compose the package's Hydra config (``conf/config.yaml``) with ``key=value`` overrides.
+
+    For use from Python (notebooks, tests); the ``monostixels`` command does the same through Hydra.
+    """
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@dataclass
+class PipelineResult:
+    """Everything the pipeline computed for one frame pair.
+
+    Attributes:
+        pair: the input. flow: flow (2, H, W) and covariance (H, W, 2, 2). semantic: (10, H, W)
+        scores or None. motion: the camera motion used (``X_prev = R X_cur + t``) and how it was
+        obtained. stixels: the result. sfm_depth: (H, W) depth of the triangulation baseline
+        (metres; invalid = negative or inf). seconds: wall time of each stage.
+    """
+
+    pair: FramePair
+    flow: FlowResult
+    semantic: torch.Tensor | None
+    motion: MotionEstimate
+    stixels: StixelWorld
+    sfm_depth: torch.Tensor
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def total_seconds(self) -> float:
+        """Wall time of the mono-stixel pipeline (inputs + solver), without the SfM baseline."""
+        return sum(v for k, v in self.seconds.items() if k != "sfm")
+
+
+class Pipeline:
+    """Frame pair -> stixels, configured by the Hydra config (groups flow, semantic, motion, prior, solver).
+
+    Args:
+        cfg: the composed config (see :func:`load_config`).
+    """
+
+    def __init__(self, cfg: DictConfig) -> None:
+        self.cfg = cfg
+        self.prior = PriorParams.from_config(OmegaConf.to_container(cfg.prior, resolve=True))
+        self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))
+
+    def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None) -> MotionEstimate:
+        """Camera motion of the pair from the ``motion`` config group.
+
+        A degenerate estimate (standing still, pure rotation) keeps its rotation (identity if
+        none) with zero translation: the solver then flags the frame and takes depths from the
+        scene model (SPEC section 7).
+        """
+        est = estimate_motion(pair, flow, self.cfg.motion, semantic)
+        if est.motion is None:
+            if not est.degenerate:
+                raise InputError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
+            est = MotionEstimate(
+                motion=Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)),
+                degenerate=True, reason=est.reason, inlier_ratio=est.inlier_ratio,
+            )
+        return est
+
+    def run(self, pair: FramePair) -> PipelineResult:
+        """Run every stage on one frame pair."""
+        sec: dict[str, float] = {}
+        t0 = time.perf_counter()
+        flow = estimate_flow(pair, self.cfg.flow)
+        sec["flow"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        semantic = estimate_semantics(pair, self.cfg.semantic)
+        sec["semantic"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        motion = self.motion_for(pair, flow, semantic)
+        sec["motion"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            stixels = solve(flow.flow, flow.cov, semantic, pair.camera, motion.motion, self.prior, self.solver_cfg)
+        sec["solver"] = time.perf_counter() - t0
+        if motion.degenerate and not stixels.flags.get("degenerate_motion"):
+            stixels.flags["degenerate_motion"] = True
+        if stixels.flags.get("degenerate_motion"):
+            stixels.flags["reason"] = f"{motion.reason}; {stixels.flags.get('reason', '')}".strip("; ")
+            logger.warning("%s: %s", pair.name, stixels.flags["reason"])
+        t0 = time.perf_counter()
+        sfm = triangulate(flow.flow, pair.camera.K, motion.motion,
+                          min_parallax_rad=float(self.cfg.eval.sfm_min_parallax_rad)).depth
+        sec["sfm"] = time.perf_counter() - t0
+        logger.debug("%s: %d stixels, seconds %s", pair.name, len(stixels), sec)
+        return PipelineResult(pair=pair, flow=flow, semantic=semantic, motion=motion, stixels=stixels,
+                              sfm_depth=sfm, seconds=sec)
