@@ -78,7 +78,6 @@ class SolverConfig:
     tau: float
     dtype: str
     min_translation: float
-    refine_contacts: bool
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
@@ -179,8 +178,6 @@ class ColumnSolution:
     tau: torch.Tensor
     cost: torch.Tensor
     energy: torch.Tensor
-    v_bottom: torch.Tensor | None = None
-    v_top: torch.Tensor | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -590,91 +587,7 @@ def solve_batch(
         torch.stack(list(scores)) if has_sem else None, cameras, motions, cfg,
     )
     sol = solve_columns(prob, prior, cfg)
-    H, r = prob.image_size[0], cfg.cell_rows
-    sol.v_bottom = H - 1 - sol.b * r
-    sol.v_top = torch.clamp(H - (sol.t + 1) * r, min=0)
-    if cfg.refine_contacts and cfg.cell_rows > 1:
-        _refine_contacts(prob, sol, torch.stack(list(flows)), torch.stack(list(covs)), prior.as_tensors(cfg.torch_dtype), cfg)
     return _to_worlds(prob, sol, cameras, motions, cfg)
-
-
-def _refine_contacts(prob: ColumnProblem, sol: ColumnSolution, flow: torch.Tensor, cov: torch.Tensor,
-                     prm: PriorParams, cfg: SolverConfig) -> None:
-    """Move the ground contact of dynamic stixels standing on a ground stixel to pixel rows.
-
-    A dynamic stixel's depth comes from the row where it meets the ground, but the DP places
-    that boundary on a cell edge, up to ``r / 2`` rows off (at 7 m and r = 3 that is ~6 % depth).
-    Within ``r`` rows of the edge we pick the split row that best explains the column's per-row
-    flow by the ground stixel's homography below and the dynamic stixel's homography above,
-    then recompute its inverse depth (and that of dynamic stixels stacked on it, which inherit
-    it). The DP energies (``cost``) stay those of the cell solution. Edits ``sol`` in place.
-    """
-    dt = cfg.torch_dtype
-    r, w = cfg.cell_rows, cfg.column_width
-    H, W = prob.image_size
-    same_col = torch.zeros_like(sol.col, dtype=torch.bool)
-    same_col[1:] = sol.col[1:] == sol.col[:-1]
-    k = torch.nonzero(same_col & (sol.type == DYNAMIC_OBJECT) & (torch.roll(sol.type, 1) == GROUND))[:, 0]
-    if len(k) == 0:
-        return
-    c = sol.col[k]
-    # Candidate split rows s (the lowest object row), r rows either side of the cell edge.
-    off = torch.arange(-r, r + 1)
-    s = sol.v_bottom[k, None] + off[None]  # Ncand x (2r+1)
-    ok = (s >= sol.v_top[k, None]) & (s + 1 <= sol.v_bottom[k - 1, None])
-    rows = torch.arange(-r, r + 2)  # the rows whose label depends on s: v_bottom - r .. v_bottom + r + 1
-    v = (sol.v_bottom[k, None] + rows[None]).clamp(0, H - 1)  # Ncand x (2r+2)
-    # Column-mean flow and covariance of those pixel rows.
-    B, Cc = flow.shape[0], -(-W // w)
-    f = torch.nn.functional.pad(flow.to(dt), (0, Cc * w - W))
-    cnt = torch.nn.functional.pad(torch.ones(1, 1, H, W, dtype=dt), (0, Cc * w - W)).reshape(1, 1, H, Cc, w).sum(-1)
-    fcol = (f.reshape(B, 2, H, Cc, w).sum(-1) / cnt).permute(0, 3, 2, 1).reshape(B * Cc, H, 2)
-    cv = torch.nn.functional.pad(cov.to(dt).permute(0, 3, 4, 1, 2).reshape(B, 4, H, W), (0, Cc * w - W))
-    cvcol = (cv.reshape(B, 4, H, Cc, w).sum(-1) / cnt).permute(0, 3, 2, 1).reshape(B * Cc, H, 2, 2)
-    fr, cr = fcol[c[:, None], v], cvcol[c[:, None], v]  # Ncand x L x 2 (x 2)
-    det = cr[..., 0, 0] * cr[..., 1, 1] - cr[..., 0, 1] * cr[..., 1, 0]
-    inv = torch.stack([torch.stack([cr[..., 1, 1], -cr[..., 0, 1]], -1),
-                       torch.stack([-cr[..., 1, 0], cr[..., 0, 0]], -1)], -2) / det[..., None, None]
-    K, R, t = prob.K[c], prob.R[c], prob.t[c]
-    u = prob.u[c][:, None].expand_as(v).to(dt)
-    ray = pixel_rays(K[:, None], u, v.to(dt))
-    a = ((K @ R)[:, None] @ ray[..., None])[..., 0]
-    cK = (K @ t[..., None])[..., 0]
-    Hx_g = a + ((ray * prob.n_g[c][:, None]).sum(-1) * sol.p[k - 1][:, None])[..., None] * cK[:, None]
-    g = ((K @ _hypotheses_basis(prob)[c]) @ sol.tau[k][..., None])[..., 0]
-    Hx_o = a + (ray * prob.n_obj[c][:, None]).sum(-1)[..., None] * g[:, None]
-
-    def cost(Hx: torch.Tensor) -> torch.Tensor:
-        res = torch.stack([u + fr[..., 0] - Hx[..., 0] / Hx[..., 2], v + fr[..., 1] - Hx[..., 1] / Hx[..., 2]], -1)
-        return flow_cost(res, inv, torch.log(det), prm.alpha_F)
-
-    cg, co = cost(Hx_g), cost(Hx_o)  # Ncand x L, rows v_bottom - r .. v_bottom + r + 1
-    # Rows up to and including s are object, rows below s ground: split index j = s - (v_bottom - r).
-    co_cum = torch.cumsum(co, 1)
-    cg_rev = torch.flip(torch.cumsum(torch.flip(cg, [1]), 1), [1])
-    total = co_cum[:, :-1] + cg_rev[:, 1:]  # split after row j, j = 0 .. 2r
-    total = torch.where(ok, total, torch.full_like(total, float("inf")))
-    s_best = s.gather(1, total.argmin(1, keepdim=True))[:, 0]
-    ray_e = pixel_rays(K, prob.u[c].to(dt), (s_best + 0.5).to(dt))
-    q = (ray_e * prob.n_g[c]).sum(-1) / (ray_e * prob.n_obj[c]).sum(-1)
-    p_new = (q * sol.p[k - 1]).clamp(1.0 / cfg.max_depth, 1.0 / cfg.min_depth)
-    sol.v_bottom[k] = s_best
-    sol.v_top[k - 1] = s_best + 1
-    sol.p[k] = p_new
-    # Dynamic stixels stacked on it took its depth (paper's rule): keep them in step.
-    j = k + 1
-    while len(j):
-        inside = j < len(sol.col)
-        j, k = j[inside], k[inside]
-        chain = (sol.col[j] == sol.col[k]) & (sol.type[j] == DYNAMIC_OBJECT)
-        j, k = j[chain], k[chain]
-        sol.p[j] = sol.p[k]
-        j = j + 1
-
-
-def _hypotheses_basis(prob: ColumnProblem) -> torch.Tensor:
-    """Ground-plane basis B (C, 3, 2) of every column (as used for the dynamic hypotheses)."""
-    return ground_basis(prob.n_g)
 
 
 def solve(
@@ -717,7 +630,7 @@ def _to_worlds(prob: ColumnProblem, sol: ColumnSolution, cameras, motions, cfg: 
         worlds.append(StixelWorld(
             column_width=cfg.column_width, image_size=(H, W), K=cameras[f].K.double(),
             ground_normal=cameras[f].ground_normal.double(), column=col,
-            v_top=sol.v_top[m], v_bottom=sol.v_bottom[m],
+            v_top=torch.clamp(H - (t + 1) * r, min=0), v_bottom=H - 1 - b * r,
             type=typ, cls=sol.cls[m], inverse_depth=p.double(), motion=motion,
             cost=sol.cost[m].double(), tau=tau.double(),
             energy=sol.energy[f * C:(f + 1) * C].detach().double(), flags=flags,
