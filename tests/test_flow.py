@@ -151,10 +151,18 @@ def test_gt_backend_and_missing_gt():
     bad = FramePair(image=img, image_prev=img, camera=_camera(H, W), name="p", meta={"source": "kitti_raw"})
     with pytest.raises(InputError, match="kitti_raw"):
         estimate_flow(bad, OmegaConf.create({"name": "gt", "sigma": 0.5}))
-    nan_flow = torch.randn(2, H, W)
-    nan_flow[1, 5, 5] = float("nan")
-    nan_pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), gt=GroundTruth(flow=nan_flow), name="p")
-    with pytest.raises(InputError, match="non-finite"):
+    # The oracle keeps the true motion where the source knows it, also at occluded pixels
+    # (flow_valid False but finite): only NaN means "no value".
+    occluded = torch.randn(2, H, W)
+    hidden = torch.zeros(H, W, dtype=torch.bool)
+    hidden[2:5, 3:6] = True
+    pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), name="p",
+                     gt=GroundTruth(flow=occluded, flow_valid=~hidden))
+    res = estimate_flow(pair, OmegaConf.create({"name": "gt", "sigma": 0.5, "sigma_max": 20.0}))
+    assert torch.equal(res.flow, occluded) and torch.allclose(res.cov[3, 4], 0.25 * torch.eye(2))
+    nan_pair = FramePair(image=img, image_prev=img, camera=_camera(H, W), name="p",
+                         gt=GroundTruth(flow=torch.full((2, H, W), float("nan"))))
+    with pytest.raises(InputError, match="no finite value"):
         estimate_flow(nan_pair, OmegaConf.create({"name": "gt", "sigma": 0.5}))
 
 

@@ -207,6 +207,8 @@ class Kitti2015Source(LazySource):
         if item.previous == "11" and flow_path.exists():
             # flow_occ is the forward flow 10 -> 11; with _11 as "previous" it is current -> previous.
             flow, fvalid = decode_flow(self._gt_png(flow_path, 3, (H, W)))
+            # Pixels without ground truth carry no flow value at all (NaN), not a decoded 0.
+            flow = np.where(fvalid[None], flow, np.nan).astype(np.float32)
             gt.flow = torch.from_numpy(flow)
             gt.flow_valid = torch.from_numpy(fvalid)
         meta = {"source": "kitti2015", "scene": item.index, "previous": item.previous,

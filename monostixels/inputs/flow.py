@@ -182,17 +182,17 @@ def _gt_flow(pair: FramePair, params: ConfidenceParams) -> tuple[torch.Tensor, t
         raise InputError(f"flow=gt: {source} has no ground-truth flow (pair.gt.flow is None); choose flow=deepflow|dis|raft")
     check_shape(flow, [2, "H", "W"], f"{source}: gt.flow")
     check_same_size(flow, pair.image, "gt.flow", "image")
-    valid = pair.gt.flow_valid
-    if valid is None:
-        valid = torch.ones(flow.shape[-2:], dtype=torch.bool)
-    check_shape(valid, list(flow.shape[-2:]), f"{source}: gt.flow_valid")
-    valid = valid.bool()
-    check_finite(flow[:, valid], f"{source}: gt.flow (at valid pixels)")
-    flow = torch.where(valid[None], flow.float(), torch.zeros((), dtype=torch.float32))
+    # The oracle is the true motion field wherever the source knows it (a renderer knows it at
+    # occluded pixels too); ``gt.flow_valid`` (visible in both frames) is for scoring flow, not
+    # for hiding motion. Pixels without a value (NaN, e.g. KITTI gaps) get flow 0 with the
+    # covariance ceiling, so they carry no information.
+    known = torch.isfinite(flow).all(0)
+    if not bool(known.any()):
+        raise InputError(f"flow=gt: {source}: gt.flow has no finite value")
+    flow = torch.where(known[None], flow.float(), torch.zeros((), dtype=torch.float32))
     cov = flow_covariance(pair.image, params)
-    # Pixels without ground truth: flow 0 with the covariance ceiling, so they carry no information.
     ceiling = (params.sigma_max**2) * torch.eye(2)
-    cov = torch.where(valid[..., None, None], cov, ceiling)
+    cov = torch.where(known[..., None, None], cov, ceiling)
     return flow, cov
 
 
