@@ -5,11 +5,11 @@ fails with a message that names it (SPEC section 7).
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import torch
 
-__all__ = ["InputError", "check_shape", "check_finite", "check_rotation", "check_same_size"]
+__all__ = ["InputError", "check_keys", "check_shape", "check_finite", "check_rotation", "check_same_size"]
 
 
 class InputError(ValueError):
@@ -81,3 +81,11 @@ def check_same_size(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) 
         raise InputError(
             f"{name_a} and {name_b} differ in size: {tuple(a.shape[-2:])} vs {tuple(b.shape[-2:])} (H, W)"
         )
+
+
+def check_keys(given: Iterable[str], expected: Iterable[str], name: str) -> None:
+    """Fail unless a config node has exactly the ``expected`` keys, naming unknown and missing ones."""
+    given, expected = set(given), set(expected)
+    unknown, missing = given - expected, expected - given
+    if unknown or missing:
+        raise InputError(f"{name}: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")

@@ -11,7 +11,7 @@ from typing import Any, Mapping
 
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, check_keys
 
 __all__ = [
     "GRAVITY_TOLERANCE_M",
@@ -69,11 +69,7 @@ class PriorParams:
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "PriorParams":
         """Build from the ``prior`` config node; unknown or missing keys are errors."""
-        keys = set(cfg.keys())
-        unknown = keys - set(cls.names())
-        missing = set(cls.names()) - keys
-        if unknown or missing:
-            raise InputError(f"prior config: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
+        check_keys(cfg.keys(), cls.names(), "prior config")
         values = {k: float(cfg[k]) for k in cls.names()}
         for k, v in values.items():
             if not torch.isfinite(torch.tensor(v)):

@@ -36,7 +36,7 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
 from monostixels.energy import PriorParams, flow_cost, gravity, load_config_group, ordering_from_depths
 from monostixels.geometry import (
@@ -87,11 +87,7 @@ class SolverConfig:
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "SolverConfig":
         """Build from the ``solver`` config node, checking every value."""
-        names = {f.name for f in fields(cls)}
-        unknown = set(cfg.keys()) - names
-        missing = names - set(cfg.keys())
-        if unknown or missing:
-            raise InputError(f"solver config: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
+        check_keys(cfg.keys(), (f.name for f in fields(cls)), "solver config")
         out = cls(**{k: cfg[k] for k in cfg.keys()})
         out.validate()
         return out

@@ -49,7 +49,7 @@ from monostixels.geometry import ground_basis, pixel_rays
 from monostixels.solver import ColumnProblem, ColumnSolution, SolverConfig, _row_costs, prepare_columns, solve_columns
 
 __all__ = ["labelling_energy", "perceptron_loss", "build_problems", "learn_priors", "write_prior_yaml",
-           "priors_from_sweep", "main"]
+           "priors_from_sweep", "subsample_columns", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -147,6 +147,24 @@ def _load(overrides: list[str]) -> DictConfig:
     return load_config(overrides)
 
 
+def subsample_columns(prob: ColumnProblem, stride: int, offset: int = 0) -> ColumnProblem:
+    """Every ``stride``-th column of ``prob`` (columns are independent DP problems).
+
+    More frames at the same cost: neighbouring columns are strongly correlated, distinct frames
+    are not.
+    """
+    if stride <= 1:
+        return prob
+    idx = torch.arange(offset % stride, prob.num_columns, stride)
+    per_column = ("K", "R", "t", "n_g", "n_obj", "h_cam", "u", "flow", "cov_inv", "logdet", "nll", "degenerate",
+                  "frame", "column")
+    kw = {f: getattr(prob, f) for f in ColumnProblem.__dataclass_fields__}
+    for f in per_column:
+        if kw[f] is not None:
+            kw[f] = kw[f][idx]
+    return ColumnProblem(**kw)
+
+
 def build_problems(cfg: DictConfig) -> tuple[ColumnProblem, ColumnProblem]:
     """The noisy (training-input) and ground-truth column problems of the training frames.
 
@@ -181,7 +199,8 @@ def build_problems(cfg: DictConfig) -> tuple[ColumnProblem, ColumnProblem]:
     for k in ("noisy", "gt"):
         d = per[k]
         sem = torch.stack(d["sem"]) if d["sem"][0] is not None else None
-        out.append(prepare_columns(torch.stack(d["flow"]), torch.stack(d["cov"]), sem, d["cam"], d["mot"], scfg))
+        prob = prepare_columns(torch.stack(d["flow"]), torch.stack(d["cov"]), sem, d["cam"], d["mot"], scfg)
+        out.append(subsample_columns(prob, int(cfg.data.get("column_stride", 1))))
     return out[0], out[1]
 
 
