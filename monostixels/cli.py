@@ -165,6 +165,9 @@ def _eval(cfg: DictConfig) -> float:
     src = _source(cfg)
     report = evaluate(cfg, src, dataset=str(cfg.data.name))
     print(format_table(report))
+    if report.get("failed_frames"):
+        print(f"camera motion could not be estimated on {len(report['failed_frames'])} frame(s), scored with no "
+              f"estimate: {', '.join(report['failed_frames'])}")
     if cfg.out:
         path = write_report(report, cfg.out)
         print(f"wrote {path}")

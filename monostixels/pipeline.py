@@ -33,9 +33,13 @@ from monostixels.inputs.semantic import estimate_semantics
 from monostixels.solver import SolverConfig, solve
 from monostixels.stixels import StixelWorld
 
-__all__ = ["PipelineResult", "Pipeline", "load_config"]
+__all__ = ["MotionEstimationError", "PipelineResult", "Pipeline", "load_config"]
 
 logger = logging.getLogger(__name__)
+
+
+class MotionEstimationError(InputError):
+    """The camera motion of a frame pair could not be estimated from its images (``motion=mono``)."""
 
 
 def load_config(overrides: Sequence[str] = ()) -> DictConfig:
@@ -96,7 +100,7 @@ class Pipeline:
         est = estimate_motion(pair, flow, self.cfg.motion, semantic)
         if est.motion is None:
             if not est.degenerate:
-                raise InputError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
+                raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
             est = MotionEstimate(
                 motion=Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)),
                 degenerate=True, reason=est.reason, inlier_ratio=est.inlier_ratio,

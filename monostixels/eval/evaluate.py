@@ -23,7 +23,7 @@ from monostixels.eval.metrics import (
 )
 from monostixels.inputs.flow import flow_metrics
 from monostixels.inputs.motion import motion_errors
-from monostixels.pipeline import Pipeline, PipelineResult
+from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
 from monostixels.stixels import StixelWorld
 
 __all__ = ["evaluate", "predicted_bottoms", "write_report", "SPLITS"]
@@ -81,7 +81,9 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         on_result: optional callback ``f(PipelineResult)`` (e.g. to save pictures).
 
     Returns:
-        the report dict (metrics as fractions, rmse in metres).
+        the report dict (metrics as fractions, rmse in metres). A frame whose camera motion
+        cannot be estimated is scored with no estimate (every ground-truth pixel clamped as
+        invalid) and listed under ``failed_frames``.
     """
     pipe = Pipeline(cfg)
     lo, hi = float(cfg.eval.min_depth), float(cfg.eval.max_depth)
@@ -97,15 +99,31 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     bottoms_pred: list[float] = []
     bottoms_gt: list[float] = []
     has_depth = False
+    failed: list[str] = []
     frames = 0
     try:
         total = len(source)  # type: ignore[arg-type]
     except TypeError:
         total = None
     for pair in tqdm(source, total=total, desc=f"eval {dataset}", disable=not progress, unit="frame"):
-        res: PipelineResult = pipe.run(pair)
         frames += 1
         gt = pair.gt
+        try:
+            res: PipelineResult = pipe.run(pair)
+        except MotionEstimationError as err:
+            # Not dropped: the frame counts, with no estimate (clamped like any invalid depth).
+            logger.warning("%s; scored with invalid estimates", err)
+            failed.append(pair.name)
+            if gt.depth is not None:
+                has_depth = True
+                moving = gt.moving if gt.moving is not None else torch.zeros(pair.size, dtype=torch.bool)
+                nothing = torch.full(pair.size, float("nan"))
+                for m in acc:
+                    for s, mask in zip(SPLITS, (None, ~moving, moving)):
+                        acc[m][s].add(nothing, gt.depth, mask)
+            n_stixels.append(0)
+            n_pixels.append(pair.size[0] * pair.size[1])
+            continue
         st = res.stixels
         n_stixels.append(len(st))
         n_pixels.append(pair.size[0] * pair.size[1])
@@ -142,6 +160,8 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     report["methods"]["monostixels"] = {**mono, "compactness": stixel_compactness(n_stixels),
                                         "seconds_per_frame": float(np.mean(seconds))}
     report["methods"]["sfm"] = {**sfm, "compactness": dense_compactness(n_pixels)}
+    if failed:
+        report["failed_frames"] = failed
     if flow_stats:
         report["flow"] = {str(cfg.flow.name): {k: float(np.mean([f[k] for f in flow_stats])) for k in ("epe", "fl_all")}}
     if motion_stats or degenerate:
