@@ -84,7 +84,7 @@ def ground_from_motion() -> None:
     fit = motion_module._fit_ground
     last: dict[str, np.ndarray] = {}
 
-    def _fit(*a, **k):
+    def _fit(*a: Any, **k: Any) -> tuple[np.ndarray, np.ndarray]:
         m, inl = fit(*a, **k)
         last["m"] = m
         return m, inl
@@ -92,7 +92,7 @@ def ground_from_motion() -> None:
     motion_module._fit_ground = _fit
     orig = pipeline_module.Pipeline.motion_for
 
-    def motion_for(self, pair, flow, semantic):
+    def motion_for(self: Any, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None) -> Any:
         last.clear()
         est = orig(self, pair, flow, semantic)
         if "m" in last and not est.degenerate:

@@ -59,6 +59,8 @@ logger = logging.getLogger(__name__)
 
 #: Default class of each type when there is no semantic input (road, building, vehicle, sky).
 _DEFAULT_CLASS = (0, 3, 6, 9)
+#: Hypothesis-cell pairs evaluated at once when computing flow costs (bounds peak memory).
+_CHUNK_ELEMENTS = 4_000_000
 #: Which predecessor types are objects (the ordering prior applies above them).
 _IS_OBJECT = torch.tensor([False, True, True, False])
 
@@ -335,14 +337,19 @@ def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> lis
     s_g = (ray * prob.n_g[:, None]).sum(-1)  # C x n
     s_o = (ray * prob.n_obj[:, None]).sum(-1)
 
+    def chunked(Hx_of: Any, K: int) -> torch.Tensor:
+        # Hypotheses in chunks: the (C, K, n, 3) points of all at once are the peak memory at r = 1.
+        step = max(1, _CHUNK_ELEMENTS // max(1, prob.num_columns * prob.num_cells))
+        return torch.cat([_row_costs(prob, Hx_of(slice(k, k + step)), prm) for k in range(0, K, step)], 1)
+
     def static(p: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        Hx = a[:, None] + (p[:, :, None] * s[:, None, :])[..., None] * cK[:, None, None, :]
-        return _prefix(_row_costs(prob, Hx, prm))
+        return _prefix(chunked(lambda sl: a[:, None] + (p[:, sl, None] * s[:, None, :])[..., None] * cK[:, None, None, :],
+                               p.shape[1]))
 
     M = prob.K @ hyp.B  # C x 3 x 2
     g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
-    Hx = a[:, None] + s_o[:, None, :, None] * g[:, :, None, :]
-    dyn = _prefix(_row_costs(prob, Hx, prm) + prm.alpha_dyn * prob.rows)
+    dyn = _prefix(chunked(lambda sl: a[:, None] + s_o[:, None, :, None] * g[:, sl, None, :], g.shape[1])
+                  + prm.alpha_dyn * prob.rows)
     sky = _prefix(_row_costs(prob, a[:, None], prm))
     return [static(hyp.p_ground, s_g), static(hyp.p_object, s_o), dyn, sky]
 
@@ -422,7 +429,9 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
     MS = [torch.full((C, Ks[T], ncs[T]), float("inf"), dtype=dt) for T in range(NUM_TYPES)]
     MH = [m.clone() for m in MS]
     MB = [torch.zeros(C, Ks[T], ncs[T], dtype=torch.long) for T in range(NUM_TYPES)]
-    kbest = [torch.zeros(C, n, Ks[T] if T in (GROUND, STATIC_OBJECT) else 1, dtype=torch.long) for T in range(NUM_TYPES)]
+    # Best predecessor type per (segment bottom, hypothesis): values 0..3, kept as int8 because
+    # this table is (columns x cells x hypotheses) — the largest one at r = 1.
+    kbest = [torch.zeros(C, n, Ks[T] if T in (GROUND, STATIC_OBJECT) else 1, dtype=torch.int8) for T in range(NUM_TYPES)]
     p_rule = torch.zeros(C, n, NUM_TYPES, dtype=dt)
     deg = prob.degenerate[:, None, None]
     cols = torch.arange(C)
@@ -467,7 +476,7 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
             h_star, c_star = arg // ncs[T], arg % ncs[T]
             b_star = MB[T].flatten(1).gather(1, arg[:, None])[:, 0]
             kb_all = kbest[T][cols, b_star]  # C x K'
-            k_star = kb_all[cols, h_star] if kb_all.shape[1] > 1 else kb_all[:, 0]
+            k_star = (kb_all[cols, h_star] if kb_all.shape[1] > 1 else kb_all[:, 0]).long()
             g_pred = gS[cols, b_star, k_star]
             if T == GROUND:
                 p_new = hyp.p_ground[cols, h_star]

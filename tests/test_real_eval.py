@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from monostixels.classes import DYNAMIC_OBJECT
 from monostixels.data.sources import make_source
 from monostixels.eval.evaluate import SPLITS, evaluate
-from monostixels.pipeline import PipelineResult, load_config
+from monostixels.pipeline import Pipeline, PipelineResult, load_config
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 KITTI_RAW = SHARED / "kitti_raw"
@@ -50,26 +51,47 @@ def test_kitti_raw_labelled_frame_gives_bottoms_and_motion() -> None:
     assert "overall" not in report["methods"]["monostixels"]
 
 
+def _ddad_config(*extra: str):
+    # Coarser columns and cells (4x fewer DP cells) keep the 1936 x 1216 frame fast in a test.
+    return load_config(["data=ddad", f"data.root={DDAD}", "data.frames=1", "flow=dis", "semantic=none",
+                        "motion=gt", "solver.column_width=10", "solver.cell_rows=6", *extra])
+
+
+def _dynamic_share(res: PipelineResult) -> tuple[float, float]:
+    """Share of the moving / static LiDAR pixels covered by dynamic-object stixels."""
+    dyn = res.stixels.type_map() == DYNAMIC_OBJECT
+    moving, has_depth = res.pair.gt.moving, res.pair.gt.depth > 0
+    return float(dyn[moving].float().mean()), float(dyn[has_depth & ~moving].float().mean())
+
+
 @pytest.mark.skipif(not DDAD.is_dir(), reason=f"shared DDAD (TRI dgp) sample not found at {DDAD}")
 def test_ddad_report_has_three_splits_and_degenerate_flag() -> None:
-    """One DDAD pair (the ego vehicle stands still): every split is scored, the frame is flagged,
-    and the scene-model depths of mono-stixels beat the SfM baseline, which has no baseline to
-    triangulate from (its depths from a translation of micrometres are noise)."""
-    # Coarser columns and cells (4x fewer DP cells) keep the 1936 x 1216 frame fast in a test.
-    cfg = load_config(["data=ddad", f"data.root={DDAD}", "data.frames=1", "flow=dis", "semantic=none",
-                       "motion=gt", "solver.column_width=10", "solver.cell_rows=6"])
-    flags: list[dict] = []
-
-    def keep(res: PipelineResult) -> None:
-        flags.append(dict(res.stixels.flags))
-
-    report = evaluate(cfg, make_source(cfg), dataset="ddad", progress=False, on_result=keep)
-    assert report["frames"] == 1
-    assert len(flags) == 1 and flags[0]["degenerate_motion"] is True
-    assert "scene model" in flags[0]["reason"]
+    """One DDAD pair (the ego vehicle stands still) with the semantic=none priors: every split is
+    scored, the frame is flagged, the scene-model depths of mono-stixels beat the SfM baseline
+    (which has no baseline to triangulate from), and the dynamic type marks the moving cars but
+    not the static scene."""
+    cfg = _ddad_config("prior=nosem")
+    results: list[PipelineResult] = []
+    report = evaluate(cfg, make_source(cfg), dataset="ddad", progress=False, on_result=results.append)
+    assert report["frames"] == 1 and len(results) == 1
+    flags = results[0].stixels.flags
+    assert flags["degenerate_motion"] is True
+    assert "scene model" in flags["reason"]
     mono, sfm = report["methods"]["monostixels"], report["methods"]["sfm"]
     for split in SPLITS:
         assert mono[split]["n"] > 0, split
         assert mono[split]["n"] == sfm[split]["n"]  # every method is scored on the same pixels
     assert mono["static"]["n"] + mono["moving"]["n"] == mono["overall"]["n"]
     assert mono["overall"]["rel"] < sfm["overall"]["rel"]
+    on_moving, on_static = _dynamic_share(results[0])
+    assert on_moving > 0.5 and on_static < 0.2, (on_moving, on_static)
+
+
+@pytest.mark.skipif(not DDAD.is_dir(), reason=f"shared DDAD (TRI dgp) sample not found at {DDAD}")
+def test_ddad_without_dynamic_cost_the_dynamic_type_takes_everything() -> None:
+    """Why semantic=none needs alpha_dyn > 0: without it (and without semantics) the 2-DOF dynamic
+    type fits the static scene at least as well as the static types and covers most of it."""
+    cfg = _ddad_config("prior.alpha_dyn=0", "semantic.prior_overrides.alpha_dyn=0")
+    res = Pipeline(cfg).run(make_source(cfg)[0])
+    _, on_static = _dynamic_share(res)
+    assert on_static > 0.5, on_static
