@@ -13,9 +13,39 @@ from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, SKY, TYPE_NAMES
 from monostixels.geometry import object_normals, pixel_rays
 
-__all__ = ["StixelWorld"]
+__all__ = ["StixelWorld", "paint_index_map"]
 
 _TENSOR_FIELDS = ("column", "v_top", "v_bottom", "type", "cls", "inverse_depth", "motion", "cost", "tau")
+
+
+def paint_index_map(column: torch.Tensor, v_top: torch.Tensor, v_bottom: torch.Tensor, column_width: int,
+                    image_size: tuple[int, int]) -> torch.Tensor:
+    """Index (H, W) int64 of the stixel covering each pixel, -1 where none.
+
+    Args:
+        column, v_top, v_bottom: (N,) stixel columns and inclusive pixel rows (``v_top <= v_bottom``).
+        column_width: ``w_s`` pixels. image_size: ``(H, W)``.
+
+    Raises:
+        InputError: lengths differ, ``v_bottom < v_top``, or rows / columns outside the image.
+    """
+    H, W = image_size
+    col, top, bot = (torch.as_tensor(x).long().reshape(-1) for x in (column, v_top, v_bottom))
+    n = col.numel()
+    if not (top.numel() == n and bot.numel() == n):
+        raise InputError(f"stixels: column, v_top, v_bottom differ in length ({n}, {top.numel()}, {bot.numel()})")
+    ncols = -(-W // column_width)
+    if n and bool((bot < top).any()):
+        raise InputError("stixels: v_bottom < v_top for some stixel (rows are inclusive, v grows downward)")
+    if n and (int(top.min()) < 0 or int(bot.max()) >= H or int(col.min()) < 0 or int(col.max()) >= ncols):
+        raise InputError(f"stixels: rows or columns outside the image ({H} rows, {ncols} columns of width {column_width})")
+    cell = torch.full((H, ncols), -1, dtype=torch.long)  # one entry per (row, stixel column)
+    lengths = bot - top + 1
+    ids = torch.repeat_interleave(torch.arange(n), lengths)
+    starts = torch.cumsum(lengths, 0) - lengths
+    rows = top[ids] + (torch.arange(ids.numel()) - starts[ids])
+    cell[rows, col[ids]] = ids
+    return cell[:, torch.arange(W) // column_width]
 
 
 @dataclass
@@ -115,13 +145,7 @@ class StixelWorld:
 
     def index_map(self) -> torch.Tensor:
         """Index (H, W) int64 of the stixel covering each pixel (-1 where none)."""
-        H, W = self.image_size
-        idx = torch.full((H, W), -1, dtype=torch.long)
-        for i in range(len(self)):  # N is small (a few thousand); each paints a rectangle
-            c = int(self.column[i])
-            u0, u1 = c * self.column_width, min((c + 1) * self.column_width, W)
-            idx[int(self.v_top[i]):int(self.v_bottom[i]) + 1, u0:u1] = i
-        return idx
+        return paint_index_map(self.column, self.v_top, self.v_bottom, self.column_width, self.image_size)
 
     def semantic_map(self) -> torch.Tensor:
         """Class id (H, W) int64 of every pixel (255 where no stixel)."""

@@ -22,6 +22,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.classes import IGNORE_LABEL, PALETTE, TYPE_PALETTE
+from monostixels.stixels import paint_index_map
 
 __all__ = [
     "COLORMAP_MIN_DEPTH_M",
@@ -191,25 +192,8 @@ def _image_to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
 
 def _stixel_index_map(stixels: Any, H: int, W: int) -> np.ndarray:
     """(H, W) int64 index of the stixel covering each pixel, -1 where none."""
-    w = int(stixels.column_width)
-    col = _to_numpy(stixels.column, "stixels.column").astype(np.int64).reshape(-1)
-    top = _to_numpy(stixels.v_top, "stixels.v_top").astype(np.int64).reshape(-1)
-    bot = _to_numpy(stixels.v_bottom, "stixels.v_bottom").astype(np.int64).reshape(-1)
-    n = col.size
-    if not (top.size == n and bot.size == n):
-        raise InputError(f"stixels: column, v_top, v_bottom differ in length ({n}, {top.size}, {bot.size})")
-    ncols = -(-W // w)
-    if n and (bot < top).any():
-        raise InputError("stixels: v_bottom < v_top for some stixel (rows are inclusive, v grows downward)")
-    if n and (top.min() < 0 or bot.max() >= H or col.min() < 0 or col.max() >= ncols):
-        raise InputError(f"stixels: rows or columns outside the image ({H} rows, {ncols} columns of width {w})")
-    cell = np.full((H, ncols), -1, dtype=np.int64)  # one entry per (row, stixel column)
-    lengths = bot - top + 1
-    ids = np.repeat(np.arange(n), lengths)
-    starts = np.cumsum(lengths) - lengths
-    rows = top[ids] + (np.arange(ids.size) - starts[ids])
-    cell[rows, col[ids]] = ids
-    return cell[:, np.arange(W) // w]
+    arrays = [torch.as_tensor(_to_numpy(getattr(stixels, k), f"stixels.{k}")) for k in ("column", "v_top", "v_bottom")]
+    return paint_index_map(*arrays, int(stixels.column_width), (H, W)).numpy()
 
 
 def stixel_overlay(
