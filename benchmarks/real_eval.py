@@ -44,9 +44,16 @@ DEFAULT_CACHE = Path(tempfile.gettempdir()) / "monostixels_flow_cache"
 def cached_flow(cache: Path):
     """A drop-in for :func:`estimate_flow` that stores each result under ``cache``.
 
-    The key is the pair's name and image size plus the full flow config, so a different backend
-    or setting never reuses a stale result.
+    The key is the pair's name, image size and a checksum of its pixels, the full flow config and
+    a checksum of the flow and data-source code, so a different backend, setting or code version
+    never reuses a stale result.
     """
+
+    # The flow code (backends, confidence, and the data sources that make gt flow) is part of the
+    # key: a cached result of older code is never reused.
+    pkg = Path(pipeline_module.__file__).parent
+    code = hashlib.sha1(b"".join(p.read_bytes() for d in ("inputs", "data") for p in sorted((pkg / d).glob("*.py"))))
+    code = code.hexdigest()[:12]
 
     def _estimate(pair: FramePair, cfg: Any) -> FlowResult:
         from omegaconf import OmegaConf
@@ -54,7 +61,7 @@ def cached_flow(cache: Path):
         cfg_txt = json.dumps(OmegaConf.to_container(cfg, resolve=True) if hasattr(cfg, "keys") else str(cfg),
                              sort_keys=True)
         img_sum = float(pair.image[:, ::17, ::17].sum())  # cheap guard against name collisions
-        key = hashlib.sha1(f"{pair.name}|{tuple(pair.size)}|{img_sum:.4f}|{cfg_txt}".encode()).hexdigest()[:16]
+        key = hashlib.sha1(f"{pair.name}|{tuple(pair.size)}|{img_sum:.4f}|{cfg_txt}|{code}".encode()).hexdigest()[:16]
         path = cache / f"{key}.pt"
         if path.exists():
             d = torch.load(path)

@@ -190,7 +190,7 @@ def _run(cfg: DictConfig) -> None:
         from monostixels._checks import InputError
 
         raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
-    pipe = Pipeline(cfg)
+    pipe = Pipeline(cfg, allow_motion_failure=True)
     out = Path(cfg.outputs) / "run"
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     video = None

@@ -83,11 +83,18 @@ class Pipeline:
 
     Args:
         cfg: the composed config (see :func:`load_config`).
+        allow_motion_failure: see :meth:`motion_for`.
     """
 
-    def __init__(self, cfg: DictConfig) -> None:
+    def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False) -> None:
         self.cfg = cfg
-        self.prior = PriorParams.from_config(OmegaConf.to_container(cfg.prior, resolve=True))
+        prior = OmegaConf.to_container(cfg.prior, resolve=True)
+        # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
+        # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
+        overrides = cfg.semantic.get("prior_overrides") or {}
+        prior.update(OmegaConf.to_container(overrides, resolve=True) if not isinstance(overrides, dict) else overrides)
+        self.prior = PriorParams.from_config(prior)
+        self.allow_motion_failure = allow_motion_failure
         self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))
 
     def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None) -> MotionEstimate:
@@ -95,12 +102,19 @@ class Pipeline:
 
         A degenerate estimate (standing still, pure rotation) keeps its rotation (identity if
         none) with zero translation: the solver then flags the frame and takes depths from the
-        scene model (SPEC section 7).
+        scene model (SPEC section 7). An estimate that fails outright raises
+        :class:`MotionEstimationError`, unless the pipeline was made with
+        ``allow_motion_failure=True`` (``monostixels run``): then the frame is treated as degenerate,
+        flagged, with a warning.
         """
         est = estimate_motion(pair, flow, self.cfg.motion, semantic)
         if est.motion is None:
-            if not est.degenerate:
+            if not est.degenerate and not self.allow_motion_failure:
                 raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
+            if not est.degenerate:
+                # `monostixels run`: still produce output, flagged, from the scene model only.
+                logger.warning("%s: camera motion could not be estimated (%s); depths from the scene model only",
+                               pair.name, est.reason)
             est = MotionEstimate(
                 motion=Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)),
                 degenerate=True, reason=est.reason, inlier_ratio=est.inlier_ratio,

@@ -111,3 +111,26 @@ def test_run_fails_clearly(tmp_path, case):
     err = p.stderr.lower()
     assert "error" in err and "traceback" not in err
     assert {"missing_intrinsics": "intrinsics", "empty": "f", "unreadable": "0001.png", "sizes": "size"}[case] in err
+
+
+SHARED = REPO.parent / "shared" / "data"
+
+
+@pytest.mark.skipif(not (SHARED / "kitti2015").is_dir(), reason="shared KITTI 2015 sample (../shared/data/kitti2015) not present")
+def test_run_on_the_kitti2015_pair(tmp_path):
+    """Ego-motion fails on this pair; `run` still writes its outputs, flagged, from the scene model."""
+    p = _cli(["run", "data=kitti2015", f"data.root={SHARED / 'kitti2015'}", "flow=dis", "semantic=none", "motion=mono"], tmp_path)
+    d = tmp_path / "outputs" / "run"
+    (frame,) = [x for x in d.iterdir() if x.is_dir()]
+    st = StixelWorld.load_json(frame / "stixels.json")
+    assert st.image_size == (375, 1242) and len(st) >= st.num_columns
+    assert (frame / "points.ply").stat().st_size > 0
+    assert "1 frame pair(s)" in p.stdout
+
+
+def test_semantic_none_carries_its_prior_overrides():
+    from monostixels.pipeline import Pipeline, load_config
+
+    assert Pipeline(load_config(["semantic=none"])).prior.alpha_dyn == 0.25
+    assert Pipeline(load_config(["semantic=gt"])).prior.alpha_dyn == 0.0
+    assert Pipeline(load_config(["semantic=none", "semantic.prior_overrides.alpha_dyn=1.5"])).prior.alpha_dyn == 1.5
