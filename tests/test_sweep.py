@@ -19,8 +19,14 @@ from tests.test_solver import random_problem
 from train.priors import labelling_energy, perceptron_loss, write_prior_yaml
 
 REPO = Path(__file__).resolve().parents[1]
-_HAS_SWEEPER = (importlib.util.find_spec("hydra_plugins.hydra_optuna_sweeper") is not None
-                and importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is not None)
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:  # the parent namespace package hydra_plugins is absent
+        return False
+
+
+_HAS_SWEEPER = _installed("hydra_plugins.hydra_optuna_sweeper") and _installed("hydra_plugins.hydra_joblib_launcher")
 #: Tiny inputs of the end-to-end sweep: one frame at 0.2 x KITTI size with ground-truth inputs.
 _TINY = ["data.frames=1", "data.scale=0.2", "flow=gt", "semantic=gt", "motion=gt"]
 

@@ -19,7 +19,9 @@ by :func:`labelling_energy`, a vectorised evaluation of the solver's energy for 
 ``delta_F`` is held fixed (the energy's scale: the loss is homogeneous in the parameters), every
 learned parameter is kept positive through ``θ = exp(w)``, and a small quadratic penalty on
 ``log θ - log θ_default`` keeps the parameters from running off along directions the few training
-frames do not constrain. The result is written to ``conf/prior/learned.yaml`` with the keys of
+frames do not constrain. Which parameters are learned is ``train.learn`` (conf/train_priors.yaml:
+``beta_mc`` and the structural priors; see the comment there for why not the data-term weights).
+The result is written to ``conf/prior/learned.yaml`` with the keys of
 ``conf/prior/default.yaml``.
 
 Usage (from the repository root)::
