@@ -174,15 +174,17 @@ def test_planar_scene_depth_map(planar):
         assert abs(float(depth[v, uc]) / z_true - 1) < 0.02
 
 
-def test_planar_scene_float32_matches_float64(planar):
-    st64, _, cfg = planar
-    if cfg.cell_rows != 3:
-        pytest.skip("checked once, at r = 3")
+def test_planar_scene_float32_matches_float64():
     flow, cov, scores, _ = _planes.build_scene()
-    st32 = solve(flow.float(), cov.float(), scores.float(), _planes.CAM, _planes.MOTION, PriorParams.from_yaml(),
-                 SolverConfig.from_yaml(column_width=cfg.column_width, cell_rows=cfg.cell_rows, dtype="float32"))
-    assert torch.equal(st32.type, st64.type) and torch.equal(st32.v_bottom, st64.v_bottom)
-    assert torch.allclose(st32.inverse_depth, st64.inverse_depth, rtol=1e-3)
+    st = {}
+    for dt in ("float32", "float64"):
+        cfg = SolverConfig.from_yaml(column_width=_planes.WS, cell_rows=3, dtype=dt)
+        dtype = torch.float32 if dt == "float32" else torch.float64
+        st[dt] = solve(flow.to(dtype), cov.to(dtype), scores.to(dtype), _planes.CAM, _planes.MOTION,
+                       PriorParams.from_yaml(), cfg)
+    assert torch.equal(st["float32"].type, st["float64"].type)
+    assert torch.equal(st["float32"].v_bottom, st["float64"].v_bottom)
+    assert torch.allclose(st["float32"].inverse_depth, st["float64"].inverse_depth, rtol=1e-3)
 
 
 def test_degenerate_motion_is_flagged_and_uses_scene_model():
