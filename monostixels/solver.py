@@ -420,7 +420,6 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
     gS = pS.clone()
     bpB = torch.zeros(C, n + 1, NUM_TYPES, dtype=torch.long)
     bpK = torch.zeros_like(bpB)
-    bpH = torch.zeros_like(bpB)
     bpC = torch.zeros_like(bpB)
     tauS = torch.zeros(C, n + 1, NUM_TYPES, 2, dtype=dt)
 
@@ -495,7 +494,6 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
             gS[:, i + 1, T] = g_new
             bpB[:, i + 1, T] = b_star
             bpK[:, i + 1, T] = k_star
-            bpH[:, i + 1, T] = h_star
             bpC[:, i + 1, T] = cls_idx[T][c_star] if prob.nll is not None else classes[T][0]
 
     energy = _softmin(E[:, n], 1, tau_T)
