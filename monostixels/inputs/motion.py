@@ -301,14 +301,20 @@ def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_s
     return unpack(sol.x)
 
 
-def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndarray, prm: MonoParams) -> np.ndarray:
-    """Mask (N,) of pixels whose ray meets the reference ground ahead within the road region."""
+def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndarray, prm: MonoParams,
+                       lateral: bool = True) -> np.ndarray:
+    """Mask (N,) of pixels whose ray meets the reference ground ahead within the road region.
+
+    ``lateral=False`` drops the corridor of ``ground_half_width``: with semantic road labels the
+    road pixels are known wherever they are, and a vehicle ahead can block the corridor.
+    """
     r = _rays(K, pts)
     rn = r @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = np.where(rn > 1e-6, height / rn, np.inf)  # X = lam r on the ground n^T X = h
     X = r * np.where(np.isfinite(lam), lam, 0.0)[:, None]
-    return np.isfinite(lam) & (X[:, 2] < prm.ground_max_distance) & (np.abs(X[:, 0]) < prm.ground_half_width)
+    near = np.isfinite(lam) & (X[:, 2] < prm.ground_max_distance)
+    return near & (np.abs(X[:, 0]) < prm.ground_half_width) if lateral else near
 
 
 def _ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -442,25 +448,24 @@ def estimate_mono(
     inlier_ratio = float(inl.mean())
 
     # 4. Metric scale from the ground.
-    if labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points:
-        gmask = (labels == _ROAD_CLASS) & ok
-        src = "road pixels"
+    road = labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points
+    base = ((labels == _ROAD_CLASS) & ok) if road else ok
+    src = "road pixels" if road else "road region ahead"
+    # The corridor ahead first; with road labels, the whole road if a vehicle blocks the corridor.
+    for lateral in ((True, False) if road else (True,)):
+        gidx = np.nonzero(base & _ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
+        if len(gidx) < params.min_points:
+            failure = f"no metric scale: {len(gidx)} ground vectors ({src}) < {params.min_points}"
+            continue
+        A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
+        m, ginl = _fit_ground(A, bb, params.ground_threshold, rng)
+        q = float(np.linalg.norm(m))
+        tilt = math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
+        if q > 0 and tilt <= params.ground_max_tilt:
+            break
+        failure = f"no metric scale: ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})"
     else:
-        gmask = ok.copy()
-        src = "road region ahead"
-    gmask &= _ground_candidates(Kn, n_g, height, p_cur, params)
-    gidx = np.nonzero(gmask)[0]
-    if len(gidx) < params.min_points:
-        return MotionEstimate(None, False, f"no metric scale: {len(gidx)} ground vectors ({src}) < {params.min_points}", inlier_ratio)
-    A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
-    m, ginl = _fit_ground(A, bb, params.ground_threshold, rng)
-    q = float(np.linalg.norm(m))
-    tilt = math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
-    if not (q > 0) or tilt > params.ground_max_tilt:
-        return MotionEstimate(
-            None, False, f"no metric scale: ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})",
-            inlier_ratio,
-        )
+        return MotionEstimate(None, False, failure, inlier_ratio)
     scale = height * q
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
     reason = (
