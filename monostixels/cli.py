@@ -105,24 +105,25 @@ def _source(cfg: DictConfig):
 
 
 def _demo(cfg: DictConfig) -> float:
-    from monostixels.data.synthetic import render_pair
+    from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
     from monostixels.pipeline import Pipeline
-    from monostixels.viz import depth_colormap, flow_colormap, paper_figure, semantic_colormap, stixel_overlay
+    from monostixels.viz import (depth_colormap, flow_colormap, image_to_uint8, paper_figure, semantic_colormap,
+                                 stixel_overlay)
 
     out = Path(cfg.outputs) / "demo"
-    pair = render_pair(int(cfg.data.seed) * 100_000, scale=float(cfg.data.scale), density=float(cfg.data.density))
+    pair = SyntheticSource(1, seed=int(cfg.data.seed), scale=float(cfg.data.scale), density=float(cfg.data.density))[0]
     logger.info("demo: synthetic scene %s (%dx%d), flow=%s semantic=%s motion=%s", pair.name, pair.size[1],
                 pair.size[0], cfg.flow.name, cfg.semantic.name, cfg.motion.name)
     res = Pipeline(cfg).run(pair)
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     img = pair.image
-    rgb = (img.permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    rgb = image_to_uint8(img)
     st = res.stixels
     depth = st.depth_map()
     pics = {
         "input.png": rgb,
-        "input_previous.png": (pair.image_prev.permute(1, 2, 0).clamp(0, 1) * 255).round().to(torch.uint8).numpy(),
+        "input_previous.png": image_to_uint8(pair.image_prev),
         "flow.png": flow_colormap(res.flow.flow),
         "stixels_overlay.png": stixel_overlay(img, st, mode="type"),
         "stixels_semantic.png": stixel_overlay(img, st, mode="class", alpha=0.7),

@@ -91,8 +91,9 @@ class Pipeline:
         prior = OmegaConf.to_container(cfg.prior, resolve=True)
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
-        overrides = cfg.semantic.get("prior_overrides") or {}
-        prior.update(OmegaConf.to_container(overrides, resolve=True) if not isinstance(overrides, dict) else overrides)
+        overrides = cfg.semantic.get("prior_overrides")
+        if overrides:
+            prior.update(OmegaConf.to_container(overrides, resolve=True))
         self.prior = PriorParams.from_config(prior)
         self.allow_motion_failure = allow_motion_failure
         self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))

@@ -25,6 +25,7 @@ from monostixels.classes import IGNORE_LABEL, PALETTE, TYPE_PALETTE
 from monostixels.stixels import paint_index_map
 
 __all__ = [
+    "image_to_uint8",
     "COLORMAP_MIN_DEPTH_M",
     "COLORMAP_MAX_DEPTH_M",
     "depth_colormap",
@@ -180,7 +181,7 @@ def flow_colormap(flow: torch.Tensor | np.ndarray, *, max_flow: float | None = N
     return rgb
 
 
-def _image_to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
+def image_to_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
     """(3, H, W) float RGB in [0, 1] (or (H, W, 3) uint8) -> (H, W, 3) uint8."""
     img = _to_numpy(image, "image")
     if img.ndim == 3 and img.shape[0] == 3 and img.dtype != np.uint8:
@@ -230,7 +231,7 @@ def stixel_overlay(
         raise InputError(f"mode: expected one of {_OVERLAY_MODES}, got {mode!r}")
     if not 0.0 <= alpha <= 1.0:
         raise InputError(f"alpha: expected a value in [0, 1], got {alpha}")
-    img = _image_to_uint8(image)
+    img = image_to_uint8(image)
     H, W = img.shape[:2]
     size = tuple(int(s) for s in stixels.image_size)
     if size != (H, W):

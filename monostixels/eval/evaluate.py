@@ -109,33 +109,27 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         frames += 1
         gt = pair.gt
         try:
-            res: PipelineResult = pipe.run(pair)
+            res: PipelineResult | None = pipe.run(pair)
         except MotionEstimationError as err:
             # Not dropped: the frame counts, with no estimate (clamped like any invalid depth).
             logger.warning("%s; scored with invalid estimates", err)
             failed.append(pair.name)
-            if gt.depth is not None:
-                has_depth = True
-                moving = gt.moving if gt.moving is not None else torch.zeros(pair.size, dtype=torch.bool)
-                nothing = torch.full(pair.size, float("nan"))
-                for m in acc:
-                    for s, mask in zip(SPLITS, (None, ~moving, moving)):
-                        acc[m][s].add(nothing, gt.depth, mask)
-            n_stixels.append(0)
-            n_pixels.append(pair.size[0] * pair.size[1])
-            continue
-        st = res.stixels
-        n_stixels.append(len(st))
+            res = None
+        n_stixels.append(len(res.stixels) if res is not None else 0)
         n_pixels.append(pair.size[0] * pair.size[1])
-        seconds.append(res.total_seconds)
         if gt.depth is not None:
             has_depth = True
             moving = gt.moving if gt.moving is not None else torch.zeros(pair.size, dtype=torch.bool)
-            masks = {"overall": None, "static": ~moving, "moving": moving}
-            pred = {"monostixels": st.depth_map(), "sfm": res.sfm_depth}
-            for m in acc:
-                for s in SPLITS:
-                    acc[m][s].add(pred[m], gt.depth, masks[s])
+            nothing = torch.full(pair.size, float("nan"))
+            pred = ({"monostixels": res.stixels.depth_map(), "sfm": res.sfm_depth} if res is not None
+                    else {"monostixels": nothing, "sfm": nothing})
+            for s, mask in zip(SPLITS, (None, ~moving, moving)):
+                for m in acc:
+                    acc[m][s].add(pred[m], gt.depth, mask)
+        if res is None:
+            continue
+        st = res.stixels
+        seconds.append(res.total_seconds)
         if gt.flow is not None and str(cfg.flow.name) != "gt":
             flow_stats.append(flow_metrics(res.flow.flow, gt.flow, gt.flow_valid))
         if pair.motion is not None and str(cfg.motion.name) != "gt":
