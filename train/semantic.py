@@ -43,7 +43,8 @@ from tqdm import tqdm
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair
 from monostixels.geometry import Camera
-from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_vgg16_backbone, save_fcn8s
+from monostixels._checks import InputError
+from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
 from monostixels.inputs.semantic import confusion_matrix, estimate_semantics, iou_from_confusion
 
 __all__ = [
@@ -233,6 +234,13 @@ def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
     model = fcn8s_vgg16(**arch)
     if mcfg.get("vgg16_weights"):
         load_vgg16_backbone(model, mcfg["vgg16_weights"])
+    if mcfg.get("init_from"):
+        # Fine-tuning starts a fresh schedule from earlier weights (``resume`` continues a run).
+        init, _ = load_fcn8s(mcfg["init_from"])
+        try:
+            model.load_state_dict(init.state_dict())
+        except RuntimeError as exc:
+            raise InputError(f"model.init_from {mcfg['init_from']}: does not fit the model config {arch}: {exc}") from None
     return model, arch
 
 
