@@ -40,14 +40,15 @@ def _scene_planes() -> list[tuple[torch.Tensor, float]]:
     ]
 
 
-def _analytic_flow(cam: Camera, motion: Motion, noise_px: float = 0.0, seed: int = 0) -> torch.Tensor:
+def _analytic_flow(cam: Camera, motion: Motion, noise_px: float = 0.0, seed: int = 0,
+                   planes: list[tuple[torch.Tensor, float]] | None = None) -> torch.Tensor:
     """Flow (2, H, W) current -> previous of the plane scene, via the stixel homographies."""
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
     ray = pixel_rays(cam.K, u, v)
     best = torch.full((H, W), math.inf, dtype=torch.float64)
     flow = torch.zeros(2, H, W, dtype=torch.float64)
     x = torch.stack([u, v, torch.ones_like(u)], -1)
-    for n, d in _scene_planes():
+    for n, d in planes or _scene_planes():
         z = d / (ray @ n)  # depth along the unit-z ray
         hit = (z > 0) & (z < best)
         Hm = homography(cam.K, motion.R, motion.t, n, torch.tensor(1.0 / d, dtype=torch.float64))
@@ -105,6 +106,33 @@ def test_mono_ignores_a_moving_object_and_uses_semantics():
     est_s = estimate_motion(pair, fr, MONO, semantic=sem)
     e_s = motion_errors(est_s.motion, gt)
     assert e_s["rot_err_deg"] < 0.01 and e_s["trans_dir_err_deg"] < 0.05 and e_s["scale_rel_err"] < 0.005, est_s.reason
+
+
+def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
+    from monostixels.pipeline import Pipeline, load_config
+
+    # The road falls away 2 degrees (camera pitched up against it): level ground is the configured model.
+    a = math.radians(2.0)
+    n_true = torch.tensor([0.0, math.cos(a), math.sin(a)], dtype=torch.float64)
+    planes = [(n_true, HEIGHT), *_scene_planes()[1:]]
+    gt = Motion(R=_rot(0.4, 0.0, 0.0), t=torch.tensor([0.02, 0.0, 0.9], dtype=torch.float64))
+    cam = _camera()
+    pair, fr = _pair_and_flow(gt, flow=_analytic_flow(cam, gt, 0.05, planes=planes))
+    est = estimate_motion(pair, fr, MONO)
+    assert est.motion is not None and est.ground_normal is not None, est.reason
+    angle = math.degrees(math.acos(float(est.ground_normal @ n_true)))
+    assert angle < 0.1
+    assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.01
+    # The pipeline solves with the fitted normal only when asked to.
+    for use, want in ((True, est.ground_normal), (False, cam.ground_normal)):
+        pipe = Pipeline(load_config(["motion=mono", f"motion.use_ground_normal={str(use).lower()}"]))
+        got = pipe.camera_for(pair, est).ground_normal
+        assert torch.allclose(got.double(), want.double(), atol=1e-9)
+    # Ground truth / poses motion has no fitted plane: the configured one stays.
+    pair.motion = gt
+    est_gt = estimate_motion(pair, fr, OmegaConf.create({"name": "gt"}))
+    assert est_gt.ground_normal is None
+    assert Pipeline(load_config(["motion=mono"])).camera_for(pair, est_gt) is pair.camera
 
 
 def test_mono_flags_pure_rotation_and_standing_still():

@@ -80,12 +80,15 @@ class MotionEstimate:
         degenerate: standing still / pure rotation: translation direction and scale unknown.
         reason: human-readable ("ok", "no translation: median parallax 0.2 px", ...).
         inlier_ratio: fraction of the used flow vectors consistent with the estimate (1 for gt/file).
+        ground_normal: (3,) float64 unit normal of the road plane fitted for the metric scale
+            (current camera, pointing down), or None (gt/file, or no fit).
     """
 
     motion: Motion | None
     degenerate: bool
     reason: str
     inlier_ratio: float
+    ground_normal: torch.Tensor | None = None
 
 
 @dataclass
@@ -472,7 +475,8 @@ def estimate_mono(
         f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px, "
         f"scale from {int(ginl.sum())} ground vectors ({src}, normal tilt {tilt:.1f} deg)"
     )
-    return MotionEstimate(motion, False, reason, inlier_ratio)
+    normal = torch.from_numpy(np.ascontiguousarray(m / q))
+    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=normal)
 
 
 def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor | None = None) -> MotionEstimate:
