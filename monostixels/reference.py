@@ -91,12 +91,25 @@ class _Column:
             return dynamic_homography(self.K, self.R, self.n_obj, self.B @ self.tau[h])
         return homography(self.K, self.R, self.t, self.n_g, torch.tensor(0.0, dtype=torch.float64))
 
+    def _above_horizon(self, j: int) -> bool:
+        """The ray through cell ``j`` never meets the ground plane (it would meet it behind the camera)."""
+        prob, c = self.prob, self.c
+        ray = pixel_rays(prob.K[c].double(), prob.u[c].double(), prob.v[j].double())
+        return float(ray @ self.n_g) <= 0.0
+
     def flow_cost(self, T: int, h: int, b: int, t: int) -> float:
         key = ("F", T, h)
         if key not in self._cache:
             H = self.homography(T, h)
             extra = _f(self.prm.alpha_dyn) if T == DYNAMIC_OBJECT else 0.0
-            self._cache[key] = [self._row_flow_cost(H, j) + extra * _f(self.prob.rows[j]) for j in range(self.n)]
+            cap = _f(self.prm.alpha_F) * _f(self.prm.delta_F)
+            # Ground only below the horizon, sky only above it (solver.beyond_horizon).
+            self._cache[key] = [
+                cap * _f(self.prob.rows[j]) if (T == GROUND and self._above_horizon(j))
+                or (T == SKY and not self._above_horizon(j))
+                else self._row_flow_cost(H, j) + extra * _f(self.prob.rows[j])
+                for j in range(self.n)
+            ]
         return sum(self._cache[key][b:t + 1])
 
     def sem_cost(self, cls: int, b: int, t: int) -> float:

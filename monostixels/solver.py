@@ -324,6 +324,18 @@ def _row_costs(prob: ColumnProblem, Hx: torch.Tensor, prm: PriorParams) -> torch
     return c * prob.rows * prm.delta_F
 
 
+def beyond_horizon(cost: torch.Tensor, impossible: torch.Tensor, prob: ColumnProblem, prm: PriorParams) -> torch.Tensor:
+    """Flow cost (..., n) with the cells where a type cannot be seen (``impossible``) at the cap.
+
+    With a flat ground plane below the camera, ground is seen only below the horizon (above it
+    the ray meets the plane behind the camera) and sky only above it (below it the ray meets the
+    ground first). Such cells cost what a point behind the camera costs (``alpha_F`` per row).
+    Without the rule, near the focus of expansion (flow ~ 0 at every depth) the road can run up
+    through the sky and the sky down onto the road.
+    """
+    return torch.where(impossible, (prm.alpha_F * prm.delta_F * prob.rows).to(cost.dtype), cost)
+
+
 def _prefix(x: torch.Tensor) -> torch.Tensor:
     """Prefix sums over the last dim with a leading zero: (..., n) -> (..., n + 1)."""
     return torch.nn.functional.pad(torch.cumsum(x, -1), (1, 0))
@@ -342,16 +354,18 @@ def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> lis
         step = max(1, _CHUNK_ELEMENTS // max(1, prob.num_columns * prob.num_cells))
         return torch.cat([_row_costs(prob, Hx_of(slice(k, k + step)), prm) for k in range(0, K, step)], 1)
 
-    def static(p: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-        return _prefix(chunked(lambda sl: a[:, None] + (p[:, sl, None] * s[:, None, :])[..., None] * cK[:, None, None, :],
-                               p.shape[1]))
+    def static(p: torch.Tensor, s: torch.Tensor, behind: torch.Tensor | None = None) -> torch.Tensor:
+        c = chunked(lambda sl: a[:, None] + (p[:, sl, None] * s[:, None, :])[..., None] * cK[:, None, None, :], p.shape[1])
+        if behind is not None:
+            c = beyond_horizon(c, behind[:, None, :], prob, prm)
+        return _prefix(c)
 
     M = prob.K @ hyp.B  # C x 3 x 2
     g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
     dyn = _prefix(chunked(lambda sl: a[:, None] + s_o[:, None, :, None] * g[:, sl, None, :], g.shape[1])
                   + prm.alpha_dyn * prob.rows)
-    sky = _prefix(_row_costs(prob, a[:, None], prm))
-    return [static(hyp.p_ground, s_g), static(hyp.p_object, s_o), dyn, sky]
+    sky = _prefix(beyond_horizon(_row_costs(prob, a[:, None], prm), (s_g > 0)[:, None, :], prob, prm))
+    return [static(hyp.p_ground, s_g, behind=s_g <= 0), static(hyp.p_object, s_o), dyn, sky]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -202,6 +202,35 @@ def test_degenerate_motion_is_flagged_and_uses_scene_model():
     assert abs(1 / float(col["inverse_depth"][k]) / wall["obj"].dist - 1) < 0.05
 
 
+def test_ground_and_sky_keep_to_their_side_of_the_horizon():
+    # A forward-moving camera and the flow of the ground plane's homography over the whole image:
+    # above the horizon that flow is the plane's mirror image behind the camera, which no ground
+    # can produce (on real images: noise near the focus of expansion that a far ground fits).
+    from monostixels.geometry import apply_homography, homography
+
+    H, W, cy = 60, 20, 24.5
+    K = intrinsics(60.0, 60.0, 9.5, cy)
+    cam = Camera(K, height=1.5)
+    mot = Motion(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    Hg = homography(K, mot.R, mot.t, cam.ground_normal.double(), torch.tensor(1 / 1.5, dtype=torch.float64))
+    up, vp = apply_homography(Hg, u, v)
+    flow = torch.stack([up - u, vp - v])
+    cov = (0.25 * torch.eye(2, dtype=torch.float64)).expand(H, W, 2, 2).clone()
+    st = solve(flow, cov, None, cam, mot, PriorParams.from_yaml(),
+               SolverConfig.from_yaml(column_width=5, cell_rows=2, dtype="float64"))
+    g = st.type == GROUND
+    assert bool(g.any())
+    # Every ground stixel ends at the horizon (within one cell).
+    assert float(st.v_top[g].min()) >= cy - 2
+    # Zero flow everywhere (all far away): never sky below the horizon (far objects there).
+    st0 = solve(torch.zeros_like(flow), cov, None, cam, mot, PriorParams.from_yaml(),
+                SolverConfig.from_yaml(column_width=5, cell_rows=2, dtype="float64"))
+    sky = st0.type == SKY
+    assert not bool(sky.any()) or float(st0.v_bottom[sky].max()) <= cy + 2
+    assert bool(((st0.type == STATIC_OBJECT) | (st0.type == DYNAMIC_OBJECT)).any())
+
+
 # -------------------------------------------------------------------------------------- bad input
 def _good():
     H, W = 12, 10

@@ -48,7 +48,15 @@ from tqdm import tqdm
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
 from monostixels.energy import PriorParams, gravity, ordering_from_depths
 from monostixels.geometry import ground_basis, pixel_rays
-from monostixels.solver import ColumnProblem, ColumnSolution, SolverConfig, _row_costs, prepare_columns, solve_columns
+from monostixels.solver import (
+    ColumnProblem,
+    ColumnSolution,
+    SolverConfig,
+    _row_costs,
+    beyond_horizon,
+    prepare_columns,
+    solve_columns,
+)
 
 __all__ = ["labelling_energy", "perceptron_loss", "build_problems", "learn_priors", "write_prior_yaml",
            "priors_from_sweep", "subsample_columns", "main"]
@@ -101,6 +109,8 @@ def labelling_energy(prob: ColumnProblem, lab: ColumnSolution, prm: PriorParams,
     lin = torch.where(T_c == GROUND, p_c * s_g, torch.where(T_c == STATIC_OBJECT, p_c * s_o, zero))
     Hx = a + lin[..., None] * cK + torch.where((T_c == DYNAMIC_OBJECT)[..., None], s_o[..., None] * kbt, 0 * kbt)
     e_cell = _row_costs(prob, Hx[:, None], prm)[:, 0]  # C x n, weighted by rows and delta_F
+    impossible = ((T_c == GROUND) & (s_g <= 0)) | ((T_c == SKY) & (s_g > 0))
+    e_cell = beyond_horizon(e_cell, impossible, prob, prm)
     e_cell = e_cell + torch.where(T_c == DYNAMIC_OBJECT, prm.alpha_dyn * prob.rows, zero)
     if prob.nll is not None:
         nll = prob.nll.gather(2, cls_c[..., None])[..., 0]
