@@ -260,3 +260,30 @@ def test_mono_on_real_kitti_frames():
     e = motion_errors(est.motion, gt)
     assert e["rot_err_deg"] < 0.1, est.reason
     assert e["scale_rel_err"] < 0.1, est.reason
+
+
+def test_mono_scale_falls_back_to_photometric_search_when_the_road_flow_fails():
+    from monostixels.data.synthetic import render_pair
+    from monostixels.inputs.semantic import estimate_semantics
+
+    pair = render_pair(3, scale=0.5)
+    sem = estimate_semantics(pair, OmegaConf.create({"name": "gt"}))
+    road = pair.gt.labels == 0
+    # The flow is exact except on the road, where it is garbage (as large displacements make it).
+    g = torch.Generator().manual_seed(0)
+    flow = pair.gt.flow.clone()
+    flow[:, road] = 20.0 * torch.randn(2, int(road.sum()), generator=g)
+    cov = (0.25 * torch.eye(2)).expand(*pair.size, 2, 2).contiguous()
+    fr = FlowResult(flow=flow, cov=cov, seconds=0.0, backend="corrupted")
+    est = estimate_motion(pair, fr, MONO, semantic=sem)
+    assert est.motion is not None and "photometric" in est.reason, est.reason
+    e = motion_errors(est.motion, pair.motion)
+    assert e["scale_rel_err"] < 0.02 and e["trans_dir_err_deg"] < 0.5
+    # Switched off, the same pair has no metric scale (reported, not guessed).
+    off = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "photometric_scale": False}), semantic=sem)
+    assert off.motion is None and "no metric scale" in off.reason
+    # Images that do not show the motion: no clear minimum, no estimate.
+    noise = torch.rand(3, *pair.size, generator=g)
+    blind = FramePair(image=noise, image_prev=torch.rand(3, *pair.size, generator=g), camera=pair.camera, name="noise")
+    none = estimate_motion(blind, fr, MONO, semantic=sem)
+    assert none.motion is None and "photometric" in none.reason

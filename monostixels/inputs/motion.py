@@ -29,6 +29,12 @@ Backends (``cfg.name``):
      plane homography ``K (R + t̂ m^T) K^-1`` with ``m = (s / h) n``: ``s`` the metric length of
      ``t``, ``h`` the camera height, ``n`` the ground normal. ``m`` is linear in the flow
      equations (RANSAC + least squares); ``s = camera.height * |m|``.
+  5. When the road's flow gives no plane (too few inliers, or a fit tilted beyond
+     ``ground_max_tilt``: large displacements on the near road defeat the flow there) and the
+     images are given, ``s`` is found photometrically instead: the previous image is warped onto
+     the current one by the ground homography of each candidate ``s`` (1-D search), and the
+     ``s`` with the lowest median grey-value difference over the same ground pixels wins, if its
+     minimum is clear.
 """
 from __future__ import annotations
 
@@ -109,6 +115,8 @@ class MonoParams:
         ground_half_width: half width of that region, metres.
         ground_threshold: inlier threshold of the ground-plane fit (pixels).
         ground_max_tilt: largest angle (degrees) between the fitted and the configured ground normal.
+        photometric_scale: fall back to the photometric scale search (step 5) when the ground's
+            flow gives no plane.
         seed: RNG seed of the subsampling and RANSAC.
     """
 
@@ -123,6 +131,7 @@ class MonoParams:
     ground_half_width: float = 2.5
     ground_threshold: float = 0.5
     ground_max_tilt: float = 10.0
+    photometric_scale: bool = True
     seed: int = 0
 
 
@@ -337,18 +346,34 @@ def _ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarra
     return A, b
 
 
-def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator, hypotheses: int = 300) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC (2 pixels = 4 equations per hypothesis) + least squares of ``A m = b``; returns m and inliers (N,)."""
+def _tilt_deg(m: np.ndarray, n_g: np.ndarray) -> float:
+    """Angle (degrees) between the plane vector ``m`` and the unit normal ``n_g``."""
+    q = float(np.linalg.norm(m))
+    return math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
+
+
+def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator, hypotheses: int = 300,
+                n_g: np.ndarray | None = None, max_tilt: float = 180.0) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC (2 pixels = 4 equations per hypothesis) + least squares of ``A m = b``; returns m and inliers (N,).
+
+    Hypotheses tilted more than ``max_tilt`` degrees from ``n_g`` are not scored: the road is
+    near the configured plane, and a wall or a car side that happens to hold more of the
+    candidate pixels must not win.
+    """
     N = len(A) // 2
     best, best_count = None, -1
     for _ in range(hypotheses):
         idx = rng.choice(N, size=2, replace=False)
         rows = np.r_[idx, idx + N]
         m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
+        if n_g is not None and _tilt_deg(m, n_g) > max_tilt:
+            continue
         res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
         count = int((res < thr).sum())
         if count > best_count:
             best, best_count = m, count
+    if best is None:  # no hypothesis within the tilt: the unconstrained fit, rejected by the caller
+        best, *_ = np.linalg.lstsq(A, b, rcond=None)
     m = best
     for _ in range(3):
         res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
@@ -361,6 +386,57 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
     return m, res < thr
 
 
+#: Candidate metric translations (metres per frame) of the photometric scale search.
+_SCALE_GRID_M = np.geomspace(0.02, 5.0, 96)
+
+
+def _grey(image: torch.Tensor) -> np.ndarray:
+    """(3, H, W) RGB in [0, 1] -> (H, W) float32 grey, lightly smoothed (a wider basin for the search)."""
+    g = image.float().clamp(0, 1).mul(torch.tensor([0.299, 0.587, 0.114])[:, None, None]).sum(0).numpy()
+    return cv2.GaussianBlur(g, (0, 0), 1.0)
+
+
+def _photometric_scale(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
+                       n_g: np.ndarray, height: float, pts: np.ndarray) -> tuple[float, float] | None:
+    """Metric length (m) of ``t_unit`` that best warps ``prev`` onto ``cur`` over ground pixels ``pts`` (N, 2).
+
+    The ground homography of a candidate length ``s`` is ``K (R + s t̂ n^T / h) K^-1``. Returns
+    ``(s, contrast)`` (contrast = best cost / median cost over the grid, lower is clearer), or
+    None without a clear minimum.
+    """
+    y = _rays(K, pts)
+    a = y @ (K @ R).T
+    c = K @ t_unit
+    w = (y @ n_g) / height
+    H, W = cur.shape
+    ref = cur[pts[:, 1].astype(np.int64), pts[:, 0].astype(np.int64)]
+
+    def cost(s: float) -> float:
+        q = a + s * w[:, None] * c[None]
+        u, v = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
+        inside = (q[:, 2] > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+        if inside.mean() < 0.5:
+            return math.inf
+        val = cv2.remap(prev, u[inside].astype(np.float32)[:, None], v[inside].astype(np.float32)[:, None],
+                        cv2.INTER_LINEAR)[:, 0]
+        return float(np.median(np.abs(val - ref[inside])))
+
+    costs = np.array([cost(s) for s in _SCALE_GRID_M])
+    finite = np.isfinite(costs)
+    if finite.sum() < 8:
+        return None
+    k = int(np.nanargmin(np.where(finite, costs, np.nan)))
+    lo, hi = _SCALE_GRID_M[max(k - 1, 0)], _SCALE_GRID_M[min(k + 1, len(_SCALE_GRID_M) - 1)]
+    fine = np.linspace(lo, hi, 41)
+    fc = np.array([cost(s) for s in fine])
+    j = int(np.argmin(fc))
+    contrast = float(fc[j] / np.median(costs[finite]))
+    # A clear minimum: well below the typical cost, and not at the end of the grid.
+    if contrast > 0.6 or k in (0, len(_SCALE_GRID_M) - 1):
+        return None
+    return float(fine[j]), contrast
+
+
 def estimate_mono(
     K: torch.Tensor,
     height: float,
@@ -369,6 +445,7 @@ def estimate_mono(
     cov: torch.Tensor | None,
     params: MonoParams,
     semantic: torch.Tensor | None = None,
+    images: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> MotionEstimate:
     """Monocular camera motion from dense flow (see the module docstring for the method).
 
@@ -380,6 +457,7 @@ def estimate_mono(
         cov: (H, W, 2, 2) flow covariance, pixels^2, or None (all vectors used).
         params: estimator parameters.
         semantic: (10, H, W) class scores or None.
+        images: (current, previous) (3, H, W) RGB in [0, 1], for the photometric scale fallback.
 
     Returns:
         A :class:`MotionEstimate` (metres).
@@ -461,14 +539,37 @@ def estimate_mono(
             failure = f"no metric scale: {len(gidx)} ground vectors ({src}) < {params.min_points}"
             continue
         A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
-        m, ginl = _fit_ground(A, bb, params.ground_threshold, rng)
+        m, ginl = _fit_ground(A, bb, params.ground_threshold, rng, n_g=n_g, max_tilt=params.ground_max_tilt)
         q = float(np.linalg.norm(m))
-        tilt = math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
-        if q > 0 and tilt <= params.ground_max_tilt:
+        tilt = _tilt_deg(m, n_g)
+        if q > 0 and tilt <= params.ground_max_tilt and ginl.sum() >= params.min_points:
             break
-        failure = f"no metric scale: ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})"
+        if ginl.sum() < params.min_points:
+            failure = f"no metric scale: {int(ginl.sum())} ground vectors ({src}) fit a plane (< {params.min_points})"
+        else:
+            failure = f"no metric scale: ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})"
     else:
-        return MotionEstimate(None, False, failure, inlier_ratio)
+        head = f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px"
+        if images is None or not params.photometric_scale:
+            return MotionEstimate(None, False, failure, inlier_ratio)
+        # 5. The road's flow gives no plane: search the scale photometrically over the same region.
+        dense = np.ones((H, W), dtype=bool)
+        if road:
+            dense = semantic.argmax(0).numpy() == _ROAD_CLASS
+        vv, uu = np.nonzero(dense[::2, ::2])
+        pts = np.c_[uu * 2, vv * 2].astype(np.float64)
+        pts = pts[_ground_candidates(Kn, n_g, height, pts, params, lateral=not road)]
+        if len(pts) > 40000:
+            pts = pts[np.sort(rng.choice(len(pts), size=40000, replace=False))]
+        found = None
+        if len(pts) >= params.min_points:
+            found = _photometric_scale(_grey(images[0]), _grey(images[1]), Kn, R, t, n_g, height, pts)
+        if found is None:
+            return MotionEstimate(None, False, f"{failure}; photometric search found no clear minimum", inlier_ratio)
+        scale, contrast = found
+        motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
+        reason = f"{head}, scale photometric from {len(pts)} ground pixels ({src}, contrast {contrast:.2f}; {failure})"
+        return MotionEstimate(motion, False, reason, inlier_ratio)
     scale = height * q
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
     reason = (
@@ -502,7 +603,8 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
             raise InputError("motion=mono: needs the flow of the pair (flow is None)")
         check_shape(flow.flow, [2, *pair.size], "flow")
         return estimate_mono(
-            pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, _mono_params(cfg), semantic
+            pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, _mono_params(cfg), semantic,
+            images=(pair.image, pair.image_prev),
         )
     raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
 
