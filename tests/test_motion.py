@@ -262,7 +262,7 @@ def test_mono_on_real_kitti_frames():
     assert e["scale_rel_err"] < 0.1, est.reason
 
 
-def test_mono_scale_falls_back_to_photometric_search_when_the_road_flow_fails():
+def test_mono_scale_from_the_images_when_the_road_flow_fails():
     from monostixels.data.synthetic import render_pair
     from monostixels.inputs.semantic import estimate_semantics
 
@@ -279,6 +279,9 @@ def test_mono_scale_falls_back_to_photometric_search_when_the_road_flow_fails():
     assert est.motion is not None and "photometric" in est.reason, est.reason
     e = motion_errors(est.motion, pair.motion)
     assert e["scale_rel_err"] < 0.02 and e["trans_dir_err_deg"] < 0.5
+    # The renderer's road is level: the photometric road normal is the camera's "down".
+    n = est.ground_normal.double()
+    assert math.degrees(math.acos(float(n @ pair.camera.ground_normal.double()))) < 0.5
     # Switched off, the same pair has no metric scale (reported, not guessed).
     off = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "photometric_scale": False}), semantic=sem)
     assert off.motion is None and "no metric scale" in off.reason

@@ -27,14 +27,16 @@ Backends (``cfg.name``):
   4. Metric scale from the ground: ground pixels (semantic road where given, else the road
      region in front of the car predicted by the camera height and ground normal) move with the
      plane homography ``K (R + t̂ m^T) K^-1`` with ``m = (s / h) n``: ``s`` the metric length of
-     ``t``, ``h`` the camera height, ``n`` the ground normal. ``m`` is linear in the flow
-     equations (RANSAC + least squares); ``s = camera.height * |m|``.
-  5. When the road's flow gives no plane (too few inliers, or a fit tilted beyond
-     ``ground_max_tilt``: large displacements on the near road defeat the flow there) and the
-     images are given, ``s`` is found photometrically instead: the previous image is warped onto
-     the current one by the ground homography of each candidate ``s`` (1-D search), and the
-     ``s`` with the lowest median grey-value difference over the same ground pixels wins, if its
-     minimum is clear.
+     ``t``, ``h`` the camera height, ``n`` the ground normal.
+
+     a. Photometric (when the images are given, ``photometric_scale``): the previous image is
+        warped onto the current one by the ground homography; a 1-D search over ``s`` then a
+        pattern search over ``(s, n)`` minimise the median grey-value difference over the
+        ground pixels. The near road moves by up to ~130 px between KITTI-like frames, where
+        flow fails; the images themselves do not (synthetic seed 2 at half size: median scale
+        error 0.2 % against 16 % from the flow on the 13 worst frames).
+     b. From the flow (fallback): ``m`` is linear in the flow equations (RANSAC with the tilt
+        bounded by ``ground_max_tilt``, then least squares); ``s = camera.height * |m|``.
 """
 from __future__ import annotations
 
@@ -115,8 +117,9 @@ class MonoParams:
         ground_half_width: half width of that region, metres.
         ground_threshold: inlier threshold of the ground-plane fit (pixels).
         ground_max_tilt: largest angle (degrees) between the fitted and the configured ground normal.
-        photometric_scale: fall back to the photometric scale search (step 5) when the ground's
-            flow gives no plane.
+        photometric_scale: scale and road normal from the images (step 4a) when they are given;
+            the flow of the ground (step 4b) is then the fallback.
+        photometric_pixels: at most this many ground pixels (seeded subset) in that search.
         seed: RNG seed of the subsampling and RANSAC.
     """
 
@@ -132,6 +135,7 @@ class MonoParams:
     ground_threshold: float = 0.5
     ground_max_tilt: float = 10.0
     photometric_scale: bool = True
+    photometric_pixels: int = 40000
     seed: int = 0
 
 
@@ -396,45 +400,78 @@ def _grey(image: torch.Tensor) -> np.ndarray:
     return cv2.GaussianBlur(g, (0, 0), 1.0)
 
 
-def _photometric_scale(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
-                       n_g: np.ndarray, height: float, pts: np.ndarray) -> tuple[float, float] | None:
-    """Metric length (m) of ``t_unit`` that best warps ``prev`` onto ``cur`` over ground pixels ``pts`` (N, 2).
+def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N,) of ``img`` at (u, v) (maps are reshaped: OpenCV caps their sides at 32767)."""
+    n = len(u)
+    cols = 1024
+    pad = (-n) % cols
+    mu = np.pad(u.astype(np.float32), (0, pad)).reshape(-1, cols)
+    mv = np.pad(v.astype(np.float32), (0, pad)).reshape(-1, cols)
+    return cv2.remap(img, mu, mv, cv2.INTER_LINEAR).reshape(-1)[:n]
 
-    The ground homography of a candidate length ``s`` is ``K (R + s t̂ n^T / h) K^-1``. Returns
-    ``(s, contrast)`` (contrast = best cost / median cost over the grid, lower is clearer), or
-    None without a clear minimum.
+
+def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
+                        n_g: np.ndarray, height: float, pts: np.ndarray,
+                        max_tilt: float) -> tuple[float, np.ndarray, float] | None:
+    """Metric length (m) of ``t_unit`` and road normal that best warp ``prev`` onto ``cur`` over ``pts``.
+
+    The ground homography of a length ``s`` and normal ``n`` is ``K (R + s t̂ n^T / h) K^-1``; the
+    cost is the median absolute grey difference over the ground pixels ``pts`` (N, 2) (robust to
+    an object on them). A 1-D search over ``s`` with ``n = n_g`` finds the basin, then a pattern
+    search refines ``(log s, n)`` with ``n`` within ``max_tilt`` degrees of ``n_g``.
+
+    Returns:
+        ``(s, n (3,), contrast)``, contrast = best cost / median cost over the 1-D grid (lower is
+        clearer), or None without a clear minimum.
     """
     y = _rays(K, pts)
     a = y @ (K @ R).T
     c = K @ t_unit
-    w = (y @ n_g) / height
     H, W = cur.shape
     ref = cur[pts[:, 1].astype(np.int64), pts[:, 0].astype(np.int64)]
+    e1 = np.cross(n_g, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n_g, e1)  # n_g, e1 (sideways), e2 (forward): roll and pitch of the road plane
 
-    def cost(s: float) -> float:
-        q = a + s * w[:, None] * c[None]
+    def normal(x: np.ndarray) -> np.ndarray:
+        n = n_g + x[1] * e1 + x[2] * e2
+        return n / np.linalg.norm(n)
+
+    def cost(x: np.ndarray) -> float:
+        n = normal(x)
+        if _tilt_deg(n, n_g) > max_tilt:
+            return math.inf
+        q = a + (math.exp(x[0]) * (y @ n) / height)[:, None] * c[None]
         u, v = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
         inside = (q[:, 2] > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
         if inside.mean() < 0.5:
             return math.inf
-        val = cv2.remap(prev, u[inside].astype(np.float32)[:, None], v[inside].astype(np.float32)[:, None],
-                        cv2.INTER_LINEAR)[:, 0]
-        return float(np.median(np.abs(val - ref[inside])))
+        return float(np.median(np.abs(_sample(prev, u[inside], v[inside]) - ref[inside])))
 
-    costs = np.array([cost(s) for s in _SCALE_GRID_M])
+    costs = np.array([cost(np.array([math.log(s), 0.0, 0.0])) for s in _SCALE_GRID_M])
     finite = np.isfinite(costs)
     if finite.sum() < 8:
         return None
-    k = int(np.nanargmin(np.where(finite, costs, np.nan)))
-    lo, hi = _SCALE_GRID_M[max(k - 1, 0)], _SCALE_GRID_M[min(k + 1, len(_SCALE_GRID_M) - 1)]
-    fine = np.linspace(lo, hi, 41)
-    fc = np.array([cost(s) for s in fine])
-    j = int(np.argmin(fc))
-    contrast = float(fc[j] / np.median(costs[finite]))
+    k = int(np.argmin(np.where(finite, costs, np.inf)))
     # A clear minimum: well below the typical cost, and not at the end of the grid.
-    if contrast > 0.6 or k in (0, len(_SCALE_GRID_M) - 1):
+    if k in (0, len(_SCALE_GRID_M) - 1) or costs[k] >= 0.6 * np.median(costs[finite]):
         return None
-    return float(fine[j]), contrast
+    x = np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0])
+    best = costs[k]
+    step = np.array([math.log(_SCALE_GRID_M[1] / _SCALE_GRID_M[0]), 0.01, 0.01])  # 1 grid step, ~0.6 deg
+    for _ in range(8):
+        improved = True
+        while improved:
+            improved = False
+            for d in range(3):
+                for sign in (1.0, -1.0):
+                    trial = x.copy()
+                    trial[d] += sign * step[d]
+                    ct = cost(trial)
+                    if ct < best:
+                        x, best, improved = trial, ct, True
+        step /= 2
+    return math.exp(x[0]), normal(x), float(best / np.median(costs[finite]))
 
 
 def estimate_mono(
@@ -528,15 +565,36 @@ def estimate_mono(
             return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement", float(inl.mean()))
     inlier_ratio = float(inl.mean())
 
-    # 4. Metric scale from the ground.
+    # 4. Metric scale (and road normal) from the ground.
+    head = f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px"
     road = labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points
-    base = ((labels == _ROAD_CLASS) & ok) if road else ok
     src = "road pixels" if road else "road region ahead"
-    # The corridor ahead first; with road labels, the whole road if a vehicle blocks the corridor.
+    failures = []
+    if images is not None and params.photometric_scale:
+        dense = semantic.argmax(0).numpy() == _ROAD_CLASS if road else np.ones((H, W), dtype=bool)
+        vv, uu = np.nonzero(dense[::2, ::2])
+        pts = np.c_[uu * 2, vv * 2].astype(np.float64)
+        pts = pts[_ground_candidates(Kn, n_g, height, pts, params, lateral=not road)]
+        if len(pts) > params.photometric_pixels:
+            pts = pts[np.sort(rng.choice(len(pts), size=params.photometric_pixels, replace=False))]
+        found = None
+        if len(pts) >= params.min_points:
+            found = _photometric_ground(_grey(images[0]), _grey(images[1]), Kn, R, t, n_g, height, pts,
+                                        params.ground_max_tilt)
+        if found is not None:
+            scale, normal, contrast = found
+            motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
+            reason = (f"{head}, scale photometric from {len(pts)} ground pixels ({src}, contrast {contrast:.2f}, "
+                      f"normal tilt {_tilt_deg(normal, n_g):.1f} deg)")
+            return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(normal))
+        failures.append(f"photometric: no clear minimum over {len(pts)} ground pixels ({src})")
+    # The flow of the ground: the corridor ahead first; with road labels, the whole road if a
+    # vehicle blocks the corridor.
+    base = ((labels == _ROAD_CLASS) & ok) if road else ok
     for lateral in ((True, False) if road else (True,)):
         gidx = np.nonzero(base & _ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
         if len(gidx) < params.min_points:
-            failure = f"no metric scale: {len(gidx)} ground vectors ({src}) < {params.min_points}"
+            failures.append(f"{len(gidx)} ground vectors ({src}) < {params.min_points}")
             continue
         A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
         m, ginl = _fit_ground(A, bb, params.ground_threshold, rng, n_g=n_g, max_tilt=params.ground_max_tilt)
@@ -545,37 +603,16 @@ def estimate_mono(
         if q > 0 and tilt <= params.ground_max_tilt and ginl.sum() >= params.min_points:
             break
         if ginl.sum() < params.min_points:
-            failure = f"no metric scale: {int(ginl.sum())} ground vectors ({src}) fit a plane (< {params.min_points})"
+            failures.append(f"{int(ginl.sum())} ground vectors ({src}) fit a plane (< {params.min_points})")
         else:
-            failure = f"no metric scale: ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})"
+            failures.append(f"ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})")
     else:
-        head = f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px"
-        if images is None or not params.photometric_scale:
-            return MotionEstimate(None, False, failure, inlier_ratio)
-        # 5. The road's flow gives no plane: search the scale photometrically over the same region.
-        dense = np.ones((H, W), dtype=bool)
-        if road:
-            dense = semantic.argmax(0).numpy() == _ROAD_CLASS
-        vv, uu = np.nonzero(dense[::2, ::2])
-        pts = np.c_[uu * 2, vv * 2].astype(np.float64)
-        pts = pts[_ground_candidates(Kn, n_g, height, pts, params, lateral=not road)]
-        if len(pts) > 40000:
-            pts = pts[np.sort(rng.choice(len(pts), size=40000, replace=False))]
-        found = None
-        if len(pts) >= params.min_points:
-            found = _photometric_scale(_grey(images[0]), _grey(images[1]), Kn, R, t, n_g, height, pts)
-        if found is None:
-            return MotionEstimate(None, False, f"{failure}; photometric search found no clear minimum", inlier_ratio)
-        scale, contrast = found
-        motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
-        reason = f"{head}, scale photometric from {len(pts)} ground pixels ({src}, contrast {contrast:.2f}; {failure})"
-        return MotionEstimate(motion, False, reason, inlier_ratio)
+        return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio)
     scale = height * q
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
-    reason = (
-        f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px, "
-        f"scale from {int(ginl.sum())} ground vectors ({src}, normal tilt {tilt:.1f} deg)"
-    )
+    reason = f"{head}, scale from {int(ginl.sum())} ground vectors ({src}, normal tilt {tilt:.1f} deg)"
+    if failures:
+        reason += f" ({'; '.join(failures)})"
     normal = torch.from_numpy(np.ascontiguousarray(m / q))
     return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=normal)
 
