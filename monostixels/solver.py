@@ -80,6 +80,7 @@ class SolverConfig:
     tau: float
     dtype: str
     min_translation: float
+    standing_hypotheses: bool
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
@@ -301,6 +302,16 @@ def _hypotheses(prob: ColumnProblem, cfg: SolverConfig) -> _Hypotheses:
     tau = solve_dynamic_dof(*dynamic_dof_system(K, R, Bm[:, None], prob.n_obj[:, None], u, v, f))
     if s > 1:
         p_g, p_o, tau = _window_median(p_g, s), _window_median(p_o, s), _window_median(tau, s)
+    if cfg.standing_hypotheses:
+        # The scene model's depth of an object whose bottom is at each cell's lower edge: it stands
+        # on the reference ground there. Where the flow fails (every hypothesis at the cap, e.g. a
+        # near wall moving 100+ px) the priors can then still place it.
+        ray_b = pixel_rays(K, prob.u[:, None], prob.v_edge[None, :])
+        q = (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)
+        p_stand = valid(q * p_ref)
+        if s > 1:
+            p_stand = p_stand[:, ::s]
+        p_o = torch.cat([p_o, p_stand], dim=1)
     # Without translation the flow says nothing about depth: the ground is the reference ground.
     p_g = torch.where(prob.degenerate[:, None], torch.full_like(p_g, float("nan")), p_g)
     # Missing hypotheses are replaced by the reference ground (always in the ground set), by

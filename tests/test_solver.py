@@ -141,14 +141,16 @@ def test_planar_scene_segmentation_and_depths(planar):
         assert int(col["type"][0]) == GROUND and int(col["type"][-1]) in (SKY, want_type)
         assert int(col["cls"][k]) == obj.cls
         depth = 1 / float(col["inverse_depth"][k])
+        # A depth from the ground contact has its row at a cell boundary: at r = 1 within half a
+        # row of the true contact; at larger r within one cell (the ground-ray depth changes by
+        # z^2 / (f h) per row).
+        rows_err = 0.5 if r == 1 else r
+        contact_tol = rows_err * obj.dist / (float(_planes.K[1, 1]) * _planes.CAM.height)
         if want_type == STATIC_OBJECT:
-            assert abs(depth / obj.dist - 1) < 0.01, (tr["column"], depth, obj.dist)
+            # From the flow (1 %) or from the standing hypothesis (the contact's tolerance).
+            assert abs(depth / obj.dist - 1) < max(0.01, contact_tol), (tr["column"], depth, obj.dist)
         else:
-            # Depth from the ground contact. Its row is a cell boundary: at r = 1 within half a
-            # row of the true contact (2 %); at larger r within one cell (the ground-ray
-            # depth changes by z^2 / (f h) per row).
-            rows_err = 0.5 if r == 1 else r
-            tol = 0.02 if r == 1 else rows_err * obj.dist / (float(_planes.K[1, 1]) * _planes.CAM.height)
+            tol = 0.02 if r == 1 else contact_tol
             assert abs(depth / obj.dist - 1) < tol, (tr["column"], depth, obj.dist)
             delta = torch.tensor(obj.delta, dtype=torch.float64)
             assert float((col["motion"][k] - delta).norm()) < 0.05, (tr["column"], col["motion"][k], delta)
@@ -171,7 +173,11 @@ def test_planar_scene_depth_map(planar):
 
         n_o = object_normals(_planes.K, _planes.CAM.ground_normal.double(), torch.tensor(uc, dtype=torch.float64))
         z_true = obj.dist / float(ray @ n_o)
-        assert abs(float(depth[v, uc]) / z_true - 1) < 0.02
+        # 2 %, or the ground contact's cell quantisation where the depth comes from the scene model
+        # (a standing hypothesis: far objects, whose flow barely depends on their depth).
+        rows_err = 0.5 if cfg.cell_rows == 1 else cfg.cell_rows
+        tol = max(0.02, rows_err * obj.dist / (float(_planes.K[1, 1]) * _planes.CAM.height))
+        assert abs(float(depth[v, uc]) / z_true - 1) < tol
 
 
 def test_planar_scene_float32_matches_float64():
