@@ -10,16 +10,23 @@ Command (repository root; the RAFT rows need models/raft_small_synthetic.pt / .o
 
     nice -n 10 python -m benchmarks.flow_quality --frames 20
 
-Results (2026-11-22; 2-core CPU shared with five other jobs, load 4-10, so the timings are
-upper bounds). ``--frames 20`` at 1242x375 (backends run in two calls sharing ``--cache``):
+Results (2026-11-22), ``--frames 20`` at 1242x375. DeepFlow as shipped (guided by DIS matches,
+``flow.matches=dis``) and DIS, ``--backends deepflow,dis``, one training job beside it:
+
+    | backend  | EPE (px) | Fl-all (%) | seconds / frame |
+    |----------|---------:|-----------:|----------------:|
+    | deepflow |     1.31 |        6.0 |            0.94 |
+    | dis      |     1.42 |        6.7 |            0.04 |
+    structure-tensor covariance: 0.09 s / frame
+
+Earlier, on a CPU shared with five other jobs (load 4-10, timings are upper bounds), with
+OpenCV's DeepFlow alone (today ``flow.matches=none``) and the RAFT weights:
 
     | backend   | EPE (px) | Fl-all (%) | seconds / frame |
     |-----------|---------:|-----------:|----------------:|
     | deepflow  |    10.02 |       21.7 |            7.38 |
-    | dis       |     1.42 |        6.7 |            0.62 |
     | raft      |    28.31 |       96.9 |           23.98 |
     | raft_onnx |    28.31 |       96.9 |           11.58 |
-    structure-tensor covariance: 1.5 s / frame
 
 ``--frames 20 --scale 0.35`` (435x131, the scale RAFT was trained at):
 
@@ -30,8 +37,9 @@ upper bounds). ``--frames 20`` at 1242x375 (backends run in two calls sharing ``
 RAFT = models/raft_small_synthetic.pt from ``nice -n 10 python -m train.flow`` (conf/train_flow.yaml:
 330 steps, batch 2, 128x256 crops at scale 0.35, stopped by max_minutes=30; training EPE 4.1 px):
 far too short to learn full-resolution displacements (up to ~110 px); the number is real, not good.
-OpenCV's DeepFlow is the variational part without DeepMatching, which is why it loses the large
-near-field displacements of the road at full resolution.
+OpenCV's DeepFlow is the variational part without DeepMatching, which is why on its own it loses
+the large near-field displacements of the road at full resolution; guided by DIS's matches it
+keeps them.
 """
 from __future__ import annotations
 

@@ -324,6 +324,26 @@ def test_few_training_steps_lower_the_loss() -> None:
     assert np.mean(losses[-3:]) < 0.7 * losses[0]
 
 
+def test_fine_tuning_starts_from_saved_weights(tmp_path: Path) -> None:
+    mod = _load_train_module()
+    from monostixels._checks import InputError
+    from monostixels.inputs.fcn8s import save_fcn8s
+
+    cfg = {"width_mult": TINY, "batch_norm": True, "fc_kernel": 3, "fc_channels": 32, "dropout": 0.0}
+    torch.manual_seed(1)
+    src, arch = mod.build_model(cfg)
+    with torch.no_grad():
+        for p in src.parameters():
+            p.add_(torch.randn_like(p))
+    path = save_fcn8s(src, tmp_path / "src.pt", arch=arch)
+    torch.manual_seed(2)
+    model, _ = mod.build_model({**cfg, "init_from": str(path)})
+    for (k, a), b in zip(src.state_dict().items(), model.state_dict().values()):
+        assert torch.equal(a, b), k
+    with pytest.raises(InputError, match="model.init_from"):
+        mod.build_model({**cfg, "fc_channels": 16, "init_from": str(path)})
+
+
 def test_augment_keeps_labels_valid_and_crops() -> None:
     mod = _load_train_module()
     aug = OmegaConf.load(CONF / "train_semantic.yaml").augment
