@@ -481,10 +481,12 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
 
 
 def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray, t: np.ndarray, n_g: np.ndarray,
-                          reason: str, inlier_ratio: float, note: str = "") -> MotionEstimate:
+                          head: str, pixels: str, inlier_ratio: float, note: str = "") -> MotionEstimate:
+    """The estimate from a :func:`_photometric_ground` result; ``head``, ``pixels``, ``note`` word its reason."""
     scale, normal, contrast = found
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
-    reason += f", contrast {contrast:.2f}, normal tilt {_tilt_deg(normal, n_g):.1f} deg)"
+    reason = (f"{head}, scale photometric from {pixels}, contrast {contrast:.2f}, "
+              f"normal tilt {_tilt_deg(normal, n_g):.1f} deg)")
     if note:
         reason += f" ({note})"
     return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(normal))
@@ -510,7 +512,8 @@ def estimate_mono(
         cov: (H, W, 2, 2) flow covariance, pixels^2, or None (all vectors used).
         params: estimator parameters.
         semantic: (10, H, W) class scores or None.
-        images: (current, previous) (3, H, W) RGB in [0, 1], for the photometric scale fallback.
+        images: (current, previous) (3, H, W) RGB in [0, 1], for the photometric scale (step 4a);
+            None: the scale from the flow of the ground only.
 
     Returns:
         A :class:`MotionEstimate` (metres).
@@ -594,13 +597,14 @@ def estimate_mono(
         pts = pts[_ground_candidates(Kn, n_g, height, pts, params, lateral=not road)]
         if len(pts) > params.photometric_pixels:
             pts = pts[np.sort(rng.choice(len(pts), size=params.photometric_pixels, replace=False))]
+        pixels = f"{len(pts)} ground pixels ({src}"
         if len(pts) >= params.min_points:
             found = _photometric_ground(_grey(images[0]), _grey(images[1]), Kn, R, t, n_g, height, pts,
                                         params.ground_max_tilt)
         if found is None:
-            failures.append(f"photometric: no clear minimum over {len(pts)} ground pixels ({src})")
+            failures.append(f"photometric: no clear minimum over {pixels})")
         elif found[2] <= params.photometric_sharp:
-            return _photometric_estimate(found, R, t, n_g, f"{head}, scale photometric from {len(pts)} ground pixels ({src}", inlier_ratio)
+            return _photometric_estimate(found, R, t, n_g, head, pixels, inlier_ratio)
         else:
             failures.append(f"photometric minimum not sharp: contrast {found[2]:.2f} > {params.photometric_sharp}")
     # The flow of the ground: the corridor ahead first; with road labels, the whole road if a
@@ -623,8 +627,7 @@ def estimate_mono(
             failures.append(f"ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})")
     else:
         if found is not None:  # a weak photometric minimum is still better than none
-            return _photometric_estimate(found, R, t, n_g, f"{head}, scale photometric from {len(pts)} ground pixels ({src}",
-                                         inlier_ratio, note="; ".join(failures))
+            return _photometric_estimate(found, R, t, n_g, head, pixels, inlier_ratio, note="; ".join(failures))
         return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio)
     scale = height * q
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
