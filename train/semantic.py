@@ -40,10 +40,10 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
+from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair
 from monostixels.geometry import Camera
-from monostixels._checks import InputError
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
 from monostixels.inputs.semantic import confusion_matrix, estimate_semantics, iou_from_confusion
 
