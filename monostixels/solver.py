@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 import torch
 
 from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
+from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT, TYPE_CLASSES
 from monostixels.energy import PriorParams, flow_cost, gravity, load_config_group, ordering_from_depths
 from monostixels.geometry import (
     Camera,
@@ -435,7 +435,6 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
     ray_b = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v_edge[None, :])
     q = (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)  # C x n
 
-    inf = torch.tensor(float("inf"), dtype=dt)
     p_ref = 1.0 / prob.h_cam
     # State index i = number of cells consumed. Index 0 is a virtual ground stixel at the camera height.
     E = torch.full((C, n + 1, NUM_TYPES), float("inf"), dtype=dt)

@@ -70,7 +70,7 @@ def test_eval_writes_contract_json(tmp_path):
 
 def test_run_on_a_folder_of_frames(tmp_path):
     """`monostixels run data=frames`: per-frame pictures, depth PNG, stixels, point cloud, video."""
-    from monostixels.data.synthetic import SyntheticSource, render_pair
+    from monostixels.data.synthetic import render_pair
 
     pair0 = render_pair(3, scale=0.25)
     frames = tmp_path / "frames"

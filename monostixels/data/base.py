@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels._checks import check_finite, check_same_size, check_shape
 from monostixels.geometry import Camera, Motion
 
 __all__ = ["GroundTruth", "FramePair"]
