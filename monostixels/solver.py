@@ -275,6 +275,16 @@ def _window_median(x: torch.Tensor, stride: int) -> torch.Tensor:
     return x.reshape((C, m, stride) + tuple(x.shape[2:])).nanmedian(dim=2).values
 
 
+def _bottom_ray_ratio(prob: ColumnProblem) -> torch.Tensor:
+    """(C, n) ratio ``n_g.r / n_obj.r`` of the ray ``r`` through each cell's lower edge.
+
+    An object with inverse depth ``p`` whose bottom is that edge stands ``1/p_g - q/p`` metres above
+    a ground of inverse height ``p_g``: it stands on it at ``p = q p_g`` (gravity, standing depth).
+    """
+    ray_b = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v_edge[None, :])
+    return (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)
+
+
 def _hypotheses(prob: ColumnProblem, cfg: SolverConfig) -> _Hypotheses:
     """Per-column hypothesis sets of the three flow-fitted types (see module docstring).
 
@@ -306,9 +316,7 @@ def _hypotheses(prob: ColumnProblem, cfg: SolverConfig) -> _Hypotheses:
         # The scene model's depth of an object whose bottom is at each cell's lower edge: it stands
         # on the reference ground there. Where the flow fails (every hypothesis at the cap, e.g. a
         # near wall moving 100+ px) the priors can then still place it.
-        ray_b = pixel_rays(K, prob.u[:, None], prob.v_edge[None, :])
-        q = (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)
-        p_stand = valid(q * p_ref)
+        p_stand = valid(_bottom_ray_ratio(prob) * p_ref)
         if s > 1:
             p_stand = p_stand[:, ::s]
         p_o = torch.cat([p_o, p_stand], dim=1)
@@ -432,8 +440,7 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
     L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
 
     # Bottom-edge ray ratio q_b = n_g.r / n_obj.r of every cell (for gravity / standing on ground).
-    ray_b = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v_edge[None, :])
-    q = (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)  # C x n
+    q = _bottom_ray_ratio(prob)  # C x n
 
     p_ref = 1.0 / prob.h_cam
     # State index i = number of cells consumed. Index 0 is a virtual ground stixel at the camera height.

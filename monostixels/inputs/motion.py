@@ -540,7 +540,8 @@ def estimate_mono(
         ok &= lam_max <= params.max_flow_sigma**2
     labels = None
     if semantic is not None:
-        labels = semantic.argmax(0).numpy()[vs, us]
+        dense_labels = semantic.argmax(0).numpy()
+        labels = dense_labels[vs, us]
         ctype = np.asarray(CLASS_TYPE)[labels]
         ok &= (ctype != DYNAMIC_OBJECT) & (ctype != SKY)
     p_cur = np.c_[us, vs].astype(np.float64)
@@ -591,7 +592,7 @@ def estimate_mono(
     failures = []
     found = None
     if images is not None and params.photometric_scale:
-        dense = semantic.argmax(0).numpy() == _ROAD_CLASS if road else np.ones((H, W), dtype=bool)
+        dense = dense_labels == _ROAD_CLASS if road else np.ones((H, W), dtype=bool)
         vv, uu = np.nonzero(dense[::2, ::2])
         pts = np.c_[uu * 2, vv * 2].astype(np.float64)
         pts = pts[_ground_candidates(Kn, n_g, height, pts, params, lateral=not road)]
