@@ -5,6 +5,7 @@ Usage::
     monostixels demo                                   # built-in synthetic scene, pictures under outputs/demo
     monostixels eval data=synthetic data.frames=20 flow=gt semantic=gt motion=gt out=o.json
     monostixels run data=frames data.root=my_frames    # stixels of a user's own images
+    monostixels run data=video data.path=clip.mp4 data.hfov_deg=90   # a dashcam video
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """
 from __future__ import annotations
@@ -183,9 +184,21 @@ def _eval(cfg: DictConfig) -> float:
     return float(rel) if rel is not None else float("nan")
 
 
+#: Frame rate of `run`'s overlay video when the source has none (image folders): slow enough to look at.
+_OVERLAY_VIDEO_FPS = 5.0
+
+
+def _video_fps(src: Any) -> float:
+    """Overlay video frame rate: the rate of the used frames of a video source, else 5 fps."""
+    fps, step = getattr(src, "fps", None), getattr(src, "step", 1)
+    return float(fps) / max(int(step), 1) if fps else _OVERLAY_VIDEO_FPS
+
+
 def _run(cfg: DictConfig) -> None:
     import cv2
     from tqdm import tqdm
+
+    from monostixels._checks import InputError
 
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
@@ -193,8 +206,6 @@ def _run(cfg: DictConfig) -> None:
 
     src = _source(cfg)
     if len(src) == 0:
-        from monostixels._checks import InputError
-
         raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
     pipe = Pipeline(cfg, allow_motion_failure=True)
     out = Path(cfg.outputs) / "run"
@@ -216,12 +227,14 @@ def _run(cfg: DictConfig) -> None:
         st.save_npz(d / "stixels.npz")
         pts, cols = depth_to_points(finite, pair.camera.K, pair.image, max_depth=hi)
         write_ply(d / "points.ply", pts, cols)
-        if len(src) > 1:
+        if len(src) > 1 or str(cfg.data.name) == "video":
             frame = cv2.cvtColor(np.concatenate([overlay, dcol], axis=0), cv2.COLOR_RGB2BGR)
             if video is None:
                 out.mkdir(parents=True, exist_ok=True)
-                video = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 5.0,
+                video = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), _video_fps(src),
                                         (frame.shape[1], frame.shape[0]))
+                if not video.isOpened():
+                    raise InputError(f"run: OpenCV cannot write the video {out / 'video.mp4'} (no mp4v encoder)")
             video.write(frame)
         if st.flags.get("degenerate_motion"):
             logger.warning("%s: %s", pair.name, st.flags.get("reason"))

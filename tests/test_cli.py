@@ -135,3 +135,44 @@ def test_semantic_none_carries_its_prior_overrides():
     assert Pipeline(load_config(["semantic=none"])).prior.alpha_dyn == 0.25
     assert Pipeline(load_config(["semantic=gt"])).prior.alpha_dyn == 0.0
     assert Pipeline(load_config(["semantic=none", "semantic.prior_overrides.alpha_dyn=1.5"])).prior.alpha_dyn == 1.5
+
+
+def test_run_on_a_video(tmp_path):
+    """`monostixels run data=video`: a clip the test writes from rendered frames -> per-frame outputs and the overlay video."""
+    from monostixels.data.synthetic import render_pair
+
+    pair = render_pair(3, scale=0.25)
+    H, W = pair.size
+    vw = cv2.VideoWriter(str(tmp_path / "clip.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (W, H))
+    for im in (pair.image_prev, pair.image, pair.image):
+        vw.write(cv2.cvtColor((im.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+    vw.release()
+    K = pair.camera.K
+    hfov = float(np.degrees(2 * np.arctan(W / 2 / float(K[0, 0]))))
+    p = _cli(["run", "data=video", f"data.path={tmp_path / 'clip.mp4'}", f"data.hfov_deg={hfov}", "flow=dis"], tmp_path)
+    out = tmp_path / "outputs" / "run"
+    dirs = sorted(d for d in out.iterdir() if d.is_dir())
+    assert [d.name for d in dirs] == ["clip_000001", "clip_000002"]
+    for d in dirs:
+        st = StixelWorld.load_json(d / "stixels.json")
+        assert st.image_size == (H, W) and len(st) >= st.num_columns
+    cap = cv2.VideoCapture(str(out / "video.mp4"))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 2 and "2 frame pair(s)" in p.stdout
+
+
+@pytest.mark.parametrize("case", ["missing", "no_intrinsics", "one_frame"])
+def test_run_video_fails_clearly(tmp_path, case):
+    path = tmp_path / "clip.mp4"
+    if case != "missing":
+        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (64, 48))
+        for _ in range(1 if case == "one_frame" else 3):
+            vw.write(np.full((48, 64, 3), 90, np.uint8))
+        vw.release()
+    args = ["run", "data=video", f"data.path={path}", "flow=dis"] + ([] if case == "no_intrinsics" else ["data.hfov_deg=90"])
+    p = _cli(args, tmp_path, check=False)
+    err = p.stderr.lower()
+    assert p.returncode != 0 and "error" in err and "traceback" not in err
+    assert {"missing": "does not exist", "no_intrinsics": "hfov_deg", "one_frame": "at least two"}[case] in err

@@ -95,3 +95,27 @@ def test_ddad_without_dynamic_cost_the_dynamic_type_takes_everything() -> None:
     res = Pipeline(cfg).run(make_source(cfg)[0])
     _, on_static = _dynamic_share(res)
     assert on_static > 0.5, on_static
+
+
+LIDAR = SHARED / "kitti_raw_lidar"
+
+
+@pytest.mark.skipif(not LIDAR.is_dir(), reason=f"shared KITTI raw LiDAR drive not found at {LIDAR}")
+def test_kitti_raw_lidar_report_has_depth_motion_and_stixel_motion() -> None:
+    """One pair of the LiDAR drive: depth metrics over LiDAR pixels (overall only: KITTI raw has no
+    moving-object mask), the motion section against OXTS, and the stixel_motion share."""
+    cfg = load_config(["data=kitti_raw", f"data.root={LIDAR}", "data.frames=1", "flow=dis", "semantic=none",
+                       "motion=mono"])
+    src = make_source(cfg)
+    n_lidar = int((src[0].gt.depth > 0).sum())
+    r = evaluate(cfg, src, dataset="kitti_raw", progress=False)
+    for m in ("monostixels", "sfm"):
+        assert r["methods"][m]["overall"]["n"] == n_lidar
+        assert "static" not in r["methods"][m] and "moving" not in r["methods"][m]
+    # Both methods place most LiDAR pixels within 25 % on this static street.
+    assert r["methods"]["monostixels"]["overall"]["d1.25"] > 0.6
+    mo = r["motion"]
+    assert mo["reference"] == "oxts (velocity)" and mo["pairs"] == 1
+    assert mo["rot_err_deg"] < 0.5 and mo["trans_dir_err_deg"] < 5.0 and mo["scale_rel_err_max"] < 0.3
+    assert 0.0 <= r["stixel_motion"]["moving_share"] <= 1.0
+    assert "static_moving_share" not in r["stixel_motion"]

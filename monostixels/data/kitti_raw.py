@@ -7,9 +7,20 @@ Layout under ``root`` (KITTI raw "synced + rectified" download)::
     root/DATE/DATE_drive_NNNN_sync/image_02/data/*.png|jpg  frames named by raw frame number
     root/DATE/DATE_drive_NNNN_sync/poses_cam0.txt           optional: "frame T_w_cam0 (3x4)"
     root/DATE/DATE_drive_NNNN_sync/stixel_bottoms_bmvc15.txt optional: "date drive frame x y split"
+    root/DATE/DATE_drive_NNNN_sync/oxts/data/*.txt          optional: GPS/IMU records (camera motion)
+    root/DATE/calib_imu_to_velo.txt, calib_velo_to_cam.txt  needed with oxts/ (the pose chain)
+    root/DATE/DATE_drive_NNNN_sync/proj_depth/velodyne/image_02/*.npz       optional LiDAR depth
+    root/DATE/DATE_drive_NNNN_sync/proj_depth/groundtruth/image_02/*.png    optional (KITTI depth benchmark)
+    root/DATE/DATE_drive_NNNN_sync/image_02/timestamps.txt  optional: frame times (frame interval)
 
 Pairs: current = frame ``n``, previous = frame ``n - step`` (raw frame numbers), for every ``n``
 whose predecessor exists.
+
+Camera motion: from ``poses_cam0.txt`` where present, else from the OXTS records (every KITTI raw
+drive has them; ``oxts="velocity"`` or ``"position"``, see :func:`oxts_poses`), else none.
+Depth ground truth: the LiDAR depth of the current frame (``proj_depth/velodyne`` npz first, else
+the depth-benchmark PNG), 0 = no return. KITTI raw has no moving-object mask, so ``gt.moving`` is
+None and only the ``overall`` split is scored.
 
 Convention: camera motion ``X_prev = R X_cur + t`` (SPEC section 2) of *camera 2*. The poses give
 ``T_w_cam0`` (rectified camera 0 to world, the KITTI odometry ground truth). Camera 2 is rectified
@@ -37,6 +48,7 @@ from monostixels.data._io import (
     projection_matrix,
     read_image_pair,
     read_kitti_calib,
+    read_png16,
     read_poses_file,
     relative_motion,
     require_dir,
@@ -45,7 +57,10 @@ from monostixels.data._io import (
 from monostixels.data.base import FramePair, GroundTruth
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
-__all__ = ["KittiRawSource", "POSES_FILE", "BOTTOMS_FILE", "CALIB_FILE", "read_stixel_bottoms", "cam2_offset"]
+__all__ = [
+    "KittiRawSource", "POSES_FILE", "BOTTOMS_FILE", "CALIB_FILE", "OXTS_MODES", "read_stixel_bottoms", "cam2_offset",
+    "read_oxts", "oxts_poses", "read_timestamps", "read_lidar_npz", "read_depth_png", "imu_to_cam2",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -57,6 +72,27 @@ POSES_FILE = "poses_cam0.txt"
 BOTTOMS_FILE = "stixel_bottoms_bmvc15.txt"
 #: Rectified projection matrix of the left colour camera (camera 2) in the calibration file.
 P_RECT_KEY = "P_rect_02"
+
+#: Calibration files of the OXTS -> camera chain (per date).
+IMU_TO_VELO_FILE = "calib_imu_to_velo.txt"
+VELO_TO_CAM_FILE = "calib_velo_to_cam.txt"
+#: Per-drive GPS/IMU records, one text file per raw frame (KITTI raw devkit ``dataformat.txt``).
+OXTS_DIR = Path("oxts") / "data"
+#: LiDAR depth in camera 2: npz (key ``velodyne_depth``, metres) or depth-benchmark PNG (uint16).
+LIDAR_NPZ_DIR = Path("proj_depth") / "velodyne" / "image_02"
+LIDAR_NPZ_KEY = "velodyne_depth"
+DEPTH_PNG_DIR = Path("proj_depth") / "groundtruth" / "image_02"
+#: KITTI depth benchmark PNGs store metres x 256 (devkit ``depth_read``), 0 = no measurement.
+DEPTH_PNG_SCALE = 256.0
+#: How the OXTS poses get their positions: integrated velocities, or GPS latitude/longitude.
+OXTS_MODES = ("velocity", "position")
+#: Earth radius of the KITTI raw devkit's Mercator projection (metres; WGS84 equatorial radius).
+EARTH_RADIUS_M = 6378137.0
+#: KITTI raw frame rate (Hz), used only when a drive has no timestamps file.
+KITTI_RAW_FPS = 10.0
+# OXTS record columns (dataformat.txt): lat lon alt roll pitch yaw vn ve vf vl vu ...
+_OXTS_MIN_COLUMNS = 11
+_VF, _VL, _VU = 8, 9, 10
 
 _DATE_RE = re.compile(r"^\d{4}_\d{2}_\d{2}$")
 _DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_sync$")
@@ -102,6 +138,198 @@ def read_stixel_bottoms(path: str | Path, date: str, drive: int) -> dict[int, tu
     return {f: (np.asarray(v, dtype=np.float32).reshape(-1, 2), s) for f, (v, s) in out.items()}
 
 
+def _rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def read_oxts(folder: str | Path) -> dict[int, np.ndarray]:
+    """GPS/IMU records of a drive.
+
+    Args:
+        folder: ``oxts/data`` with one ``NNNNNNNNNN.txt`` per raw frame (30 numbers: lat lon alt
+            roll pitch yaw vn ve vf vl vu ..., KITTI raw ``dataformat.txt``; degrees, metres,
+            radians, m/s).
+
+    Returns:
+        raw frame number -> (K,) float64 record (K >= 11).
+
+    Raises:
+        InputError: a file that is not named by its frame number, too short, or not numbers.
+    """
+    d = require_dir(folder, "kitti_raw oxts/data")
+    out: dict[int, np.ndarray] = {}
+    for f in sorted(d.glob("*.txt")):
+        if not f.stem.isdigit():
+            raise InputError(f"oxts: {f} is not named by its raw frame number (e.g. 0000000042.txt)")
+        try:
+            vals = np.array([float(x) for x in f.read_text().split()], dtype=np.float64)
+        except ValueError as e:
+            raise InputError(f"oxts: {f} holds something that is not a number") from e
+        if vals.size < _OXTS_MIN_COLUMNS or not np.all(np.isfinite(vals[:_OXTS_MIN_COLUMNS])):
+            raise InputError(f"oxts: {f} has {vals.size} values; expected the 30 of KITTI raw dataformat.txt "
+                             f"(lat lon alt roll pitch yaw vn ve vf vl vu ...)")
+        out[int(f.stem)] = vals
+    if not out:
+        raise InputError(f"oxts: {d} holds no NNNNNNNNNN.txt records")
+    return out
+
+
+def read_timestamps(path: str | Path) -> np.ndarray:
+    """Seconds (N,) float64 of a KITTI raw ``timestamps.txt`` (``YYYY-MM-DD hh:mm:ss.fffffffff``
+    per line, line ``i`` = raw frame ``i``), relative to the first line.
+
+    Raises:
+        InputError: a malformed line (named by file and line number).
+    """
+    p = require_file(path, "timestamps")
+    secs: list[float] = []
+    for ln, line in enumerate(p.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line:
+            continue
+        try:
+            _, clock = line.split()
+            hh, mm, ss = clock.split(":")
+            secs.append(int(hh) * 3600.0 + int(mm) * 60.0 + float(ss))
+        except ValueError as e:
+            raise InputError(f"timestamps: {p} line {ln} is not 'YYYY-MM-DD hh:mm:ss.fff': {line!r}") from e
+    t = np.asarray(secs)
+    # A drive that passes midnight: unwrap the day.
+    t = t + 86400.0 * np.cumsum(np.r_[0.0, np.diff(t) < -43200.0])
+    return t - (t[0] if len(t) else 0.0)
+
+
+def _rigid(calib: dict[str, np.ndarray], path: Path) -> np.ndarray:
+    """4x4 transform from a KITTI ``R: 9 numbers`` / ``T: 3 numbers`` calibration file."""
+    if "R" not in calib or "T" not in calib or calib["R"].size != 9 or calib["T"].size != 3:
+        raise InputError(f"calibration: {path} needs 'R:' (9 numbers) and 'T:' (3 numbers)")
+    T = np.eye(4)
+    T[:3, :3] = calib["R"].reshape(3, 3)
+    T[:3, 3] = calib["T"]
+    return T
+
+
+def imu_to_cam2(date_folder: str | Path, P_rect_02: np.ndarray) -> np.ndarray:
+    """``T_cam2_imu`` (4, 4): IMU -> Velodyne -> camera 0 (rectified with ``R_rect_00``) -> camera 2.
+
+    Convention (KITTI raw devkit): ``X_velo = T_velo_imu X_imu``, ``X_cam0 = R_rect_00 T_cam0_velo X_velo``,
+    ``X_cam2 = X_cam0 + b`` with ``b = K^-1 P_rect_02[:, 3]`` (rectified cameras share the rotation).
+
+    Raises:
+        InputError: a missing calibration file or entry.
+    """
+    dd = Path(date_folder)
+    p_iv, p_vc, p_cc = dd / IMU_TO_VELO_FILE, dd / VELO_TO_CAM_FILE, dd / CALIB_FILE
+    T_velo_imu = _rigid(read_kitti_calib(require_file(p_iv, "kitti_raw OXTS calibration")), p_iv)
+    T_cam0_velo = _rigid(read_kitti_calib(require_file(p_vc, "kitti_raw OXTS calibration")), p_vc)
+    cc = read_kitti_calib(require_file(p_cc, "kitti_raw calibration"))
+    if "R_rect_00" not in cc or cc["R_rect_00"].size != 9:
+        raise InputError(f"calibration: {p_cc} has no R_rect_00 (9 numbers), needed for the OXTS poses")
+    R_rect = np.eye(4)
+    R_rect[:3, :3] = cc["R_rect_00"].reshape(3, 3)
+    T_cam2_cam0 = np.eye(4)
+    T_cam2_cam0[:3, 3] = cam2_offset(P_rect_02)
+    return T_cam2_cam0 @ R_rect @ T_cam0_velo @ T_velo_imu
+
+
+def oxts_poses(records: dict[int, np.ndarray], times: dict[int, float] | None = None, *,
+               mode: str = "velocity") -> dict[int, np.ndarray]:
+    """IMU-to-world poses ``T_w_imu`` (4, 4) from OXTS records (KITTI raw devkit ``convertOxtsToPose``).
+
+    Orientation: ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (IMU axes x forward, y left, z up; world x east,
+    y north, z up). Position:
+
+    - ``"position"``: the devkit's Mercator projection of latitude/longitude with the scale
+      ``cos(lat_0)`` of the first record, and the altitude. GPS positions jitter by a few cm.
+    - ``"velocity"``: integrated velocities. ``vf, vl, vu`` are forward / left (parallel to the
+      earth surface) and up, i.e. in the heading frame ``Rz(yaw)``; between consecutive records
+      ``p_k = p_{k-1} + (Rz(yaw_{k-1}) v_{k-1} + Rz(yaw_k) v_k) / 2 * (t_k - t_{k-1})`` (trapezoid).
+      Steadier from frame to frame (the GPS/IMU fuses its velocities from the IMU); drifts slowly
+      over long distances, which frame-to-frame motion does not feel. Gaps in the frame numbers
+      are integrated across (the trapezoid over the gap).
+
+    Args:
+        records: raw frame -> OXTS record (:func:`read_oxts`).
+        times: raw frame -> seconds (needed for ``"velocity"``; default ``frame / 10 Hz``).
+        mode: ``"velocity"`` or ``"position"``.
+
+    Returns:
+        raw frame -> ``T_w_imu`` (4, 4) float64, metres; the first frame's position is the origin.
+    """
+    if mode not in OXTS_MODES:
+        raise InputError(f"data.oxts: unknown mode {mode!r}; choose one of {', '.join(OXTS_MODES)}")
+    frames = sorted(records)
+    lat0 = records[frames[0]][0]
+    scale = np.cos(np.radians(lat0))
+    out: dict[int, np.ndarray] = {}
+    pos = np.zeros(3)
+    origin = None
+    prev: tuple[int, np.ndarray] | None = None
+    for f in frames:
+        r = records[f]
+        R = _rot_z(r[5]) @ _rot_y(r[4]) @ _rot_x(r[3])
+        if mode == "position":
+            p = np.array([scale * np.radians(r[1]) * EARTH_RADIUS_M,
+                          scale * EARTH_RADIUS_M * np.log(np.tan(np.radians(90.0 + r[0]) / 2.0)),
+                          r[2]])
+            origin = p if origin is None else origin
+            pos = p - origin
+        elif prev is not None:
+            fp, rp = prev
+            tp = times[fp] if times is not None else fp / KITTI_RAW_FPS
+            tc = times[f] if times is not None else f / KITTI_RAW_FPS
+            v_prev = _rot_z(rp[5]) @ rp[[_VF, _VL, _VU]]
+            v_cur = _rot_z(r[5]) @ r[[_VF, _VL, _VU]]
+            pos = pos + 0.5 * (v_prev + v_cur) * (tc - tp)
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = pos
+        out[f] = T
+        prev = (f, r)
+    return out
+
+
+def read_lidar_npz(path: str | Path) -> np.ndarray:
+    """LiDAR depth (H, W) float32 metres (z in camera 2; 0 = no return) from a ``proj_depth/velodyne`` npz.
+
+    Raises:
+        InputError: unreadable file, no ``velodyne_depth`` key, not 2-D, negative or non-finite values.
+    """
+    p = require_file(path, "LiDAR depth npz")
+    try:
+        with np.load(p) as z:
+            if LIDAR_NPZ_KEY not in z.files:
+                raise InputError(f"LiDAR depth npz: {p} has no {LIDAR_NPZ_KEY!r} array (has {', '.join(z.files)})")
+            d = np.asarray(z[LIDAR_NPZ_KEY], dtype=np.float32)
+    except (OSError, ValueError) as e:
+        raise InputError(f"LiDAR depth npz: cannot read {p} ({e})") from e
+    if d.ndim != 2:
+        raise InputError(f"LiDAR depth npz: {p} {LIDAR_NPZ_KEY} has shape {d.shape}, expected (H, W)")
+    if not np.all(np.isfinite(d)) or (d < 0).any():
+        raise InputError(f"LiDAR depth npz: {p} holds negative or non-finite depths (0 = no return)")
+    return d
+
+
+def read_depth_png(path: str | Path) -> np.ndarray:
+    """Depth (H, W) float32 metres from a KITTI depth-benchmark PNG (uint16, metres x 256, 0 = none).
+
+    Raises:
+        InputError: unreadable, or not a 1-channel 16-bit PNG.
+    """
+    return read_png16(require_file(path, "depth PNG"), 1).astype(np.float32) / DEPTH_PNG_SCALE
+
+
 @dataclass
 class _Drive:
     date: str
@@ -112,6 +340,9 @@ class _Drive:
     images: dict[int, Path]
     poses: dict[int, np.ndarray] | None  # raw frame -> T_w_cam2 (4, 4)
     bottoms: dict[int, tuple[np.ndarray, list[str]]] | None
+    motion_source: str = ""  # "poses_cam0.txt" | "oxts (velocity)" | ...
+    depth_files: dict[int, Path] | None = None  # raw frame -> LiDAR npz / depth PNG
+    times: dict[int, float] | None = None  # raw frame -> seconds
 
 
 @dataclass
@@ -134,9 +365,12 @@ class KittiRawSource(LazySource):
         only_labelled: only pairs whose current frame has stixel-bottom labels.
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down), tilts the ground normal.
+        oxts: positions of the OXTS poses, ``"velocity"`` (integrated; default, steadier) or
+            ``"position"`` (GPS lat/lon), see :func:`oxts_poses`.
 
-    Ground truth: ``motion`` (from ``poses_cam0.txt``), ``gt.bottoms`` (from the label file, for
-    labelled frames); nothing else (KITTI raw has no dense depth/flow here).
+    Ground truth: ``motion`` (from ``poses_cam0.txt``, else from ``oxts/``), ``gt.depth`` (LiDAR
+    depth of the current frame where ``proj_depth/`` has it), ``gt.bottoms`` (from the label file,
+    for labelled frames). ``meta["dt"]``: seconds between the two frames (timestamps, else 10 Hz).
 
     Raises:
         InputError: missing root / date / drive / calibration, empty image folder, malformed
@@ -154,8 +388,12 @@ class KittiRawSource(LazySource):
         only_labelled: bool = False,
         camera_height: float = KITTI_CAMERA_HEIGHT_M,
         pitch: float = 0.0,
+        oxts: str = "velocity",
     ) -> None:
         self.root = require_dir(root, "kitti_raw data.root")
+        if oxts not in OXTS_MODES:
+            raise InputError(f"data.oxts: unknown mode {oxts!r}; choose one of {', '.join(OXTS_MODES)}")
+        self.oxts = oxts
         if int(step) < 1:
             raise InputError(f"data.step: must be a positive number of frames, got {step}")
         self.step = int(step)
@@ -204,13 +442,43 @@ class KittiRawSource(LazySource):
             if not f.stem.isdigit():
                 raise InputError(f"kitti_raw: image {f} is not named by its raw frame number (e.g. 0000000042.png)")
             images[int(f.stem)] = f
-        poses = None
+        times = None
+        if (folder / "image_02" / "timestamps.txt").exists():
+            t = read_timestamps(folder / "image_02" / "timestamps.txt")
+            times = {i: float(x) for i, x in enumerate(t)}
+        poses, motion_source = None, ""
         if (folder / POSES_FILE).exists():
-            poses = self._read_poses(folder / POSES_FILE, cam2_offset(P))
+            poses, motion_source = self._read_poses(folder / POSES_FILE, cam2_offset(P)), POSES_FILE
+        elif (folder / OXTS_DIR).is_dir():
+            records = read_oxts(folder / OXTS_DIR)
+            # Velocities are integrated over the *image* times: the synced OXTS record of a frame is
+            # the one nearest to it, and the OXTS timestamps jitter (0.100 / 0.110 s on drive 0023)
+            # while the camera runs at a steady 0.1036-0.1038 s; integrating over the OXTS times made
+            # |t| alternate by 10 % from pair to pair (0.88 / 0.97 m), over the image times it is steady.
+            oxts_times = times
+            if oxts_times is None and (folder / "oxts" / "timestamps.txt").exists():
+                ot = read_timestamps(folder / "oxts" / "timestamps.txt")
+                oxts_times = {i: float(x) for i, x in enumerate(ot)}
+            if oxts_times is not None:
+                missing = sorted(set(records) - set(oxts_times))
+                if missing:
+                    raise InputError(f"oxts: {folder} has no timestamp for frame {missing[0]}")
+            T_cam2_imu = imu_to_cam2(folder.parent, P)
+            T_imu_cam2 = np.linalg.inv(T_cam2_imu)
+            poses = {f: T @ T_imu_cam2 for f, T in oxts_poses(records, oxts_times, mode=self.oxts).items()}
+            motion_source = f"oxts ({self.oxts})"
         bottoms = None
         if (folder / BOTTOMS_FILE).exists():
             bottoms = read_stixel_bottoms(folder / BOTTOMS_FILE, date, drive)
-        return _Drive(date, drive, folder, camera, P, images, poses, bottoms)
+        depth_files: dict[int, Path] = {}
+        for sub, pattern in ((DEPTH_PNG_DIR, "*.png"), (LIDAR_NPZ_DIR, "*.npz")):  # npz wins where both exist
+            for f in sorted((folder / sub).glob(pattern)) if (folder / sub).is_dir() else []:
+                if not f.stem.isdigit():
+                    raise InputError(f"kitti_raw: depth file {f} is not named by its raw frame number")
+                depth_files[int(f.stem)] = f
+        logger.info("kitti_raw %s: %d images, motion from %s, LiDAR depth for %d frames", folder.name, len(images),
+                    motion_source or "nothing", len(depth_files))
+        return _Drive(date, drive, folder, camera, P, images, poses, bottoms, motion_source, depth_files or None, times)
 
     @staticmethod
     def _read_poses(path: Path, b: np.ndarray) -> dict[int, np.ndarray]:
@@ -239,11 +507,23 @@ class KittiRawSource(LazySource):
                 motion = relative_motion(d.poses[item.frame], d.poses[item.frame_prev])
             else:
                 logger.warning("kitti_raw: %s lacks frame %d or %d: no ground-truth motion for this pair",
-                               d.folder / POSES_FILE, item.frame, item.frame_prev)
+                               d.motion_source, item.frame, item.frame_prev)
         gt = GroundTruth()
+        if d.depth_files is not None and item.frame in d.depth_files:
+            f = d.depth_files[item.frame]
+            depth = read_lidar_npz(f) if f.suffix == ".npz" else read_depth_png(f)
+            if depth.shape != tuple(image.shape[-2:]):
+                raise InputError(f"kitti_raw: depth {f} is {depth.shape[1]}x{depth.shape[0]}, image "
+                                 f"{d.images[item.frame]} is {image.shape[-1]}x{image.shape[-2]}")
+            gt.depth = torch.from_numpy(depth)
+        if d.times is not None and item.frame in d.times and item.frame_prev in d.times:
+            dt = d.times[item.frame] - d.times[item.frame_prev]
+        else:
+            dt = (item.frame - item.frame_prev) / KITTI_RAW_FPS
         meta: dict = {"source": "kitti_raw", "date": d.date, "drive": d.drive, "frame": item.frame,
                       "frame_prev": item.frame_prev, "path": str(d.images[item.frame]),
-                      "path_prev": str(d.images[item.frame_prev])}
+                      "path_prev": str(d.images[item.frame_prev]), "dt": dt,
+                      "sequence": f"kitti_raw/{d.date}_drive_{d.drive:04d}", "motion_source": d.motion_source}
         if d.bottoms is not None and item.frame in d.bottoms:
             pts, splits = d.bottoms[item.frame]
             gt.bottoms = torch.from_numpy(pts.copy())

@@ -1,7 +1,7 @@
 """The one factory that turns the ``data`` config group into a sequence of frame pairs.
 
 ``make_source(cfg)`` dispatches on ``cfg.name`` (SPEC section 4): ``synthetic``, ``kitti2015``,
-``kitti_raw``, ``ddad``, ``frames``. ``cfg`` is either the ``data`` group or the whole config (with
+``kitti_raw``, ``ddad``, ``frames``, ``video``. ``cfg`` is either the ``data`` group or the whole config (with
 ``data`` and ``camera`` entries); the camera group supplies the default mounting height and pitch.
 """
 from __future__ import annotations
@@ -82,6 +82,7 @@ def _kitti_raw(data: Any, camera: Any) -> Sequence[FramePair]:
         frames=_frames(data),
         only_labelled=bool(_get(data, "only_labelled", False)),
         camera_height=height, pitch=pitch,
+        oxts=str(_get(data, "oxts", "velocity")),
     )
 
 
@@ -117,12 +118,33 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
     )
 
 
+def _video(data: Any, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.video import VideoSource
+
+    height, pitch = _camera_mount(data, camera)
+    intr, hfov, end, resize = (_get(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize"))
+    if resize is not None and not isinstance(resize, (int, float)):
+        resize = list(resize)
+    return VideoSource(
+        _get(data, "path"),
+        intrinsics=None if intr is None else Path(str(intr)),
+        hfov_deg=None if hfov is None else float(hfov),
+        step=int(_get(data, "step", 1)),
+        start=int(_get(data, "start", 0)),
+        end=None if end is None else int(end),
+        resize=resize,
+        frames=_frames(data),
+        camera_height=height, pitch=pitch,
+    )
+
+
 _FACTORIES: dict[str, Callable[[Any, Any], Sequence[FramePair]]] = {
     "synthetic": _synthetic,
     "kitti2015": _kitti2015,
     "kitti_raw": _kitti_raw,
     "ddad": _ddad,
     "frames": _frames_folder,
+    "video": _video,
 }
 #: Names accepted in ``data.name``.
 SOURCE_NAMES: tuple[str, ...] = tuple(_FACTORIES)

@@ -26,12 +26,50 @@ from monostixels.inputs.motion import motion_errors
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
 from monostixels.stixels import StixelWorld
 
-__all__ = ["evaluate", "predicted_bottoms", "write_report", "SPLITS"]
+__all__ = ["evaluate", "predicted_bottoms", "moving_stixel_mask", "frame_interval", "write_report", "SPLITS", "MOTION_KEYS"]
 
 logger = logging.getLogger(__name__)
 
 #: Pixel sets of the depth metrics: all ground truth, and split by the moving-object mask.
 SPLITS = ("overall", "static", "moving")
+#: Per-pair camera-motion errors (:func:`monostixels.inputs.motion.motion_errors`) summarised by their median.
+MOTION_KEYS = ("rot_err_deg", "trans_dir_err_deg", "trans_dir_err_xz_deg", "scale_rel_err")
+
+
+def frame_interval(pair: FramePair, default: float) -> float:
+    """Seconds between the two frames of ``pair``: ``meta["dt"]``, else the difference of
+    ``meta["timestamp"]`` and ``meta["timestamp_prev"]`` (numbers in microseconds as DDAD writes
+    them, or ISO-8601), else ``default``."""
+    if pair.meta.get("dt"):
+        return float(pair.meta["dt"])
+    a, b = pair.meta.get("timestamp"), pair.meta.get("timestamp_prev")
+    if a is not None and b is not None:
+        try:
+            d = (float(a) - float(b)) * 1e-6
+        except (TypeError, ValueError):
+            from datetime import datetime
+
+            try:
+                iso = [datetime.fromisoformat(str(x).replace("Z", "+00:00")) for x in (a, b)]
+                d = (iso[0] - iso[1]).total_seconds()
+            except ValueError:
+                d = 0.0
+        if d > 0:
+            return d
+    return default
+
+
+def moving_stixel_mask(stixels: StixelWorld, dt: float, speed_mps: float) -> torch.Tensor:
+    """Pixels (H, W) bool in stixels whose estimated world motion is faster than ``speed_mps``.
+
+    Args:
+        stixels: the result of one frame (``motion`` (N, 3) metres between the two frames).
+        dt: seconds between the two frames.
+        speed_mps: speed threshold (m/s).
+    """
+    speed = stixels.motion.double().norm(dim=1) / dt
+    fast = torch.cat([speed > speed_mps, torch.zeros(1, dtype=torch.bool)])  # index -1 = no stixel
+    return fast[stixels.index_map()]
 
 
 def predicted_bottoms(stixels: StixelWorld, u: torch.Tensor) -> torch.Tensor:
@@ -93,12 +131,18 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     seconds: list[float] = []
     flow_stats: list[dict[str, float]] = []
     motion_stats: list[dict[str, float]] = []
+    gt_motion_source = None
     degenerate = 0
     sem_acc = SemanticAccumulator()
     sem_used = False
     bottoms_pred: list[float] = []
     bottoms_gt: list[float] = []
     has_depth = False
+    has_moving_gt = False
+    # stixel_motion: pixels in moving stixels / all pixels, and among ground-truth static (moving) pixels.
+    mv_counts = {"all": [0, 0], "static": [0, 0], "moving": [0, 0]}
+    speed_mps = float(cfg.eval.get("moving_speed_mps", 1.0))
+    default_dt = float(cfg.eval.get("frame_interval_s", 0.1))
     failed: list[str] = []
     frames = 0
     try:
@@ -119,16 +163,29 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         n_pixels.append(pair.size[0] * pair.size[1])
         if gt.depth is not None:
             has_depth = True
-            moving = gt.moving if gt.moving is not None else torch.zeros(pair.size, dtype=torch.bool)
             nothing = torch.full(pair.size, float("nan"))
             pred = ({"monostixels": res.stixels.depth_map(), "sfm": res.sfm_depth} if res is not None
                     else {"monostixels": nothing, "sfm": nothing})
-            for s, mask in zip(SPLITS, (None, ~moving, moving)):
+            # Without a moving-object mask (KITTI raw) only "overall" is scored: a static split
+            # would claim knowledge the data does not have.
+            splits = zip(SPLITS, (None, ~gt.moving, gt.moving)) if gt.moving is not None else [("overall", None)]
+            has_moving_gt |= gt.moving is not None
+            for s, mask in splits:
                 for m in acc:
                     acc[m][s].add(pred[m], gt.depth, mask)
         if res is None:
             continue
         st = res.stixels
+        dt = frame_interval(pair, default_dt)
+        fast = moving_stixel_mask(st, dt, speed_mps)
+        mv_counts["all"][0] += int(fast.sum())
+        mv_counts["all"][1] += fast.numel()
+        if gt.moving is not None:
+            # Pixels the ground truth knows: with depth ground truth those with a measurement.
+            known = gt.depth > 0 if gt.depth is not None else torch.ones_like(gt.moving)
+            for k, sel in (("static", known & ~gt.moving), ("moving", known & gt.moving)):
+                mv_counts[k][0] += int((fast & sel).sum())
+                mv_counts[k][1] += int(sel.sum())
         seconds.append(res.total_seconds)
         if gt.flow is not None and str(cfg.flow.name) != "gt":
             flow_stats.append(flow_metrics(res.flow.flow, gt.flow, gt.flow_valid))
@@ -137,6 +194,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
                 degenerate += 1
             else:
                 motion_stats.append(motion_errors(res.motion.motion, pair.motion))
+                gt_motion_source = pair.meta.get("motion_source", gt_motion_source)
         if res.semantic is not None and str(cfg.semantic.name) != "gt" and gt.labels is not None:
             sem_used = True
             sem_acc.add(res.semantic.argmax(0), gt.labels)
@@ -149,8 +207,9 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         raise ValueError(f"eval: the data source {dataset!r} yielded no frame pairs")
 
     report: dict[str, Any] = {"dataset": dataset, "frames": frames, "methods": {}}
-    mono = {s: acc["monostixels"][s].result() for s in SPLITS} if has_depth else {}
-    sfm = {s: acc["sfm"][s].result() for s in SPLITS} if has_depth else {}
+    scored = (SPLITS if has_moving_gt else ("overall",)) if has_depth else ()
+    mono = {s: acc["monostixels"][s].result() for s in scored}
+    sfm = {s: acc["sfm"][s].result() for s in scored}
     report["methods"]["monostixels"] = {**mono, "compactness": stixel_compactness(n_stixels),
                                         "seconds_per_frame": float(np.mean(seconds))}
     report["methods"]["sfm"] = {**sfm, "compactness": dense_compactness(n_pixels)}
@@ -160,9 +219,20 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         report["flow"] = {str(cfg.flow.name): {k: float(np.mean([f[k] for f in flow_stats])) for k in ("epe", "fl_all")}}
     if motion_stats or degenerate:
         report["motion"] = {k: float(np.median([m[k] for m in motion_stats])) if motion_stats else float("nan")
-                            for k in ("rot_err_deg", "trans_dir_err_deg", "scale_rel_err")}
+                            for k in MOTION_KEYS}
+        report["motion"]["scale_rel_err_max"] = (float(np.max([m["scale_rel_err"] for m in motion_stats]))
+                                                 if motion_stats else float("nan"))
+        report["motion"]["pairs"] = len(motion_stats)
+        report["motion"]["reference"] = str(gt_motion_source or "ground truth")
         if degenerate:
             report["motion"]["degenerate_frames"] = degenerate
+    if mv_counts["all"][1]:
+        sm: dict[str, Any] = {"moving_share": mv_counts["all"][0] / mv_counts["all"][1], "speed_mps": speed_mps}
+        if mv_counts["static"][1]:
+            sm["static_moving_share"] = mv_counts["static"][0] / mv_counts["static"][1]
+        if mv_counts["moving"][1]:
+            sm["moving_recall"] = mv_counts["moving"][0] / mv_counts["moving"][1]
+        report["stixel_motion"] = sm
     if sem_used:
         report["semantic"] = sem_acc.result()
     if bottoms_gt:

@@ -6,7 +6,7 @@ The report dict is what ``monostixels eval ... out=FILE.json`` writes::
      "methods": {"monostixels": {"overall": M, "static": M, "moving": M, "compactness": float,
                                  "seconds_per_frame": float},
                  "sfm": {"overall": M, "static": M, "moving": M, "compactness": float}},
-     # optional: "flow", "motion", "semantic", "bottoms"}
+     # optional: "flow", "motion", "stixel_motion", "semantic", "bottoms"}
 
 Rows: compactness, then overall / static / moving x (Rel. error %, RMSE m, the four threshold
 accuracies %); columns: the SfM baseline, then Mono-Stixels (then any other method).
@@ -84,9 +84,22 @@ def _extra_sections(report: dict) -> list[tuple[str, list[str], list[list[str]]]
         rows = [
             ["rotation error [deg] (median)", _num(motion.get("rot_err_deg"), 1.0, 3)],
             ["translation direction error [deg] (median)", _num(motion.get("trans_dir_err_deg"), 1.0, 3)],
+            ["horizontal (x, z) direction error [deg] (median)", _num(motion.get("trans_dir_err_xz_deg"), 1.0, 3)],
             ["scale error abs(norm(t) / norm(t_gt) - 1) [%] (median)", _num(motion.get("scale_rel_err"), 100.0, 2)],
+            ["scale error [%] (largest over pairs)", _num(motion.get("scale_rel_err_max"), 100.0, 2)],
         ]
+        if motion.get("reference"):
+            rows.append(["against", str(motion["reference"])])
         out.append(("Camera motion", ["metric", "value"], rows))
+    sm = report.get("stixel_motion")
+    if sm:
+        rows = [[f"image pixels in stixels moving > {_num(sm.get('speed_mps'), 1.0, 1)} m/s [%]",
+                 _num(sm.get("moving_share"), 100.0, 2)]]
+        if "static_moving_share" in sm:
+            rows.append(["of ground-truth static pixels [%]", _num(sm.get("static_moving_share"), 100.0, 2)])
+        if "moving_recall" in sm:
+            rows.append(["of ground-truth moving pixels [%]", _num(sm.get("moving_recall"), 100.0, 2)])
+        out.append(("Stixel motion", ["metric", "value"], rows))
     sem = report.get("semantic")
     if sem:
         rows = [["mIoU", _num(sem.get("miou"), 100.0, 2)]]

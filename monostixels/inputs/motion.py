@@ -668,13 +668,23 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
     raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
 
 
+def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Angle (degrees) between two vectors; NaN if either is zero."""
+    na, nb = float(a.norm()), float(b.norm())
+    if na <= 0 or nb <= 0:
+        return math.nan
+    return math.degrees(math.acos(max(-1.0, min(1.0, float((a @ b) / (na * nb))))))
+
+
 def motion_errors(est: Motion, gt: Motion) -> dict[str, float]:
     """Errors of an estimated camera motion against ground truth.
 
     Returns:
         ``rot_err_deg``: angle of ``R_est R_gt^T`` (degrees); ``trans_dir_err_deg``: angle between
-        the translations (degrees; NaN if either is zero); ``scale_rel_err``: ``|‖t‖/‖t_gt‖ - 1|``
-        (NaN if ``t_gt = 0``).
+        the translations (degrees; NaN if either is zero); ``trans_dir_err_xz_deg``: the same for
+        their horizontal parts ``(t_x, t_z)`` (camera x right, z forward; for ground truth whose
+        vertical component drifts, e.g. the poses of KITTI odometry sequence 08); ``scale_rel_err``:
+        ``|‖t‖/‖t_gt‖ - 1|`` (NaN if ``t_gt = 0``).
     """
     Rd = est.R.double() @ gt.R.double().T
     # ||R - I||_F = 2 sqrt(2) sin(theta / 2): accurate for small angles, unlike acos of the trace.
@@ -682,10 +692,7 @@ def motion_errors(est: Motion, gt: Motion) -> dict[str, float]:
     rot = math.degrees(2.0 * math.asin(min(1.0, s)))
     te, tg = est.t.double(), gt.t.double()
     ne, ng = float(te.norm()), float(tg.norm())
-    if ne > 0 and ng > 0:
-        cd = float((te @ tg) / (ne * ng))
-        tdir = math.degrees(math.acos(max(-1.0, min(1.0, cd))))
-    else:
-        tdir = math.nan
+    tdir = _angle_deg(te, tg)
+    tdir_xz = _angle_deg(te[[0, 2]], tg[[0, 2]])
     scale = abs(ne / ng - 1.0) if ng > 0 else math.nan
-    return {"rot_err_deg": rot, "trans_dir_err_deg": tdir, "scale_rel_err": scale}
+    return {"rot_err_deg": rot, "trans_dir_err_deg": tdir, "trans_dir_err_xz_deg": tdir_xz, "scale_rel_err": scale}
