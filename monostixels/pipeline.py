@@ -29,7 +29,7 @@ from monostixels.energy import PriorParams
 from monostixels.eval.sfm import triangulate
 from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, estimate_flow
-from monostixels.inputs.motion import MotionEstimate, estimate_motion
+from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.solver import SolverConfig, solve
 from monostixels.stixels import StixelWorld
@@ -98,6 +98,9 @@ class Pipeline:
         self.prior = PriorParams.from_config(prior)
         self.allow_motion_failure = allow_motion_failure
         self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))
+        # Monocular scale over consecutive pairs of a sequence: constant-velocity prior (motion.sequence_prior).
+        self.motion_track = (MotionTrack.from_config(cfg.motion)
+                             if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)) else None)
 
     def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None) -> MotionEstimate:
         """Camera motion of the pair from the ``motion`` config group.
@@ -110,6 +113,8 @@ class Pipeline:
         flagged, with a warning.
         """
         est = estimate_motion(pair, flow, self.cfg.motion, semantic)
+        if self.motion_track is not None:
+            est = self.motion_track.update(pair, est)
         if est.motion is None:
             if not est.degenerate and not self.allow_motion_failure:
                 raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")

@@ -290,3 +290,49 @@ def test_mono_scale_from_the_images_when_the_road_flow_fails():
     blind = FramePair(image=noise, image_prev=torch.rand(3, *pair.size, generator=g), camera=pair.camera, name="noise")
     none = estimate_motion(blind, fr, MONO, semantic=sem)
     assert none.motion is None and "photometric" in none.reason
+
+
+def _track_pair(frame: int, seq: str = "s", dt: float = 0.1):
+    from monostixels.data.base import FramePair
+    from monostixels.geometry import Camera, intrinsics
+
+    cam = Camera(K=intrinsics(10.0, 10.0, 2.0, 2.0), height=1.65,
+                 ground_normal=torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    img = torch.zeros(3, 4, 4)
+    return FramePair(img, img, cam, meta={"sequence": seq, "frame": frame, "frame_prev": frame - 1, "dt": dt})
+
+
+def _est(norm: float):
+    from monostixels.geometry import Motion
+    from monostixels.inputs.motion import MotionEstimate
+
+    t = torch.tensor([0.0, 0.0, norm], dtype=torch.float64)
+    return MotionEstimate(Motion(torch.eye(3, dtype=torch.float64), t), False, "ok", 1.0)
+
+
+def test_motion_track_rejects_a_scale_outlier_and_keeps_direction():
+    from monostixels.inputs.motion import MotionTrack, TrackParams
+
+    tr = MotionTrack(TrackParams())
+    # 0.9 m per frame, one pair measured 14 % too long (KITTI raw drive 0023 pair 6 with semantics).
+    meas = [0.90, 0.91, 0.89, 0.90, 1.026, 0.90]
+    out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate(meas)]
+    assert out[0] == pytest.approx(0.90)  # the first pair is its own
+    assert abs(out[4] / 0.90 - 1) < 0.02  # the outlier is replaced by the prediction
+    assert all(abs(o / 0.90 - 1) < 0.02 for o in out)
+    # A single pair alone, another sequence, or a gap: unchanged.
+    assert float(MotionTrack().update(_track_pair(1), _est(1.3)).motion.t[2]) == pytest.approx(1.3)
+    assert float(tr.update(_track_pair(8), _est(1.3)).motion.t[2]) == pytest.approx(1.3)  # frame 7 missing
+    assert float(tr.update(_track_pair(9, seq="other"), _est(0.5)).motion.t[2]) == pytest.approx(0.5)
+
+
+def test_motion_track_follows_a_real_speed_change():
+    from monostixels.inputs.motion import MotionTrack
+
+    tr = MotionTrack()
+    # Braking at 3 m/s^2 from 10 m/s at 10 Hz: 1.0, 0.97, 0.94, ... m per frame. A constant-velocity
+    # model lags behind a steady deceleration, but never gates the true measurements out.
+    truth = [1.0 - 0.03 * k for k in range(10)]
+    out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate(truth)]
+    assert all(abs(o / t - 1) < 0.04 for o, t in zip(out, truth))
+    assert out[-1] < 0.8  # it follows: 0.73 m true, 1.0 m at the start
