@@ -25,7 +25,12 @@ Structure (paper section C; Cordts et al. 2017 simplification):
    ``tau -> 0``.
 
 The Python loop runs over DP stages (cells, ``n`` iterations); every iteration works on all
-columns, hypotheses and classes at once.
+columns, hypotheses and classes at once. This eager code is the readable definition and the soft
+DP. The hard DP (``tau = 0``, no gradients) runs by default (``solver.backend: auto``) in a fused
+C++ kernel (``csrc/column_dp.cpp``, built at first use by :mod:`monostixels._dp_cpp`): flow
+costs, prefix sums and all stages of one column in cache-sized buffers, columns in parallel over
+torch's threads, every float operation in the eager order, so its results are bit-identical
+(tests/test_solver_fast.py). Without a compiler it falls back to this code with one warning.
 """
 from __future__ import annotations
 
@@ -38,7 +43,15 @@ import torch
 
 from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT, TYPE_CLASSES
-from monostixels.energy import PriorParams, flow_cost, gravity, load_config_group, ordering_from_depths
+from monostixels import _dp_cpp
+from monostixels.energy import (
+    GRAVITY_TOLERANCE_M,
+    PriorParams,
+    flow_cost,
+    gravity,
+    load_config_group,
+    ordering_from_depths,
+)
 from monostixels.geometry import (
     Camera,
     Motion,
@@ -63,6 +76,10 @@ _DEFAULT_CLASS = (0, 3, 6, 9)
 _CHUNK_ELEMENTS = 4_000_000
 #: Which predecessor types are objects (the ordering prior applies above them).
 _IS_OBJECT = torch.tensor([False, True, True, False])
+#: A predicted point with ``z`` at or below this (homogeneous, px) is behind the camera: flow cap.
+_Z_MIN = 1e-9
+#: ``solver.backend`` values: ``auto`` = the C++ kernel for the hard DP where it builds, else eager.
+BACKENDS = ("auto", "eager", "cpp")
 
 
 @dataclass
@@ -81,6 +98,7 @@ class SolverConfig:
     dtype: str
     min_translation: float
     standing_hypotheses: bool
+    backend: str
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
@@ -109,6 +127,8 @@ class SolverConfig:
             raise InputError(f"solver.dtype: float32 or float64, got {self.dtype!r}")
         if not self.min_translation >= 0:
             raise InputError(f"solver.min_translation: must be >= 0, got {self.min_translation}")
+        if self.backend not in BACKENDS:
+            raise InputError(f"solver.backend: one of {', '.join(BACKENDS)}, got {self.backend!r}")
 
     @property
     def torch_dtype(self) -> torch.dtype:
@@ -183,11 +203,29 @@ class ColumnSolution:
 # Column preparation
 # ---------------------------------------------------------------------------------------------
 def _block_sum(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
-    """Sum (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the bottom and columns of w."""
+    """Sum (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the bottom and columns of w.
+
+    Each row's ``w`` pixels are added left to right, then the cell's rows bottom-up, as strided
+    adds: torch's reductions over short axes and padding the full image were half of the
+    solver's time. A partial last column / top cell sums the pixels it has.
+    """
     B, ch, H, W = x.shape
     n, C = -(-H // r), -(-W // w)
-    xf = torch.nn.functional.pad(x.flip(-2), (0, C * w - W, 0, n * r - H))
-    return xf.reshape(B, ch, n, r, C, w).sum(dim=(3, 5))
+
+    def add_up(parts: torch.Tensor, dim: int) -> torch.Tensor:
+        out = parts.select(dim, 0)
+        for k in range(1, parts.shape[dim]):
+            out = out + parts.select(dim, k)
+        return out
+
+    full = W // w
+    rows = add_up(x[..., :full * w].reshape(B, ch, H, full, w), -1)  # B x ch x H x full
+    if full < C:
+        rows = torch.cat([rows, add_up(x[..., full * w:, None], -2)], -1)
+    rows = rows.flip(-2)  # row 0 = image bottom
+    if n * r != H:
+        rows = torch.nn.functional.pad(rows, (0, 0, 0, n * r - H))
+    return add_up(rows.reshape(B, ch, n, r, C), 3)
 
 
 def prepare_columns(
@@ -211,8 +249,9 @@ def prepare_columns(
     B, _, H, W = flow.shape
     r, w = cfg.cell_rows, cfg.column_width
     n, C = -(-H // r), -(-W // w)
-    ones = torch.ones(1, 1, H, W, dtype=dt)
-    count = _block_sum(ones, r, w)[0, 0]  # n x C
+    rows = torch.clamp(torch.tensor(H, dtype=dt) - torch.arange(n, dtype=dt) * r, max=r)
+    widths = torch.clamp(torch.tensor(W, dtype=dt) - torch.arange(C, dtype=dt) * w, max=w)
+    count = rows[:, None] * widths[None, :]  # n x C pixels per cell
     fl = _block_sum(flow.to(dt), r, w) / count  # B x 2 x n x C
     cv = cov.to(dt).permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
     cv = (_block_sum(cv, r, w) / count).permute(0, 3, 2, 1).reshape(B, C, n, 2, 2)
@@ -221,11 +260,9 @@ def prepare_columns(
         sc = _block_sum(scores.to(dt), r, w) / count  # B x 10 x n x C
         nll = -torch.log(sc.clamp(min=1e-12)).permute(0, 3, 2, 1).reshape(B * C, n, NUM_CLASSES)
 
-    rows = torch.clamp(torch.tensor(H, dtype=dt) - torch.arange(n, dtype=dt) * r, max=r)
     j0 = torch.arange(n, dtype=dt) * r  # bottom-based index of each cell's lowest row
     v = (H - 1) - (j0 + (rows - 1) / 2)
     v_edge = H - j0 - 0.5
-    widths = torch.clamp(torch.tensor(W, dtype=dt) - torch.arange(C, dtype=dt) * w, max=w)
     u = torch.arange(C, dtype=dt) * w + (widths - 1) / 2
 
     K = torch.stack([c.K.to(dt) for c in cameras])
@@ -333,7 +370,7 @@ def _hypotheses(prob: ColumnProblem, cfg: SolverConfig) -> _Hypotheses:
 def _row_costs(prob: ColumnProblem, Hx: torch.Tensor, prm: PriorParams) -> torch.Tensor:
     """Flow cost (C, K, n) per cell of predicted points ``H x`` (C, K, n, 3), weighted by rows."""
     z = Hx[..., 2]
-    ok = z > 1e-9
+    ok = z > _Z_MIN
     zs = torch.where(ok, z, torch.ones_like(z))
     up = prob.u[:, None, None] + prob.flow[:, None, :, 0]
     vp = prob.v[None, None, :] + prob.flow[:, None, :, 1]
@@ -360,13 +397,27 @@ def _prefix(x: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(torch.cumsum(x, -1), (1, 0))
 
 
-def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> list[torch.Tensor]:
-    """Prefix-summed flow cost (C, K_T, n + 1) of every hypothesis of every type."""
+def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses) -> tuple[torch.Tensor, ...]:
+    """Terms of the predicted points ``H x`` of every hypothesis (shared by both backends).
+
+    Returns:
+        a (C, n, 3) ``K R K^-1 x``; cK (C, 3) ``K t``; s_g, s_o (C, n) ``n^T K^-1 x`` of the ground
+        and object normals; g (C, Kd, 3) ``K B tau`` of the dynamic hypotheses. A static hypothesis
+        ``p`` predicts ``a + p s cK``, a dynamic one ``a + s_o g``, the sky ``a``.
+    """
     ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
     a = ((prob.K @ prob.R)[:, None] @ ray[..., None])[..., 0]  # C x n x 3: K R K^-1 x
     cK = (prob.K @ prob.t[..., None])[..., 0]  # C x 3
     s_g = (ray * prob.n_g[:, None]).sum(-1)  # C x n
     s_o = (ray * prob.n_obj[:, None]).sum(-1)
+    M = prob.K @ hyp.B  # C x 3 x 2
+    g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
+    return a, cK, s_g, s_o, g
+
+
+def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> list[torch.Tensor]:
+    """Prefix-summed flow cost (C, K_T, n + 1) of every hypothesis of every type."""
+    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp)
 
     def chunked(Hx_of: Any, K: int) -> torch.Tensor:
         # Hypotheses in chunks: the (C, K, n, 3) points of all at once are the peak memory at r = 1.
@@ -379,8 +430,6 @@ def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> lis
             c = beyond_horizon(c, behind[:, None, :], prob, prm)
         return _prefix(c)
 
-    M = prob.K @ hyp.B  # C x 3 x 2
-    g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
     dyn = _prefix(chunked(lambda sl: a[:, None] + s_o[:, None, :, None] * g[:, sl, None, :], g.shape[1])
                   + prm.alpha_dyn * prob.rows)
     sky = _prefix(beyond_horizon(_row_costs(prob, a[:, None], prm), (s_g > 0)[:, None, :], prob, prm))
@@ -415,27 +464,81 @@ def _structural_object(inv_p: torch.Tensor, q: torch.Tensor, inv_pp: torch.Tenso
     return torch.where(_IS_OBJECT, torch.minimum(grav, ordv), grav)
 
 
+def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype) -> tuple[torch.Tensor, list[list[int]]]:
+    """Prefix-summed semantic cost (C, 10, n + 1) and the classes of each type.
+
+    Without semantics: zeros (C, 1, n + 1) and the default class of each type.
+    """
+    C, n = prob.num_columns, prob.num_cells
+    if prob.nll is not None:
+        sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
+        return _prefix(sem.transpose(1, 2)), [list(cs) for cs in TYPE_CLASSES]  # C x 10 x (n + 1)
+    return torch.zeros(C, 1, n + 1, dtype=dt), [[c] for c in _DEFAULT_CLASS]
+
+
+def _use_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> bool:
+    """Whether this call runs the C++ kernel: the hard DP (tau = 0) without gradients, where it builds.
+
+    The kernel computes values only; the soft DP and anything that needs gradients stay eager.
+    ``backend=cpp`` makes a missing kernel an error instead of a fallback.
+    """
+    if cfg.backend == "eager" or cfg.tau > 0 or prob.flow.dtype != cfg.torch_dtype:
+        return False  # (a problem prepared in another dtype than the solver's: eager promotes)
+    if torch.is_grad_enabled() and (prob.flow.requires_grad or any(
+            getattr(prm, k).requires_grad for k in PriorParams.names())):
+        return False
+    if _dp_cpp.available():
+        return True
+    if cfg.backend == "cpp":
+        raise RuntimeError(f"solver.backend=cpp: the C++ column DP is not available ({_dp_cpp.build_error()}); "
+                           "use solver.backend=auto or eager")
+    return False
+
+
+def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:
+    """The hard DP of :func:`solve_columns` in the fused C++ kernel (``csrc/column_dp.cpp``).
+
+    Hypotheses, their geometry and the semantic prefix sums are computed here with the same torch
+    code as the eager path; the kernel does the flow costs, their prefix sums and the DP stages
+    per column and returns the state arrays that :func:`_backtrack` reads. Bit-identical to eager.
+    """
+    dt = cfg.torch_dtype
+    hyp = _hypotheses(prob, cfg)
+    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp)
+    Lp, classes = _semantic_prefix(prob, prm, dt)
+    cls_table = torch.tensor([cs + [-1] * (3 - len(cs)) for cs in classes], dtype=torch.long)  # 4 x 3
+    ncs = torch.tensor([len(cs) for cs in classes], dtype=torch.long)
+    params = torch.stack([getattr(prm, k) for k in _dp_cpp.PARAM_ORDER]
+                         + [torch.tensor(x, dtype=dt) for x in (1.0 / cfg.max_depth, 1.0 / cfg.min_depth,
+                                                                GRAVITY_TOLERANCE_M, _Z_MIN)])
+    E, pS, gS, tauS, bpB, bpK, bpC = _dp_cpp.column_dp(
+        a, cK, s_g, s_o, prob.u, prob.v, prob.rows, prob.flow, prob.cov_inv, prob.logdet,
+        hyp.p_ground, hyp.p_object, g, hyp.tau, Lp, _bottom_ray_ratio(prob), 1.0 / prob.h_cam,
+        prob.degenerate, params, cls_table, ncs, prob.nll is not None)
+    energy = E[:, prob.num_cells].amin(1)
+    return _backtrack(prob, E, pS, gS, tauS, bpB, bpK, bpC, energy)
+
+
 def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:
     """Run the DP on every column of ``prob`` at once (see the module docstring).
+
+    The hard DP (``tau = 0``) without gradients runs in a fused C++ kernel where it builds
+    (``solver.backend``); this eager code is its readable definition and the soft DP.
 
     Returns:
         the optimal stixels of every column and the optimal energy (C,) — soft when ``cfg.tau > 0``.
     """
     dt = cfg.torch_dtype
     prm = prm.as_tensors(dt)
+    if _use_cpp(prob, prm, cfg):
+        return _solve_columns_cpp(prob, prm, cfg)
     tau_T = float(cfg.tau)
     C, n = prob.num_columns, prob.num_cells
     hyp = _hypotheses(prob, cfg)
     P = _flow_prefix(prob, hyp, prm)  # per type: C x K_T x (n + 1)
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
 
-    if prob.nll is not None:
-        sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
-        Lp = _prefix(sem.transpose(1, 2))  # C x 10 x (n + 1)
-        classes = [list(cs) for cs in TYPE_CLASSES]
-    else:
-        Lp = torch.zeros(C, 1, n + 1, dtype=dt)
-        classes = [[c] for c in _DEFAULT_CLASS]
+    Lp, classes = _semantic_prefix(prob, prm, dt)
     cls_idx = [torch.tensor(cs) if prob.nll is not None else torch.tensor([0]) for cs in classes]
     L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
 
@@ -565,12 +668,23 @@ def _backtrack(prob: ColumnProblem, EH: torch.Tensor, pS, gS, tauS, bpB, bpK, bp
 # ---------------------------------------------------------------------------------------------
 # Frame-level API
 # ---------------------------------------------------------------------------------------------
+def _all_finite(x: torch.Tensor) -> bool:
+    """Whether ``x`` has no NaN/inf: one min/max pass (NaN propagates into both), no bool copy."""
+    if x.numel() == 0:
+        return True
+    lo, hi = torch.aminmax(x)
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
+
+
 def _check_inputs(flow: torch.Tensor, cov: torch.Tensor, scores: torch.Tensor | None, name: str) -> None:
+    # check_finite only where the cheap test fails: it counts and locates the bad values.
     check_shape(flow, [2, "H", "W"], f"{name}flow")
-    check_finite(flow, f"{name}flow")
+    if not _all_finite(flow):
+        check_finite(flow, f"{name}flow")
     check_shape(cov, ["H", "W", 2, 2], f"{name}flow covariance")
     check_same_size(flow, cov.permute(2, 3, 0, 1), f"{name}flow", f"{name}flow covariance")
-    check_finite(cov, f"{name}flow covariance")
+    if not _all_finite(cov):
+        check_finite(cov, f"{name}flow covariance")
     det = cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] * cov[..., 1, 0]
     if bool((cov[..., 0, 0] <= 0).any() or (det <= 0).any()):
         raise InputError(f"{name}flow covariance: must be positive definite at every pixel")
@@ -578,8 +692,10 @@ def _check_inputs(flow: torch.Tensor, cov: torch.Tensor, scores: torch.Tensor | 
         if scores.dim() != 3 or scores.shape[0] != NUM_CLASSES:
             raise InputError(f"{name}semantic scores: expected ({NUM_CLASSES}, H, W) class scores, got shape {tuple(scores.shape)}")
         check_same_size(scores, flow, f"{name}semantic scores", f"{name}flow")
-        check_finite(scores, f"{name}semantic scores")
-        if bool((scores < 0).any()):
+        lo, hi = torch.aminmax(scores)
+        if not bool(torch.isfinite(lo) & torch.isfinite(hi)):
+            check_finite(scores, f"{name}semantic scores")
+        if bool(lo < 0):
             raise InputError(f"{name}semantic scores: must be non-negative pseudo-probabilities")
 
 

@@ -40,10 +40,15 @@ def random_problem(seed: int, *, H: int = 12, W: int = 10, sem: bool = True, str
     return prob, prm, cfg
 
 
+@pytest.mark.parametrize("backend", ["eager", "auto"])
 @pytest.mark.parametrize("seed", range(56))
-def test_batched_equals_reference(seed):
-    """Same optimal energy (relative 1e-5) as the loop reference, with random priors."""
+def test_batched_equals_reference(seed, backend):
+    """Same optimal energy (relative 1e-5) as the loop reference, with random priors.
+
+    ``auto`` is the fused C++ kernel where it builds (tests/test_solver_fast.py), else eager.
+    """
     prob, prm, cfg = random_problem(seed, sem=seed % 3 != 0, stride=1 + seed % 3, degenerate=seed % 7 == 0)
+    cfg = SolverConfig.from_yaml(**{**cfg.__dict__, "backend": backend})
     sol = solve_columns(prob, prm, cfg)
     for c in range(prob.num_columns):
         e_ref, stixels = reference_column(prob, c, prm, cfg)

@@ -1,0 +1,84 @@
+"""Build and call the fused C++ column DP (``monostixels/csrc/column_dp.cpp``).
+
+The kernel is compiled at first use with :func:`torch.utils.cpp_extension.load` (g++ and ninja)
+and cached in torch's extension directory (``$TORCH_EXTENSIONS_DIR``, default
+``~/.cache/torch_extensions``); later processes load the cached library in milliseconds.
+Nothing is downloaded. Without a compiler, or when the build fails, :func:`available` returns
+False after logging ONE warning, and the solver falls back to its eager path.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import platform
+import threading
+from pathlib import Path
+
+import torch
+
+__all__ = ["available", "column_dp", "build_error"]
+
+logger = logging.getLogger(__name__)
+
+_SOURCE = Path(__file__).with_name("csrc") / "column_dp.cpp"
+#: No fast-math and no FMA contraction: the kernel must round exactly like the eager torch ops.
+#: -fno-trapping-math (FP exceptions are never inspected) lets gcc vectorise the branch-free loops.
+_CFLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math"]
+#: Order of the scalar parameters the kernel reads (``Params`` in column_dp.cpp).
+PARAM_ORDER = ("beta_mc", "alpha_grav_below", "beta_grav_below", "alpha_grav_above", "beta_grav_above",
+               "alpha_ord", "beta_ord", "alpha_flat", "beta_flat", "alpha_F", "delta_F", "alpha_dyn")
+
+_lock = threading.Lock()
+_state: dict[str, object] = {"tried": False, "ok": False, "error": None}
+
+
+def _cpu_tag() -> str:
+    """A short tag of this CPU: ``-march=native`` builds must not be shared across CPU models."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+        flags = next((ln for ln in info.splitlines() if ln.startswith("flags")), "")
+        model = next((ln for ln in info.splitlines() if ln.startswith("model name")), "")
+    except OSError:
+        flags = model = ""
+    return hashlib.sha1(f"{platform.machine()}|{model}|{flags}".encode()).hexdigest()[:8]
+
+
+def _build() -> None:
+    from torch.utils import cpp_extension
+
+    # The name carries the source's hash and the CPU tag, so an edited kernel or another CPU
+    # gets its own cached build instead of a stale or illegal-instruction one.
+    src_hash = hashlib.sha1(_SOURCE.read_bytes() + " ".join(_CFLAGS).encode()).hexdigest()[:8]
+    cpp_extension.load(
+        name=f"monostixels_column_dp_{src_hash}_{_cpu_tag()}",
+        sources=[str(_SOURCE)],
+        extra_cflags=_CFLAGS,
+        is_python_module=False,
+        verbose=False,
+    )
+
+
+def available() -> bool:
+    """Whether the compiled kernel is loaded (builds it on the first call; thread-safe)."""
+    with _lock:
+        if not _state["tried"]:
+            _state["tried"] = True
+            try:
+                _build()
+                _state["ok"] = hasattr(torch.ops.monostixels, "column_dp")
+            except Exception as exc:  # noqa: BLE001 - any build/load failure means: use the eager path
+                _state["error"] = f"{type(exc).__name__}: {exc}"
+                logger.warning("solver: the C++ column DP could not be built or loaded (%s); using the "
+                               "eager torch path (same results, ~20x slower). Set solver.backend=eager "
+                               "to silence this.", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        return bool(_state["ok"])
+
+
+def build_error() -> str | None:
+    """Why the kernel is not available (None when it is, or before the first :func:`available`)."""
+    return _state["error"]  # type: ignore[return-value]
+
+
+def column_dp(*args: object) -> list[torch.Tensor]:
+    """Call the kernel; arguments as in ``column_dp.cpp`` (see ``solver._solve_columns_cpp``)."""
+    return torch.ops.monostixels.column_dp(*args)
