@@ -31,6 +31,7 @@ from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, estimate_flow
 from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion
 from monostixels.inputs.semantic import estimate_semantics
+from monostixels.movers import MoverCheckParams, check_movers
 from monostixels.solver import SolverConfig, solve
 from monostixels.stixels import StixelWorld
 
@@ -98,6 +99,7 @@ class Pipeline:
         self.prior = PriorParams.from_config(prior)
         self.allow_motion_failure = allow_motion_failure
         self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))
+        self.mover_check = MoverCheckParams.from_config(cfg.get("movers"))
         # Monocular scale over consecutive pairs of a sequence: constant-velocity prior (motion.sequence_prior).
         self.motion_track = (MotionTrack.from_config(cfg.motion)
                              if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)) else None)
@@ -159,6 +161,11 @@ class Pipeline:
             stixels = solve(flow.flow, flow.cov, semantic, self.camera_for(pair, motion), motion.motion, self.prior,
                             self.solver_cfg)
         sec["solver"] = time.perf_counter() - t0
+        if self.mover_check.enabled and not motion.degenerate:
+            # Dynamic stixels that an object standing still explains get zero motion (monostixels.movers).
+            t0 = time.perf_counter()
+            stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check)
+            sec["movers"] = time.perf_counter() - t0
         if motion.degenerate and not stixels.flags.get("degenerate_motion"):
             stixels.flags["degenerate_motion"] = True
         if stixels.flags.get("degenerate_motion"):
