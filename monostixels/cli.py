@@ -29,13 +29,19 @@ COMMANDS = {
     "run": "stixels, pictures, depth, point clouds (and a video) for a data source, under outputs/run",
 }
 
-#: Inputs of `monostixels demo` unless given on the command line: the best the package has
-#: (DeepFlow guided by DIS matches: EPE 1.3 px, DIS alone 1.4 px; README "Inputs").
-_DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s", "motion=mono")
+#: Inputs of `monostixels demo` unless given on the command line: the best the package has for its
+#: synthetic scene (DeepFlow guided by DIS matches: EPE 1.3 px, DIS alone 1.4 px; README "Inputs";
+#: the semantic net of our renders).
+_DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
 #: Inputs of `monostixels run` unless given: what a user's own frames allow (no ground truth; our
-#: semantic net knows only synthetic scenes, so flow and priors alone).
-_RUN_DEFAULTS = ("flow=deepflow", "semantic=none", "motion=mono")
+#: real-image semantic net).
+_RUN_DEFAULTS = ("flow=deepflow", "semantic=fcn8s", "motion=mono")
 _COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS}
+#: Shipped model of a default semantic option, and what a command falls back to where the file is
+#: missing (a non-editable install does not carry models/): ground truth on the synthetic scene,
+#: no semantics on a user's frames.
+_DEFAULT_MODELS = {"semantic=fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "semantic=fcn8s": "models/fcn8s_real.onnx"}
+_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none"}
 
 
 def _usage() -> str:
@@ -46,11 +52,11 @@ def _usage() -> str:
     return "\n".join(lines)
 
 
-def _shared_model_available() -> bool:
+def _model_available(path: str) -> bool:
     from monostixels.inputs.semantic import resolve_model_path
 
     try:
-        resolve_model_path("models/fcn8s_synthetic.onnx")
+        resolve_model_path(path)
         return True
     except Exception:  # noqa: BLE001 — any failure means "not shipped here"
         return False
@@ -69,10 +75,17 @@ def main() -> None:
     if cmd in _COMMAND_DEFAULTS:
         given = {a.split("=", 1)[0].lstrip("+~") for a in rest if "=" in a}
         defaults = [d for d in _COMMAND_DEFAULTS[cmd] if d.split("=")[0] not in given]
-        if "semantic=fcn8s" in defaults and not _shared_model_available():
-            defaults = [d if d != "semantic=fcn8s" else "semantic=gt" for d in defaults]
+        for d in list(defaults):
+            if d in _DEFAULT_MODELS and not _model_available(_DEFAULT_MODELS[d]):
+                logger.warning("%s: %s not found; using %s", cmd, _DEFAULT_MODELS[d],
+                               _MODEL_FALLBACK[cmd])
+                defaults[defaults.index(d)] = _MODEL_FALLBACK[cmd]
         rest = defaults + rest
-    sys.argv = [f"monostixels {cmd}", *rest, f"command={cmd}"]
+    # Hydra flags (--cfg job, --multirun) first, then every key=value override: Hydra's argparse
+    # cannot take overrides on both sides of a flag.
+    overrides = [a for a in rest if "=" in a and not a.startswith("-")]
+    flags = [a for a in rest if a not in overrides]
+    sys.argv = [f"monostixels {cmd}", *flags, *overrides, f"command={cmd}"]
     _hydra_main()
 
 
@@ -169,6 +182,8 @@ def _eval(cfg: DictConfig) -> float:
     from monostixels.eval.evaluate import evaluate, write_report
     from monostixels.eval.report import format_table
 
+    if str(cfg.data.name) == "camvid":
+        return _eval_semantics(cfg)
     src = _source(cfg)
     report = evaluate(cfg, src, dataset=str(cfg.data.name))
     print(format_table(report))
@@ -182,6 +197,24 @@ def _eval(cfg: DictConfig) -> float:
     # The return value is the objective of Hydra sweepers (lower is better).
     rel = overall.get("rel", float("nan"))
     return float(rel) if rel is not None else float("nan")
+
+
+def _eval_semantics(cfg: DictConfig) -> float:
+    """`eval data=camvid`: semantic metrics on labelled single images (no flow, motion, stixels)."""
+    from monostixels.data.camvid import CamVidSource
+    from monostixels.eval.evaluate import write_report
+    from monostixels.eval.semantic import evaluate_semantics, format_semantic_table
+
+    frames = cfg.data.get("frames")
+    src = CamVidSource(cfg.data.root, split=str(cfg.data.split), frames=None if frames is None else int(frames),
+                       step=int(cfg.data.get("step", 1)))
+    report = evaluate_semantics(cfg, src)
+    report["semantic_backend"] = str(cfg.semantic.get("model", cfg.semantic.name))
+    print(format_semantic_table(report))
+    if cfg.out:
+        print(f"wrote {write_report(report, cfg.out)}")
+    # The objective of Hydra sweepers is minimised.
+    return 1.0 - float(report["semantic"]["miou"])
 
 
 #: Frame rate of `run`'s overlay video when the source has none (image folders): slow enough to look at.

@@ -346,7 +346,7 @@ def test_fine_tuning_starts_from_saved_weights(tmp_path: Path) -> None:
 
 def test_augment_keeps_labels_valid_and_crops() -> None:
     mod = _load_train_module()
-    aug = OmegaConf.load(CONF / "train_semantic.yaml").augment
+    aug = OmegaConf.load(CONF / "train_semantic_synthetic.yaml").augment
     image, labels = _toy_batch(1, (96, 160), seed=5)
     g = torch.Generator().manual_seed(0)
     img, lab = mod.augment(image[0], labels[0], g, OmegaConf.merge(aug, {"crop": [64, 128]}))
@@ -363,7 +363,7 @@ def test_shipped_model_segments_validation_renders() -> None:
     if not SHIPPED_ONNX.is_file():
         pytest.skip(f"{SHIPPED_ONNX} not present (train with `python -m train.semantic`)")
     synthetic = pytest.importorskip("monostixels.data.synthetic", reason="synthetic renderer not present")
-    cfg = OmegaConf.load(CONF / "semantic" / "fcn8s.yaml")
+    cfg = OmegaConf.load(CONF / "semantic" / "fcn8s_synthetic.yaml")
     conf = torch.zeros(NUM_CLASSES, NUM_CLASSES, dtype=torch.int64)
     for frame in (0, 1):
         # Validation source seed 9 (never used in training), rendered at the training scale 0.5.

@@ -171,7 +171,8 @@ def main(cfg: DictConfig) -> None:
     model.eval()
     out = Path(cfg.out_weights)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(model.state_dict(), out)
+    # float16 on disk (loaded back into float32 parameters): keeps all shipped models under 25 MB.
+    torch.save({k: v.half() if v.is_floating_point() else v for k, v in model.state_dict().items()}, out)
     logger.info("step %d, training EPE (ema) %.2f px; weights written: %s", step, ema if ema is not None else math.nan, out)
     export(cfg)
 

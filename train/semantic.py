@@ -1,12 +1,23 @@
-"""Train the FCN-8s semantic net on synthetic renders, validate per epoch, export to ONNX.
+"""Train the FCN-8s semantic nets, validate per epoch, export to ONNX.
 
-Run from the repository root (config: ``conf/train_semantic.yaml``; any key can be overridden)::
+Two configurations (any key can be overridden on the command line):
+
+- ``conf/train_semantic.yaml`` (default): the real-image net ``models/fcn8s_real.*``
+  (``semantic=fcn8s``): CamVid train (real labels mapped to our classes by
+  :mod:`monostixels.data.camvid`) mixed with ``data.synthetic_per_epoch`` synthetic renders per
+  epoch, fine-tuned from the synthetic net; model selection on CamVid val (mIoU over our classes
+  present in CamVid). CamVid test is never read here.
+- ``conf/train_semantic_synthetic.yaml``: the synthetic net ``models/fcn8s_synthetic.*``
+  (``semantic=fcn8s_synthetic``), renders only.
+
+Run from the repository root::
 
     nice -n 10 python -m train.semantic                       # train + validate + export
     nice -n 10 python -m train.semantic resume=true           # continue from <run_dir>/last.pt
     python -m train.semantic train.epochs=0 resume=true       # evaluate + export the best checkpoint
+    nice -n 10 python -m train.semantic --config-name train_semantic_synthetic
 
-Data: frames of the built-in synthetic benchmark (``monostixels.data.synthetic.render_pair``),
+Synthetic data: frames of the built-in synthetic benchmark (``monostixels.data.synthetic.render_pair``),
 scene seed = source seed x 100_000 + frame. Training uses source seeds >= 10 with domain
 randomisation: the renderer's appearance randomisation (textures, colours, lighting, via
 ``appearance_seed``) on a fraction of the frames, plus photometric augmentation here (brightness,
@@ -37,13 +48,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import ConcatDataset, DataLoader, Dataset, SubsetRandomSampler
 from tqdm import tqdm
 
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
-from monostixels.data.base import FramePair
-from monostixels.geometry import Camera
+from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, read_camvid_split
+from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
 from monostixels.inputs.semantic import confusion_matrix, estimate_semantics, iou_from_confusion
 
@@ -51,6 +62,7 @@ __all__ = [
     "SEED_STRIDE",
     "scene_seed",
     "SyntheticSegmentation",
+    "RealSegmentation",
     "augment",
     "build_model",
     "train_steps",
@@ -136,6 +148,46 @@ class SyntheticSegmentation(Dataset):
             cv2.imwrite(str(tmp), arr)
             tmp.replace(path)
         return img, lab
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        img, lab = self.load(i)
+        image = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255.0
+        labels = torch.from_numpy(lab.astype(np.int64))
+        if self.transform is not None:
+            image, labels = self.transform(image, labels, i)
+        return image, labels
+
+
+class RealSegmentation(Dataset):
+    """(image, labels) of labelled real images (CamVid), held in memory (367 images: ~190 MB).
+
+    Args:
+        items: the labelled images (:func:`monostixels.data.camvid.read_camvid_split`).
+        scale: resize factor applied once at loading (1 = the images' own size).
+        transform: optional ``(image, labels, index) -> (image, labels)`` (augmentation).
+
+    Returns per item:
+        image (3, H, W) float32 RGB [0, 1], labels (H, W) int64 our class ids (``IGNORE_LABEL`` = void).
+    """
+
+    def __init__(self, items: list[CamVidItem], *, scale: float = 1.0,
+                 transform: Callable[[torch.Tensor, torch.Tensor, int], tuple[torch.Tensor, torch.Tensor]] | None = None) -> None:
+        self.items, self.scale, self.transform = list(items), float(scale), transform
+        self._data: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """uint8 (H, W, 3) RGB and uint8 (H, W) labels of item ``i`` (read once, then cached)."""
+        if self._data[i] is None:
+            img, lab = self.items[i].load()
+            if self.scale != 1.0:
+                h, w = round(img.shape[0] * self.scale), round(img.shape[1] * self.scale)
+                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+                lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
+            self._data[i] = (img, lab)
+        return self._data[i]  # type: ignore[return-value]
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         img, lab = self.load(i)
@@ -244,12 +296,15 @@ def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
     return model, arch
 
 
-def class_weights(labels: list[torch.Tensor], power: float) -> torch.Tensor:
+def class_weights(labels: list[torch.Tensor], power: float, max_weight: float | None = None) -> torch.Tensor:
     """(10,) loss weights ``(1 / frequency) ** power`` normalised to mean 1 over present classes.
 
     Args:
         labels: label maps (H, W) int64.
         power: 0 = uniform; 0.5 = inverse square root (softens the rarity of poles, persons).
+        max_weight: cap on a weight after normalisation (None = no cap): a class that is rare only
+            because few frames of its source are mixed in (terrain, synthetic only) should not be
+            over-predicted on the main data.
     """
     counts = torch.zeros(NUM_CLASSES, dtype=torch.float64)
     for lab in labels:
@@ -258,7 +313,10 @@ def class_weights(labels: list[torch.Tensor], power: float) -> torch.Tensor:
     freq = counts / counts.sum().clamp_min(1)
     w = torch.where(freq > 0, freq.clamp_min(1e-6) ** -power, torch.zeros_like(freq))
     present = freq > 0
-    return (w / w[present].mean()).float()
+    w = w / w[present].mean()
+    if max_weight is not None:
+        w = w.clamp(max=float(max_weight))
+    return w.float()
 
 
 def train_steps(
@@ -351,8 +409,12 @@ class Schedule:
 
 
 @torch.no_grad()
-def evaluate(predict: Callable[[torch.Tensor], torch.Tensor], data: Dataset, desc: str = "val") -> tuple[float, dict[str, float]]:
+def evaluate(predict: Callable[[torch.Tensor], torch.Tensor], data: Dataset, desc: str = "val",
+             classes: tuple[int, ...] | None = None) -> tuple[float, dict[str, float]]:
     """mIoU of ``predict`` ((3, H, W) -> (H, W) class ids) over ``data``.
+
+    Args:
+        classes: class ids the mean runs over (None = every class present in labels or predictions).
 
     Returns:
         ``(miou, per-class IoU)`` from the confusion matrix accumulated over all frames.
@@ -361,7 +423,7 @@ def evaluate(predict: Callable[[torch.Tensor], torch.Tensor], data: Dataset, des
     for i in tqdm(range(len(data)), desc=desc, leave=False):
         image, labels = data[i]
         conf += confusion_matrix(predict(image), labels)
-    return iou_from_confusion(conf)
+    return iou_from_confusion(conf, classes=classes)
 
 
 def _torch_predict(model: FCN8s) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -386,18 +448,39 @@ def _items(cfg: DictConfig) -> tuple[list[tuple[int, int | None]], list[tuple[in
     return train, val
 
 
+def _real_set(cfg: DictConfig, split: str, transform: Callable | None) -> RealSegmentation | None:
+    """CamVid ``split`` (train or val) as a dataset, or None when ``data.camvid_root`` is null."""
+    root = cfg.data.get("camvid_root")
+    if root is None:
+        return None
+    if split == "test":
+        raise ValueError("CamVid test is for the final report only; training never reads it")
+    return RealSegmentation(read_camvid_split(root, split), scale=float(cfg.data.get("real_scale", 1.0)),
+                            transform=transform)
+
+
+def _val_set(cfg: DictConfig, val_items: list) -> tuple[Dataset, tuple[int, ...] | None]:
+    """The validation set of ``data.val`` and the classes its mean IoU runs over."""
+    which = str(cfg.data.get("val", "synthetic"))
+    if which == "camvid":
+        return _real_set(cfg, "val", None), CAMVID_CLASSES_PRESENT  # type: ignore[return-value]
+    if which == "synthetic":
+        return SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.scale)), None
+    raise InputError(f"data.val: expected synthetic or camvid, got {which!r}")
+
+
 def _command() -> str:
     return "nice -n 10 python -m train.semantic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
 
 
 def prerender(cfg: DictConfig) -> None:
-    """Fill the cache (validation frames first, then training frames) without training."""
+    """Fill the cache (synthetic validation frames first, then training frames) without training."""
     train_items, val_items = _items(cfg)
-    sets = [
-        SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.scale)),
-        SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.final_eval_scale)),
-        SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale)),
-    ]
+    sets = []
+    if str(cfg.data.get("val", "synthetic")) == "synthetic":
+        sets += [SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.scale)),
+                 SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.final_eval_scale))]
+    sets.append(SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale)))
     for data in sets:
         for i in tqdm(range(len(data)), desc=f"render {data.cache.name}", mininterval=10):
             data.load(i)
@@ -415,14 +498,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     train_items, val_items = _items(cfg)
     aug = OmegaConf.to_container(cfg.augment, resolve=True)
     transform = _Augment(aug, int(cfg.train.seed))
-    train_set = SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale), transform=transform)
-    val_set = SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=float(cfg.data.scale))
-
+    synth_set = SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale), transform=transform)
+    real_set = _real_set(cfg, "train", transform)
+    val_set, val_classes = _val_set(cfg, val_items)
+    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames drawn anew.
+    train_set = ConcatDataset([d for d in (real_set, synth_set) if d is not None])
+    n_real = 0 if real_set is None else len(real_set)
+    n_synth = cfg.data.get("synthetic_per_epoch")
+    n_synth = len(synth_set) if n_synth is None else min(int(n_synth), len(synth_set))
     model, arch = build_model(cfg.model)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay))
     bs = int(cfg.train.batch_size)
-    steps_per_epoch = max(1, len(train_set) // bs)
+    steps_per_epoch = max(1, (n_real + n_synth) // bs)
     epochs = int(cfg.train.epochs)
     total = max(1, epochs * steps_per_epoch)
     schedule = Schedule(float(cfg.train.lr), total, time_limit_s=cfg.train.time_limit_s)
@@ -438,9 +526,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     if state["weight"] is None:
         power = float(cfg.train.class_weight_power)
-        sample = [val_set.__class__(train_items[:: max(1, len(train_items) // 40)], cache=cfg.data.cache,
-                                    scale=float(cfg.data.scale))[j][1] for j in range(min(40, len(train_items)))]
-        state["weight"] = class_weights(sample, power).tolist()
+        plain = SyntheticSegmentation(train_items[:: max(1, len(train_items) // 40)], cache=cfg.data.cache,
+                                      scale=float(cfg.data.scale))
+        sample = [plain[j][1] for j in range(min(40 if real_set is None else n_synth // 4, len(plain)))]
+        if real_set is not None:
+            sample += [torch.from_numpy(real_set.load(j)[1].astype(np.int64)) for j in range(n_real)]
+        state["weight"] = class_weights(sample, power, cfg.train.get("class_weight_max")).tolist()
     weight = torch.tensor(state["weight"], dtype=torch.float32)
     logger.info("class weights %s", dict(zip(CLASS_NAMES, [round(w, 3) for w in state["weight"]])))
 
@@ -448,23 +539,30 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if schedule.done():
             break
         transform.epoch = epoch
+        g = torch.Generator().manual_seed(int(cfg.train.seed) + epoch)
+        synth_pick = (torch.randperm(len(synth_set), generator=g)[:n_synth] + n_real).tolist()
         loader = DataLoader(
-            train_set, batch_size=bs, shuffle=True, drop_last=True, num_workers=int(cfg.data.workers),
-            generator=torch.Generator().manual_seed(int(cfg.train.seed) + epoch),
+            train_set, batch_size=bs, drop_last=True, num_workers=int(cfg.data.workers),
+            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick, generator=g),
             persistent_workers=False,
         )
         t0 = time.monotonic()
         with tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{epochs}", mininterval=10) as bar:
             losses = train_steps(model, loader, optimizer, schedule=schedule, weight=weight, progress=bar)
         complete = len(losses) == steps_per_epoch or schedule.done()
-        miou, per_class = evaluate(_torch_predict(model), val_set)
+        every = int(cfg.train.get("val_every", 1))
+        if (epoch + 1) % every and epoch + 1 < epochs and not schedule.done():
+            # Validation costs ~a tenth of an epoch on 2 cores: every `val_every` epochs, and at the end.
+            miou, per_class = float("nan"), {}
+        else:
+            miou, per_class = evaluate(_torch_predict(model), val_set, classes=val_classes)
         entry = {"epoch": epoch + 1, "loss": float(np.mean(losses)) if losses else float("nan"),
                  "val_miou": miou, "val_per_class_iou": per_class, "seconds": time.monotonic() - t0,
                  "steps": len(losses), "step": schedule.step, "wall_s": schedule.seconds()}
         state["history"].append(entry)
-        logger.info("epoch %d: loss %.4f, val mIoU %.4f (%s)", epoch + 1, entry["loss"], miou,
-                    ", ".join(f"{k} {v:.2f}" for k, v in per_class.items()))
-        if miou > state["best_miou"]:
+        logger.info("epoch %d: loss %.4f, val mIoU %.4f (%s), %.0f s", epoch + 1, entry["loss"], miou,
+                    ", ".join(f"{k} {v:.2f}" for k, v in per_class.items()), entry["seconds"])
+        if math.isfinite(miou) and miou > state["best_miou"]:
             state["best_miou"] = miou
             torch.save({"arch": arch, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_miou": miou}, run_dir / "best.pt")
         if complete:
@@ -491,44 +589,54 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
     model = fcn8s_vgg16(**best["arch"])
     model.load_state_dict(best["state_dict"])
     model.eval()
+    half_pt, half_onnx = bool(cfg.export.half_pt), bool(cfg.export.get("half_onnx", False))
+    real = cfg.data.get("camvid_root") is not None
+    data = f"synthetic source seeds {list(cfg.data.train_source_seeds)} x {cfg.data.frames_per_seed} frames"
+    if real:
+        data = (f"CamVid train (SegNet split, 367 images) + {cfg.data.synthetic_per_epoch} of {data} per epoch; "
+                "CamVid terms CC BY-NC 4.0 (non-commercial)")
     meta = {
         "classes": ",".join(CLASS_NAMES),
         "input": "RGB float32 [0,1], (B,3,H,W), H and W multiples of 32; normalisation inside",
-        "scale": f"{float(cfg.data.scale):g}",
+        "scale": f"{float(cfg.data.real_scale if real else cfg.data.scale):g}",
         "arch": json.dumps(best["arch"]),
         "epoch": str(best["epoch"]),
         "val_miou_torch": f"{best['val_miou']:.4f}",
         "command": _command(),
-        "data": f"synthetic source seeds {list(cfg.data.train_source_seeds)} x {cfg.data.frames_per_seed} frames",
+        "data": data,
     }
-    onnx_path = export_onnx(model, cfg.export.onnx, sample_size=tuple(cfg.export.sample_size), metadata=meta)
-    pt_path = save_fcn8s(model, cfg.export.pt, arch=best["arch"], meta=meta, half=bool(cfg.export.half_pt))
-    # Final check of the shipped file through the backend the pipeline calls: validation frames
-    # rendered at `final_eval_scale` (1.0 = full KITTI size), the backend resizing them to the
-    # training scale and upsampling the scores back.
-    eval_scale = float(cfg.data.final_eval_scale)
+    if half_pt or half_onnx:
+        # Round the weights once, so that the ONNX file and the .pt hold the same numbers.
+        model.load_state_dict({k: v.half().float() if v.is_floating_point() else v
+                               for k, v in model.state_dict().items()})
+    onnx_path = export_onnx(model, cfg.export.onnx, sample_size=tuple(cfg.export.sample_size), metadata=meta,
+                            half_weights=half_onnx)
+    pt_path = save_fcn8s(model, cfg.export.pt, arch=best["arch"], meta=meta, half=half_pt)
+    # Final check of the shipped file through the backend the pipeline calls.
+    if real:
+        # CamVid val at its own size, the backend scale that of training.
+        val_set, classes = _val_set(cfg, val_items)
+        backend_scale = float(cfg.data.real_scale)
+        where = f"CamVid val (101 images) at 360x480, backend scale {backend_scale:g}"
+    else:
+        # Validation frames rendered at `final_eval_scale` (1.0 = full KITTI size), the backend
+        # resizing them to the training scale and upsampling the scores back.
+        eval_scale = float(cfg.data.final_eval_scale)
+        backend_scale = float(cfg.data.scale) / eval_scale
+        val_set, classes = SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=eval_scale), None
+        where = (f"source seed {cfg.data.val_source_seed}, frames 0..{int(cfg.data.val_frames) - 1}, "
+                 f"rendered at scale {eval_scale:g}, default appearance, backend scale {backend_scale:g}")
     sem_cfg = OmegaConf.create({"name": "fcn8s", "runtime": "onnx", "model": str(Path(onnx_path).resolve()),
-                                "scale": float(cfg.data.scale) / eval_scale})
-    val_set = SyntheticSegmentation(val_items, cache=cfg.data.cache, scale=eval_scale)
+                                "scale": backend_scale})
 
     def predict(image: torch.Tensor) -> torch.Tensor:
-        pair = FramePair(image=image, image_prev=image, camera=_dummy_camera(image))
-        return estimate_semantics(pair, sem_cfg).argmax(0)
+        return estimate_semantics(image_pair(image, "val"), sem_cfg).argmax(0)
 
-    miou, per_class = evaluate(predict, val_set, desc="val (onnx)")
+    miou, per_class = evaluate(predict, val_set, desc="val (onnx)", classes=classes)
     logger.info("exported %s (%.1f MB) and %s; ONNX val mIoU %.4f", onnx_path,
                 Path(onnx_path).stat().st_size / 1e6, pt_path, miou)
     return {"onnx": str(onnx_path), "pt": str(pt_path), "epoch": best["epoch"],
-            "val_miou_onnx": miou, "val_per_class_iou_onnx": per_class,
-            "val": f"source seed {cfg.data.val_source_seed}, frames 0..{int(cfg.data.val_frames) - 1}, "
-                   f"rendered at scale {eval_scale:g}, default appearance, backend scale {sem_cfg.scale:g}"}
-
-
-def _dummy_camera(image: torch.Tensor) -> Camera:
-    """A camera for wrapping a bare image into a FramePair (semantics ignore the camera)."""
-    H, W = image.shape[-2:]
-    K = torch.tensor([[float(W), 0.0, W / 2], [0.0, float(W), H / 2], [0.0, 0.0, 1.0]])
-    return Camera(K=K, height=1.65)
+            "val_miou_onnx": miou, "val_per_class_iou_onnx": per_class, "val": where}
 
 
 @hydra.main(config_path="../conf", config_name=CONFIG_NAME, version_base=None)

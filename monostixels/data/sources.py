@@ -138,12 +138,22 @@ def _video(data: Any, camera: Any) -> Sequence[FramePair]:
     )
 
 
+def _camvid(data: Any, camera: Any) -> Sequence[FramePair]:
+    # Single labelled images: no previous frame, no camera. `monostixels eval` scores them
+    # through monostixels.eval.semantic instead of this factory.
+    raise InputError(
+        "data=camvid holds labelled single images, not frame pairs: only `monostixels eval data=camvid` "
+        "uses it (semantic metrics; no flow, motion or stixels)"
+    )
+
+
 _FACTORIES: dict[str, Callable[[Any, Any], Sequence[FramePair]]] = {
     "synthetic": _synthetic,
     "kitti2015": _kitti2015,
     "kitti_raw": _kitti_raw,
     "ddad": _ddad,
     "frames": _frames_folder,
+    "camvid": _camvid,
     "video": _video,
 }
 #: Names accepted in ``data.name``.

@@ -217,12 +217,14 @@ class SemanticAccumulator:
         p = torch.where((p >= 0) & (p < C), p, torch.full_like(p, C))  # void column
         self.confusion += torch.bincount(g * (C + 1) + p, minlength=C * (C + 1)).reshape(C, C + 1)
 
-    def result(self, class_names: Sequence[str] = CLASS_NAMES) -> dict:
+    def result(self, class_names: Sequence[str] = CLASS_NAMES, classes: Sequence[int] | None = None) -> dict:
         """``{"miou": float, "per_class_iou": {name: iou}}``.
 
         ``IoU_c = TP / (TP + FP + FN)``. A class absent from both the ground truth and the
         prediction (``TP + FP + FN = 0``) has no IoU: it is NaN in ``per_class_iou`` and skipped
-        in the mean (it would otherwise count as 0 or 1 depending on convention).
+        in the mean (it would otherwise count as 0 or 1 depending on convention). With
+        ``classes`` (ids), the mean runs over those only (e.g. the classes a dataset labels) and
+        ``per_class_iou`` lists only them.
         """
         cm = self.confusion.double()
         C = self.num_classes
@@ -232,8 +234,13 @@ class SemanticAccumulator:
         union = tp + fp + fn
         iou = torch.where(union > 0, tp / union.clamp_min(1), torch.full_like(tp, math.nan))
         present = union > 0
+        keep = range(C) if classes is None else sorted(int(c) for c in classes)
+        if classes is not None:
+            chosen = torch.zeros_like(present)
+            chosen[list(keep)] = True
+            present = present & chosen
         miou = float(iou[present].mean()) if bool(present.any()) else math.nan
-        return {"miou": miou, "per_class_iou": {name: float(iou[i]) for i, name in enumerate(class_names[:C])}}
+        return {"miou": miou, "per_class_iou": {class_names[i]: float(iou[i]) for i in keep}}
 
 
 def semantic_metrics(pred_labels: torch.Tensor, gt_labels: torch.Tensor) -> dict:

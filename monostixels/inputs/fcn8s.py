@@ -344,6 +344,7 @@ def export_onnx(
     *,
     sample_size: tuple[int, int] = (192, 640),
     metadata: dict[str, str] | None = None,
+    half_weights: bool = False,
 ) -> Path:
     """Export ``model`` (in eval mode) to ONNX with dynamic batch, height and width.
 
@@ -356,6 +357,9 @@ def export_onnx(
         path: where to write the ``.onnx`` file.
         sample_size: (H, W) of the tracing input, multiples of 32.
         metadata: key/value strings stored in the model's ``metadata_props``.
+        half_weights: store the large weight tensors as float16, each followed by a ``Cast`` to
+            float32 (ONNX Runtime folds the casts when it loads the model): half the file size,
+            and the network computes in float32 with float16-rounded weights.
 
     Returns:
         The written path.
@@ -380,14 +384,43 @@ def export_onnx(
             dynamic_axes={ONNX_INPUT: axes, ONNX_OUTPUT: axes},
         )
     model.train(was_training)
-    if metadata:
+    if metadata or half_weights:
         proto = onnx.load(str(path))
-        for key, value in metadata.items():
+        if half_weights:
+            _store_half(proto)
+        for key, value in (metadata or {}).items():
             entry = proto.metadata_props.add()
             entry.key, entry.value = str(key), str(value)
+        onnx.checker.check_model(proto)
         onnx.save(proto, str(path))
     logger.info("exported %s", path)
     return path
+
+
+#: Weight tensors with at least this many values are stored as float16 by ``half_weights``.
+_HALF_MIN_SIZE = 1024
+
+
+def _store_half(proto) -> None:
+    """Replace each large float32 initializer by a float16 one and a Cast back to float32."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    graph = proto.graph
+    casts = []
+    for init in graph.initializer:
+        if init.data_type != TensorProto.FLOAT:
+            continue
+        arr = numpy_helper.to_array(init)
+        if arr.size < _HALF_MIN_SIZE:
+            continue
+        name = init.name
+        init.CopyFrom(numpy_helper.from_array(arr.astype("float16"), name=f"{name}__fp16"))
+        casts.append(helper.make_node("Cast", [f"{name}__fp16"], [name], to=TensorProto.FLOAT,
+                                      name=f"{name}__cast"))
+    # Casts first: every consumer comes after its producer (ONNX graphs are topologically sorted).
+    nodes = casts + list(graph.node)
+    del graph.node[:]
+    graph.node.extend(nodes)
 
 
 def save_fcn8s(model: FCN8s, path: str | Path, *, arch: dict, meta: dict | None = None,
