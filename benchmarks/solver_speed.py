@@ -1,31 +1,41 @@
-"""Time the column solver alone on a 1242x375 frame (w_s = 5) for several cell sizes r.
+"""Time the column solver alone on a 1242x375 frame (w_s = 5) for several cell sizes r and thread counts.
 
 Inputs are the ground-truth flow, covariance and softened semantics of one synthetic frame, so
 the DP sees a real street-scene column structure. Each setting is timed after a warm-up; the
-median over repeats is reported with the peak resident memory of the process.
+median over repeats is reported (wall clock, and CPU time of the process: less sensitive to other
+jobs) with the peak resident memory of the process and the load average of the machine (wall
+times on a shared machine mean little without it).
 
 Usage::
 
-    python benchmarks/solver_speed.py                   # r in {1, 2, 3, 5}, default solver config
-    python benchmarks/solver_speed.py --json speed.json --repeats 5
-    python benchmarks/solver_speed.py --stride 1        # every cell a hypothesis (the paper's set)
+    python benchmarks/solver_speed.py                        # r in {1, 2, 3, 5}, 1 and 2 threads
+    python benchmarks/solver_speed.py --rows 2 3 --json s.json
+    python benchmarks/solver_speed.py --backend eager        # the eager torch DP (before issue 13)
+    python benchmarks/solver_speed.py --stride 8             # solver.hypothesis_stride
 
 Measured numbers are in README.md ("Solver speed").
 """
 from __future__ import annotations
 
-import argparse
-import json
-import resource
-import statistics
-import time
+import os
 
-import torch
+# Before torch loads OpenMP (monostixels sets the same default on import): idle threads sleep
+# instead of spinning, so 2 threads do not collapse when other jobs share the cores.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from monostixels.data.synthetic import render_pair
-from monostixels.energy import PriorParams
-from monostixels.inputs.semantic import gt_scores
-from monostixels.solver import SolverConfig, solve
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import torch  # noqa: E402
+
+from monostixels import _dp_cpp  # noqa: E402
+from monostixels.data.synthetic import render_pair  # noqa: E402
+from monostixels.energy import PriorParams  # noqa: E402
+from monostixels.inputs.semantic import gt_scores  # noqa: E402
+from monostixels.solver import SolverConfig, solve  # noqa: E402
 
 
 def _peak_mb() -> float:
@@ -37,35 +47,53 @@ def main() -> None:
     ap.add_argument("--rows", type=int, nargs="+", default=[1, 2, 3, 5], help="cell sizes r to time")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--stride", type=int, default=None, help="solver.hypothesis_stride (default: config)")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    ap.add_argument("--json", type=str, default=None, help="write {ms_per_frame: {r: ms}, peak_mb} here")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch thread counts to time")
+    ap.add_argument("--backend", choices=["auto", "eager", "cpp"], default=None,
+                    help="solver.backend (default: config, i.e. auto)")
+    ap.add_argument("--json", type=str, default=None,
+                    help="write {ms_per_frame: {threads: {r: ms}}, peak_mb, loadavg, ...} here")
     args = ap.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
     pair = render_pair(0, scale=1.0)
     H, W = pair.size
     flow = pair.gt.flow.float()
     cov = (0.5**2) * torch.eye(2).expand(H, W, 2, 2).contiguous()
     scores = gt_scores(pair.gt.labels, confidence=0.9)
     prior = PriorParams.from_yaml()
-    ms: dict[str, float] = {}
-    print(f"solver on {W}x{H}, torch threads {torch.get_num_threads()}")
-    for r in args.rows:
-        over = {"cell_rows": r}
-        if args.stride is not None:
-            over["hypothesis_stride"] = args.stride
-        cfg = SolverConfig.from_yaml(**over)
-        times = []
-        with torch.inference_mode():
-            solve(flow, cov, scores, pair.camera, pair.motion, prior, cfg)  # warm-up
-            for _ in range(args.repeats):
-                t0 = time.perf_counter()
-                st = solve(flow, cov, scores, pair.camera, pair.motion, prior, cfg)
-                times.append(time.perf_counter() - t0)
-        ms[str(r)] = 1000 * statistics.median(times)
-        print(f"r={r}: {ms[str(r)]:8.1f} ms/frame (median of {args.repeats}; stride {cfg.hypothesis_stride}; "
-              f"{len(st)} stixels)  peak RSS {_peak_mb():.0f} MB", flush=True)
-    out = {"ms_per_frame": ms, "peak_mb": _peak_mb()}
+    over: dict[str, object] = {}
+    if args.stride is not None:
+        over["hypothesis_stride"] = args.stride
+    if args.backend is not None:
+        over["backend"] = args.backend
+    backend = SolverConfig.from_yaml(**over).backend
+    if backend != "eager":
+        _dp_cpp.available()  # build / load the kernel before timing
+    load_before = os.getloadavg()
+    ms: dict[str, dict[str, float]] = {}
+    cpu: dict[str, dict[str, float]] = {}
+    print(f"solver on {W}x{H}, backend {backend} (C++ kernel {'loaded' if _dp_cpp.available() else 'not used'}), "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {load_before[0]:.2f}")
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        ms[str(threads)], cpu[str(threads)] = {}, {}
+        for r in args.rows:
+            cfg = SolverConfig.from_yaml(cell_rows=r, **over)
+            times, cpu_times = [], []
+            with torch.inference_mode():
+                solve(flow, cov, scores, pair.camera, pair.motion, prior, cfg)  # warm-up
+                for _ in range(args.repeats):
+                    t0, c0 = time.perf_counter(), time.process_time()
+                    st = solve(flow, cov, scores, pair.camera, pair.motion, prior, cfg)
+                    times.append(time.perf_counter() - t0)
+                    cpu_times.append(time.process_time() - c0)
+            ms[str(threads)][str(r)] = 1000 * statistics.median(times)
+            cpu[str(threads)][str(r)] = 1000 * statistics.median(cpu_times)
+            print(f"threads={threads} r={r}: {ms[str(threads)][str(r)]:8.1f} ms/frame, CPU {cpu[str(threads)][str(r)]:7.1f} ms "
+                  f"(median of {args.repeats}; "
+                  f"stride {cfg.hypothesis_stride}; {len(st)} stixels)  peak RSS {_peak_mb():.0f} MB  "
+                  f"load {os.getloadavg()[0]:.2f}", flush=True)
+    out = {"frame": f"{W}x{H}", "backend": backend, "kernel": _dp_cpp.available() and backend != "eager",
+           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "ms_per_frame": ms, "cpu_ms_per_frame": cpu, "peak_mb": _peak_mb(),
+           "loadavg": {"before": load_before, "after": os.getloadavg()}}
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

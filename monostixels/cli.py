@@ -240,7 +240,7 @@ def _run(cfg: DictConfig) -> None:
     src = _source(cfg)
     if len(src) == 0:
         raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
-    pipe = Pipeline(cfg, allow_motion_failure=True)
+    pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False)  # the SfM baseline is for eval/demo only
     out = Path(cfg.outputs) / "run"
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     video = None

@@ -63,7 +63,8 @@ class PipelineResult:
         pair: the input. flow: flow (2, H, W) and covariance (H, W, 2, 2). semantic: (10, H, W)
         scores or None. motion: the camera motion used (``X_prev = R X_cur + t``) and how it was
         obtained. stixels: the result. sfm_depth: (H, W) depth of the triangulation baseline
-        (metres; invalid = negative or inf). seconds: wall time of each stage.
+        (metres; invalid = negative or inf), None from a pipeline made with ``sfm=False``.
+        seconds: wall time of each stage.
     """
 
     pair: FramePair
@@ -71,7 +72,7 @@ class PipelineResult:
     semantic: torch.Tensor | None
     motion: MotionEstimate
     stixels: StixelWorld
-    sfm_depth: torch.Tensor
+    sfm_depth: torch.Tensor | None
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -86,10 +87,12 @@ class Pipeline:
     Args:
         cfg: the composed config (see :func:`load_config`).
         allow_motion_failure: see :meth:`motion_for`.
+        sfm: also triangulate the SfM baseline (``eval``, ``demo``); ``run`` does not read it.
     """
 
-    def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False) -> None:
+    def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False, sfm: bool = True) -> None:
         self.cfg = cfg
+        self.sfm = sfm
         prior = OmegaConf.to_container(cfg.prior, resolve=True)
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
@@ -171,10 +174,12 @@ class Pipeline:
         if stixels.flags.get("degenerate_motion"):
             stixels.flags["reason"] = f"{motion.reason}; {stixels.flags.get('reason', '')}".strip("; ")
             logger.warning("%s: %s", pair.name, stixels.flags["reason"])
-        t0 = time.perf_counter()
-        sfm = triangulate(flow.flow, pair.camera.K, motion.motion,
-                          min_parallax_rad=float(self.cfg.eval.sfm_min_parallax_rad)).depth
-        sec["sfm"] = time.perf_counter() - t0
+        sfm = None
+        if self.sfm:
+            t0 = time.perf_counter()
+            sfm = triangulate(flow.flow, pair.camera.K, motion.motion,
+                              min_parallax_rad=float(self.cfg.eval.sfm_min_parallax_rad)).depth
+            sec["sfm"] = time.perf_counter() - t0
         logger.debug("%s: %d stixels, seconds %s", pair.name, len(stixels), sec)
         return PipelineResult(pair=pair, flow=flow, semantic=semantic, motion=motion, stixels=stixels,
                               sfm_depth=sfm, seconds=sec)

@@ -4,7 +4,7 @@
 // Why it exists: the eager loop runs ~100 torch ops per DP stage over (columns x hypotheses x
 // types); it is bound by op overhead and memory traffic. Here one column is solved start to
 // end in cache-sized buffers, columns in parallel (at::parallel_for, i.e. torch's intra-op
-// threads, so torch.set_num_threads governs it).
+// threads, so torch.set_num_threads governs it; columns are handed out in chunks of kChunk).
 //
 // Exactness: every floating-point expression is written in the same order as the torch ops of
 // the eager path, compiled without contraction (-ffp-contract=off) and without fast-math
@@ -19,6 +19,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <cstring>
 #include <limits>
@@ -26,7 +27,8 @@
 
 namespace {
 
-constexpr int kTypes = 4;  // ground, static object, dynamic object, sky
+constexpr int kTypes = 4;
+constexpr int64_t kChunk = 4;  // columns a thread takes at a time  // ground, static object, dynamic object, sky
 constexpr int kGround = 0, kStatic = 1, kDynamic = 2, kSky = 3;
 inline bool is_object(int j) { return j == kStatic || j == kDynamic; }
 
@@ -158,7 +160,7 @@ inline void best_predecessor(const T* Ep, int64_t K, T* G, int32_t* kb, St&& st)
 }
 
 template <typename T>
-void solve_range(int64_t c0, int64_t c1, int64_t n, int64_t Kg, int64_t Ko, int64_t Kd, int64_t ncl,
+void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg, int64_t Ko, int64_t Kd, int64_t ncl,
                  const Params<T>& P, const T* a, const T* cK, const T* s_g, const T* s_o, const T* u,
                  const T* v, const T* rows, const T* flow, const T* cov_inv, const T* logdet,
                  const T* p_ground, const T* p_object, const T* g_dyn, const T* tau, const T* Lp,
@@ -185,7 +187,11 @@ void solve_range(int64_t c0, int64_t c1, int64_t n, int64_t Kg, int64_t Ko, int6
     kbest[T_].resize(n * ((T_ == kGround || T_ == kStatic) ? Ks[T_] : 1));
   }
 
-  for (int64_t col = c0; col < c1; ++col) {
+  // Columns are taken in small chunks from a shared counter instead of one fixed share per
+  // thread: on a shared machine a descheduled thread then delays the others by one chunk, not
+  // by its whole share (static splits made 2-thread runs slower than 1-thread runs under load).
+  for (int64_t start; (start = next.fetch_add(kChunk)) < C;)
+  for (int64_t col = start; col < std::min(start + kChunk, C); ++col) {
     // ---- per-cell inputs
     for (int64_t j = 0; j < n; ++j) {
       Cell<T>& c = cells[j];
@@ -409,8 +415,10 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
     const T* pv = prm_.data_ptr<T>();
     Params<T> P{pv[0], pv[1], pv[2], pv[3], pv[4], pv[5], pv[6], pv[7], pv[8], pv[9], pv[10], pv[11],
                 pv[12], pv[13], pv[14], pv[15]};
-    at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
-      solve_range<T>(c0, c1, n, Kg, Ko, Kd, ncl, P, a_.data_ptr<T>(), cK_.data_ptr<T>(), sg_.data_ptr<T>(),
+    std::atomic<int64_t> next{0};
+    const int64_t workers = std::min<int64_t>(at::get_num_threads(), (C + kChunk - 1) / kChunk);
+    at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {
+      solve_columns<T>(next, C, n, Kg, Ko, Kd, ncl, P, a_.data_ptr<T>(), cK_.data_ptr<T>(), sg_.data_ptr<T>(),
                      so_.data_ptr<T>(), u_.data_ptr<T>(), v_.data_ptr<T>(), rows_.data_ptr<T>(), fl_.data_ptr<T>(),
                      ci_.data_ptr<T>(), ld_.data_ptr<T>(), pg_.data_ptr<T>(), po_.data_ptr<T>(), gd_.data_ptr<T>(),
                      ta_.data_ptr<T>(), L_.data_ptr<T>(), q_.data_ptr<T>(), pr_.data_ptr<T>(), deg.data_ptr<bool>(),
