@@ -150,7 +150,7 @@ def test_run_on_a_video(tmp_path):
     vw.release()
     K = pair.camera.K
     hfov = float(np.degrees(2 * np.arctan(W / 2 / float(K[0, 0]))))
-    p = _cli(["run", "data=video", f"data.path={tmp_path / 'clip.mp4'}", f"data.hfov_deg={hfov}", "flow=dis"], tmp_path)
+    p = _cli(["run", "data=video", f"data.path={tmp_path / 'clip.mp4'}", f"data.hfov_deg={hfov}", "flow=dis", "semantic=none"], tmp_path)
     out = tmp_path / "outputs" / "run"
     dirs = sorted(d for d in out.iterdir() if d.is_dir())
     assert [d.name for d in dirs] == ["clip_000001", "clip_000002"]
@@ -172,7 +172,7 @@ def test_run_video_fails_clearly(tmp_path, case):
         for _ in range(1 if case == "one_frame" else 3):
             vw.write(np.full((48, 64, 3), 90, np.uint8))
         vw.release()
-    args = ["run", "data=video", f"data.path={path}", "flow=dis"] + ([] if case == "no_intrinsics" else ["data.hfov_deg=90"])
+    args = ["run", "data=video", f"data.path={path}", "flow=dis", "semantic=none"] + ([] if case == "no_intrinsics" else ["data.hfov_deg=90"])
     p = _cli(args, tmp_path, check=False)
     err = p.stderr.lower()
     assert p.returncode != 0 and "error" in err and "traceback" not in err
