@@ -9,9 +9,8 @@ import torch
 from monostixels.data.base import FramePair
 from monostixels.data.synthetic import SyntheticSource
 from monostixels.eval.evaluate import evaluate, frame_interval, moving_stixel_mask
-from monostixels.geometry import Camera, intrinsics
+from monostixels.geometry import Camera, Motion, intrinsics
 from monostixels.inputs.motion import motion_errors
-from monostixels.geometry import Motion
 from monostixels.pipeline import load_config
 from monostixels.stixels import paint_index_map
 

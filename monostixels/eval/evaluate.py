@@ -211,7 +211,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     mono = {s: acc["monostixels"][s].result() for s in scored}
     sfm = {s: acc["sfm"][s].result() for s in scored}
     report["methods"]["monostixels"] = {**mono, "compactness": stixel_compactness(n_stixels),
-                                        "seconds_per_frame": float(np.mean(seconds))}
+                                        "seconds_per_frame": float(np.mean(seconds)) if seconds else float("nan")}
     report["methods"]["sfm"] = {**sfm, "compactness": dense_compactness(n_pixels)}
     if failed:
         report["failed_frames"] = failed
