@@ -20,9 +20,10 @@ The check, per dynamic stixel (model selection with a minimum detectable motion)
    or if the scene model's depth disagrees with the static depth by more than the scene model can
    resolve (``|d_model / d_s - 1| > min_depth_discrepancy``: an oncoming or preceding car, whose
    flow *is* epipolar but whose ground contact places it elsewhere — the case mono-stixels exist for).
-3. Otherwise the object stands still: it keeps its type and class (a parked car is a vehicle,
-   paper Table I) and gets the static depth ``d_s``, zero motion ``Δ`` and the matching
-   ``(t̃x, t̃y) = B^T p t``.
+3. Otherwise the object stands still: it becomes a static object stixel at the static depth
+   ``d_s`` with zero motion, and keeps its class (a parked car is still a vehicle: the class says
+   what it is, the type how it behaves in this frame pair; `run`'s overlays then stop showing
+   parked cars and trees as moving objects).
 
 Pixels without a valid triangulation (near the focus of expansion, where flow carries no depth)
 do not vote; a stixel with too few valid pixels keeps the solver's labels.
@@ -39,8 +40,8 @@ from typing import Any
 
 import torch
 
-from monostixels.classes import DYNAMIC_OBJECT
-from monostixels.geometry import Motion, apply_homography, ground_basis, homography, pixel_rays
+from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.geometry import Motion, apply_homography, homography, pixel_rays
 from monostixels.stixels import StixelWorld
 
 __all__ = ["MoverCheckParams", "check_movers"]
@@ -95,7 +96,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         params: thresholds.
 
     Returns:
-        A new :class:`StixelWorld`; ``flags["static_checked"]`` = number of dynamic stixels found standing still.
+        A new :class:`StixelWorld`; ``flags["static_checked"]`` = number of dynamic stixels made static.
     """
     prm = params or MoverCheckParams()
     H, W = stixels.image_size
@@ -111,8 +112,8 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     n_all = stixels.normals().double()
     z = point_depth.double()
     f = flow.double()
-    p_out, mot, tau = stixels.inverse_depth.clone(), stixels.motion.clone(), stixels.tau.clone()
-    B = ground_basis(stixels.ground_normal.double())  # (3, 2)
+    types, p_out = stixels.type.clone(), stixels.inverse_depth.clone()
+    mot, tau = stixels.motion.clone(), stixels.tau.clone()
     changed = 0
     for k in dyn.tolist():
         c0 = int(stixels.column[k]) * stixels.column_width
@@ -136,11 +137,12 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         d_model = 1.0 / float(stixels.inverse_depth[k]) if float(stixels.inverse_depth[k]) > 0 else float("inf")
         if e_s > prm.max_static_residual_px or abs(d_model / d_s - 1.0) > prm.min_depth_discrepancy:
             continue
+        types[k] = STATIC_OBJECT
         p_out[k] = torch.as_tensor(1.0 / d_s, dtype=p_out.dtype)
         mot[k] = 0.0
-        tau[k] = (B.T @ (t / d_s)).to(tau.dtype)
+        tau[k] = 0.0  # (t̃x, t̃y) belong to dynamic stixels only
         changed += 1
     flags = dict(stixels.flags)
     flags["static_checked"] = changed
     logger.debug("mover check: %d of %d dynamic stixels explained by a static object", changed, dyn.numel())
-    return dataclasses.replace(stixels, inverse_depth=p_out, motion=mot, tau=tau, flags=flags)
+    return dataclasses.replace(stixels, type=types, inverse_depth=p_out, motion=mot, tau=tau, flags=flags)

@@ -165,7 +165,7 @@ class Pipeline:
                             self.solver_cfg)
         sec["solver"] = time.perf_counter() - t0
         if self.mover_check.enabled and not motion.degenerate:
-            # Dynamic stixels that an object standing still explains get zero motion (monostixels.movers).
+            # Dynamic stixels that an object standing still explains become static (monostixels.movers).
             t0 = time.perf_counter()
             stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check)
             sec["movers"] = time.perf_counter() - t0

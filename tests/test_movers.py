@@ -49,11 +49,12 @@ def test_standing_still_vs_crossing_vs_oncoming():
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(WS, dtype=torch.float64), indexing="ij")
     want = float((10.0 * (pixel_rays(K.double(), u, v) @ st.normals()[0].double())).median())
     assert abs(1.0 / float(out.inverse_depth[0]) - want) < 1e-3
-    assert float(out.motion[0].norm()) == 0.0 and out.type[0] == DYNAMIC_OBJECT  # a vehicle standing still
-    assert torch.allclose(out.tau[0], (torch.stack([torch.tensor([1.0, 0, 0]), torch.tensor([0, 0, 1.0])], 1).double().T
-                                       @ (MOTION.t * float(out.inverse_depth[0]))), atol=0.02)
+    # A vehicle standing still: a static object stixel, class kept, no motion.
+    assert float(out.motion[0].norm()) == 0.0 and out.type[0] == STATIC_OBJECT and out.cls[0] == 6
+    assert torch.equal(out.tau[0], torch.zeros(2, dtype=out.tau.dtype))
     for k in (1, 2, 3, 4):
         assert float(out.inverse_depth[k]) == float(st.inverse_depth[k]) and torch.equal(out.motion[k], st.motion[k])
+        assert out.type[k] == st.type[k]
     assert out.flags["static_checked"] == 2  # columns 0 and 5 (5: the wall beside the mover)
     # Disabled, or without translation: unchanged.
     assert check_movers(st, flow, MOTION, params=MoverCheckParams(enabled=False)) is st
