@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "column_dp", "build_error"]
+__all__ = ["available", "column_dp", "cell_sums", "build_error"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def available() -> bool:
             _state["tried"] = True
             try:
                 _build()
-                _state["ok"] = hasattr(torch.ops.monostixels, "column_dp")
+                _state["ok"] = all(hasattr(torch.ops.monostixels, op) for op in ("column_dp", "cell_sums"))
             except Exception as exc:  # noqa: BLE001 - any build/load failure means: use the eager path
                 _state["error"] = f"{type(exc).__name__}: {exc}"
                 logger.warning("solver: the C++ column DP could not be built or loaded (%s); using the "
@@ -82,3 +82,8 @@ def build_error() -> str | None:
 def column_dp(*args: object) -> list[torch.Tensor]:
     """Call the kernel; arguments as in ``column_dp.cpp`` (see ``solver._solve_columns_cpp``)."""
     return torch.ops.monostixels.column_dp(*args)
+
+
+def cell_sums(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
+    """Cell sums (B, ch, n, C) of x (B, ch, H, W); the same bits as ``solver._block_sum``."""
+    return torch.ops.monostixels.cell_sums(x, r, w)

@@ -202,15 +202,18 @@ class ColumnSolution:
 # ---------------------------------------------------------------------------------------------
 # Column preparation
 # ---------------------------------------------------------------------------------------------
-def _block_sum(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
+def _block_sum(x: torch.Tensor, r: int, w: int, use_cpp: bool = False) -> torch.Tensor:
     """Sum (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the bottom and columns of w.
 
     Each row's ``w`` pixels are added left to right, then the cell's rows bottom-up, as strided
     adds: torch's reductions over short axes and padding the full image were half of the
-    solver's time. A partial last column / top cell sums the pixels it has.
+    solver's time. A partial last column / top cell sums the pixels it has. Where the C++ kernel
+    is loaded (and with ``use_cpp``), it adds the same numbers in the same order in one pass.
     """
     B, ch, H, W = x.shape
     n, C = -(-H // r), -(-W // w)
+    if use_cpp and x.dtype in (torch.float32, torch.float64) and not x.requires_grad:
+        return _dp_cpp.cell_sums(x, r, w)  # the same sums in the same order, one pass (csrc/column_dp.cpp)
 
     def add_up(parts: torch.Tensor, dim: int) -> torch.Tensor:
         out = parts.select(dim, 0)
@@ -252,12 +255,13 @@ def prepare_columns(
     rows = torch.clamp(torch.tensor(H, dtype=dt) - torch.arange(n, dtype=dt) * r, max=r)
     widths = torch.clamp(torch.tensor(W, dtype=dt) - torch.arange(C, dtype=dt) * w, max=w)
     count = rows[:, None] * widths[None, :]  # n x C pixels per cell
-    fl = _block_sum(flow.to(dt), r, w) / count  # B x 2 x n x C
+    cpp = cfg.backend != "eager" and _dp_cpp.available()
+    fl = _block_sum(flow.to(dt), r, w, cpp) / count  # B x 2 x n x C
     cv = cov.to(dt).permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
-    cv = (_block_sum(cv, r, w) / count).permute(0, 3, 2, 1).reshape(B, C, n, 2, 2)
+    cv = (_block_sum(cv, r, w, cpp) / count).permute(0, 3, 2, 1).reshape(B, C, n, 2, 2)
     nll = None
     if scores is not None:
-        sc = _block_sum(scores.to(dt), r, w) / count  # B x 10 x n x C
+        sc = _block_sum(scores.to(dt), r, w, cpp) / count  # B x 10 x n x C
         nll = -torch.log(sc.clamp(min=1e-12)).permute(0, 3, 2, 1).reshape(B * C, n, NUM_CLASSES)
 
     j0 = torch.arange(n, dtype=dt) * r  # bottom-based index of each cell's lowest row

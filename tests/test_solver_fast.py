@@ -117,3 +117,20 @@ def test_backend_setting_is_checked():
 
     with pytest.raises(InputError, match="solver.backend: one of auto, eager, cpp"):
         SolverConfig.from_yaml(backend="gpu")
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cell_sums_identical_to_torch(dtype):
+    """The kernel's cell sums equal solver._block_sum's torch adds bit for bit, partial cells included."""
+    g = torch.Generator().manual_seed(0)
+    for shape in [(2, 3, 37, 23), (1, 10, 64, 101), (1, 1, 7, 9)]:
+        x = (torch.randn(*shape, generator=g) * 100).to(dtype)
+        for r, w in [(3, 5), (1, 1), (5, 4), (4, 7), (40, 40)]:
+            a = solver_mod._block_sum(x, r, w, use_cpp=False)
+            b = solver_mod._block_sum(x, r, w, use_cpp=True)
+            assert a.shape == b.shape == (shape[0], shape[1], -(-shape[2] // r), -(-shape[3] // w))
+            assert torch.equal(a, b), (shape, r, w)
+    # The partial top cell and last column sum the pixels they have (no averaging, no dropping).
+    ones = torch.ones(1, 1, 7, 9, dtype=dtype)
+    assert solver_mod._block_sum(ones, 3, 4, use_cpp=True)[0, 0].tolist() == [[12, 12, 3]] * 2 + [[4, 4, 1]]

@@ -430,9 +430,60 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
   return {E, pS, gS, tauS, bpB, bpK, bpC};
 }
 
+// Sums (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the image bottom and
+// columns of w pixels (solver._block_sum, in its order: a row's pixels left to right, then the
+// cell's rows bottom-up, a missing top row adding 0), so the two give the same bits.
+template <typename T>
+void cell_sums_impl(const T* x, T* out, int64_t planes, int64_t H, int64_t W, int64_t r, int64_t w) {
+  const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
+  at::parallel_for(0, planes, 1, [&](int64_t p0, int64_t p1) {
+    std::vector<T> row(C);
+    for (int64_t p = p0; p < p1; ++p) {
+      const T* xp = x + p * H * W;
+      T* op = out + p * n * C;
+      for (int64_t i = 0; i < n; ++i) {
+        T* oi = op + i * C;
+        for (int64_t jj = 0; jj < r; ++jj) {
+          const int64_t v = H - 1 - (i * r + jj);  // image row, bottom-up
+          if (v >= 0) {
+            const T* xv = xp + v * W;
+            for (int64_t c = 0; c < C; ++c) {
+              const int64_t u0 = c * w, u1 = std::min(u0 + w, W);
+              T acc = xv[u0];
+              for (int64_t u = u0 + 1; u < u1; ++u) acc = acc + xv[u];
+              row[c] = acc;
+            }
+          } else {
+            std::fill(row.begin(), row.end(), T(0));
+          }
+          if (jj == 0) {
+            std::copy(row.begin(), row.end(), oi);
+          } else {
+            for (int64_t c = 0; c < C; ++c) oi[c] = oi[c] + row[c];
+          }
+        }
+      }
+    }
+  });
+}
+
+at::Tensor cell_sums(const at::Tensor& x, int64_t r, int64_t w) {
+  TORCH_CHECK(x.dim() == 4, "cell_sums: x must be (B, ch, H, W), got ", x.dim(), " dims");
+  TORCH_CHECK(r >= 1 && w >= 1, "cell_sums: r and w must be >= 1");
+  const int64_t B = x.size(0), ch = x.size(1), H = x.size(2), W = x.size(3);
+  const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
+  auto xc = x.contiguous();
+  auto out = at::empty({B, ch, n, C}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cell_sums", [&] {
+    cell_sums_impl<scalar_t>(xc.data_ptr<scalar_t>(), out.data_ptr<scalar_t>(), B * ch, H, W, r, w);
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY(monostixels, m) {
+  m.def("cell_sums(Tensor x, int r, int w) -> Tensor");
   m.def(
       "column_dp(Tensor a, Tensor cK, Tensor s_g, Tensor s_o, Tensor u, Tensor v, Tensor rows, Tensor flow, "
       "Tensor cov_inv, Tensor logdet, Tensor p_ground, Tensor p_object, Tensor g_dyn, Tensor tau, Tensor Lp, "
@@ -440,4 +491,7 @@ TORCH_LIBRARY(monostixels, m) {
       "-> Tensor[]");
 }
 
-TORCH_LIBRARY_IMPL(monostixels, CPU, m) { m.impl("column_dp", &column_dp); }
+TORCH_LIBRARY_IMPL(monostixels, CPU, m) {
+  m.impl("column_dp", &column_dp);
+  m.impl("cell_sums", &cell_sums);
+}
