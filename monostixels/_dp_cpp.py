@@ -23,7 +23,10 @@ logger = logging.getLogger(__name__)
 _SOURCE = Path(__file__).with_name("csrc") / "column_dp.cpp"
 #: No fast-math and no FMA contraction: the kernel must round exactly like the eager torch ops.
 #: -fno-trapping-math (FP exceptions are never inspected) lets gcc vectorise the branch-free loops.
-_CFLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math"]
+_CFLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math", "-fopenmp"]
+#: at::parallel_for is an OpenMP pragma in the headers: without -fopenmp it runs on one thread. The
+#: extension then uses the libgomp.so.1 that torch has already loaded (same soname): one runtime.
+_LDFLAGS = ["-fopenmp"]
 #: Order of the scalar parameters the kernel reads (``Params`` in column_dp.cpp).
 PARAM_ORDER = ("beta_mc", "alpha_grav_below", "beta_grav_below", "alpha_grav_above", "beta_grav_above",
                "alpha_ord", "beta_ord", "alpha_flat", "beta_flat", "alpha_F", "delta_F", "alpha_dyn")
@@ -48,11 +51,12 @@ def _build() -> None:
 
     # The name carries the source's hash and the CPU tag, so an edited kernel or another CPU
     # gets its own cached build instead of a stale or illegal-instruction one.
-    src_hash = hashlib.sha1(_SOURCE.read_bytes() + " ".join(_CFLAGS).encode()).hexdigest()[:8]
+    src_hash = hashlib.sha1(_SOURCE.read_bytes() + " ".join(_CFLAGS + _LDFLAGS).encode()).hexdigest()[:8]
     cpp_extension.load(
         name=f"monostixels_column_dp_{src_hash}_{_cpu_tag()}",
         sources=[str(_SOURCE)],
         extra_cflags=_CFLAGS,
+        extra_ldflags=_LDFLAGS,
         is_python_module=False,
         verbose=False,
     )

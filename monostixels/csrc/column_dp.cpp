@@ -27,8 +27,8 @@
 
 namespace {
 
-constexpr int kTypes = 4;
-constexpr int64_t kChunk = 4;  // columns a thread takes at a time  // ground, static object, dynamic object, sky
+constexpr int kTypes = 4;  // ground, static object, dynamic object, sky
+constexpr int64_t kChunk = 2;  // columns a thread takes at a time
 constexpr int kGround = 0, kStatic = 1, kDynamic = 2, kSky = 3;
 inline bool is_object(int j) { return j == kStatic || j == kDynamic; }
 
@@ -190,6 +190,7 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
   // Columns are taken in small chunks from a shared counter instead of one fixed share per
   // thread: on a shared machine a descheduled thread then delays the others by one chunk, not
   // by its whole share (static splits made 2-thread runs slower than 1-thread runs under load).
+  // (Chunks of kChunk columns: a few ms of work, so the wait at the end stays short.)
   for (int64_t start; (start = next.fetch_add(kChunk)) < C;)
   for (int64_t col = start; col < std::min(start + kChunk, C); ++col) {
     // ---- per-cell inputs
@@ -436,31 +437,34 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
 template <typename T>
 void cell_sums_impl(const T* x, T* out, int64_t planes, int64_t H, int64_t W, int64_t r, int64_t w) {
   const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
-  at::parallel_for(0, planes, 1, [&](int64_t p0, int64_t p1) {
+  // Work items (plane, cell row) from a shared counter, like the columns of the DP: a thread
+  // that the OS deschedules on a shared machine then holds up one row of cells, not half the image.
+  std::atomic<int64_t> next{0};
+  const int64_t items = planes * n;
+  const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), items / 16));
+  at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {
     std::vector<T> row(C);
-    for (int64_t p = p0; p < p1; ++p) {
+    for (int64_t item; (item = next.fetch_add(1)) < items;) {
+      const int64_t p = item / n, i = item % n;
       const T* xp = x + p * H * W;
-      T* op = out + p * n * C;
-      for (int64_t i = 0; i < n; ++i) {
-        T* oi = op + i * C;
-        for (int64_t jj = 0; jj < r; ++jj) {
-          const int64_t v = H - 1 - (i * r + jj);  // image row, bottom-up
-          if (v >= 0) {
-            const T* xv = xp + v * W;
-            for (int64_t c = 0; c < C; ++c) {
-              const int64_t u0 = c * w, u1 = std::min(u0 + w, W);
-              T acc = xv[u0];
-              for (int64_t u = u0 + 1; u < u1; ++u) acc = acc + xv[u];
-              row[c] = acc;
-            }
-          } else {
-            std::fill(row.begin(), row.end(), T(0));
+      T* oi = out + p * n * C + i * C;
+      for (int64_t jj = 0; jj < r; ++jj) {
+        const int64_t v = H - 1 - (i * r + jj);  // image row, bottom-up
+        if (v >= 0) {
+          const T* xv = xp + v * W;
+          for (int64_t c = 0; c < C; ++c) {
+            const int64_t u0 = c * w, u1 = std::min(u0 + w, W);
+            T acc = xv[u0];
+            for (int64_t u = u0 + 1; u < u1; ++u) acc = acc + xv[u];
+            row[c] = acc;
           }
-          if (jj == 0) {
-            std::copy(row.begin(), row.end(), oi);
-          } else {
-            for (int64_t c = 0; c < C; ++c) oi[c] = oi[c] + row[c];
-          }
+        } else {
+          std::fill(row.begin(), row.end(), T(0));
+        }
+        if (jj == 0) {
+          std::copy(row.begin(), row.end(), oi);
+        } else {
+          for (int64_t c = 0; c < C; ++c) oi[c] = oi[c] + row[c];
         }
       }
     }
