@@ -2,7 +2,6 @@
 Cityscapes model with a background channel, and training on a CamVid-layout folder."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -27,9 +26,12 @@ from monostixels.data.camvid import (
     map_camvid_labels,
     read_camvid_split,
 )
+from monostixels.data.base import FramePair
 from monostixels.eval.semantic import evaluate_semantics, image_pair
-from monostixels.inputs.semantic import CITYSCAPES19_MAPPING, estimate_semantics
+from monostixels.geometry import Camera
+from monostixels.inputs.semantic import CITYSCAPES19_MAPPING, estimate_semantics, fcn8s_scale
 from monostixels.pipeline import load_config
+from tests.test_semantic import _load_train_module
 
 ort = pytest.importorskip("onnxruntime")
 
@@ -274,13 +276,6 @@ def test_shipped_real_net_segments_camvid_val() -> None:
 # --- training on a CamVid-layout folder -----------------------------------------------------------
 
 
-def _load_train_module():
-    spec = importlib.util.spec_from_file_location("train_semantic_camvid_test", REPO / "train" / "semantic.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_training_on_camvid_layout_exports_parity_models(tmp_path: Path) -> None:
     from hydra import compose, initialize_config_dir
 
@@ -330,3 +325,16 @@ def test_shipped_models_fit_the_size_budget() -> None:
     # All shipped models together stay under 25 MB (the repository carries them).
     total = sum(f.stat().st_size for f in (REPO / "models").iterdir() if f.suffix in (".onnx", ".pt"))
     assert total <= 25_000_000, total
+
+
+def test_fcn8s_scale_from_focal_length() -> None:
+    cfg = OmegaConf.create({"name": "fcn8s", "focal_px": 360.0, "scale": 0.75})
+    image = torch.rand(3, 20, 30)
+    K = torch.tensor([[720.0, 0.0, 14.0], [0.0, 700.0, 9.0], [0.0, 0.0, 1.0]])
+    calibrated = FramePair(image=image, image_prev=image, camera=Camera(K=K))
+    assert fcn8s_scale(calibrated, cfg) == pytest.approx(0.5)  # focal_px / fx, not fy
+    # Single images without a calibration (CamVid) use `scale`.
+    assert fcn8s_scale(image_pair(image, "camvid"), cfg) == pytest.approx(0.75)
+    assert fcn8s_scale(calibrated, OmegaConf.create({"scale": None})) is None
+    with pytest.raises(InputError, match="semantic.focal_px"):
+        fcn8s_scale(calibrated, OmegaConf.merge(cfg, {"focal_px": -1.0}))

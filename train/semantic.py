@@ -53,7 +53,7 @@ from tqdm import tqdm
 
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
-from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, read_camvid_split
+from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSource, read_camvid_split
 from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
 from monostixels.inputs.semantic import confusion_matrix, estimate_semantics, iou_from_confusion
@@ -94,7 +94,22 @@ def _default_render(seed: int, scale: float, appearance_seed: int | None) -> tup
     return img, pair.gt.labels.numpy().astype(np.uint8)
 
 
-class SyntheticSegmentation(Dataset):
+class _LabelledImages(Dataset):
+    """Shared ``__getitem__`` of the datasets below: ``load(i)`` as tensors, then ``transform``."""
+
+    transform: Callable[[torch.Tensor, torch.Tensor, int], tuple[torch.Tensor, torch.Tensor]] | None = None
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        image, labels = CamVidSource.to_tensors(*self.load(i))
+        if self.transform is not None:
+            image, labels = self.transform(image, labels, i)
+        return image, labels
+
+
+class SyntheticSegmentation(_LabelledImages):
     """(image, labels) of synthetic frames, cached as PNG files; missing ones are rendered.
 
     Args:
@@ -149,16 +164,9 @@ class SyntheticSegmentation(Dataset):
             tmp.replace(path)
         return img, lab
 
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
-        img, lab = self.load(i)
-        image = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255.0
-        labels = torch.from_numpy(lab.astype(np.int64))
-        if self.transform is not None:
-            image, labels = self.transform(image, labels, i)
-        return image, labels
 
 
-class RealSegmentation(Dataset):
+class RealSegmentation(_LabelledImages):
     """(image, labels) of labelled real images (CamVid), held in memory (367 images: ~190 MB).
 
     Args:
@@ -189,13 +197,6 @@ class RealSegmentation(Dataset):
             self._data[i] = (img, lab)
         return self._data[i]  # type: ignore[return-value]
 
-    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
-        img, lab = self.load(i)
-        image = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255.0
-        labels = torch.from_numpy(lab.astype(np.int64))
-        if self.transform is not None:
-            image, labels = self.transform(image, labels, i)
-        return image, labels
 
 
 def _uniform(g: torch.Generator, lo: float, hi: float) -> float:

@@ -35,12 +35,14 @@ _NOMINAL_HEIGHT_M = 1.5
 def image_pair(image: torch.Tensor, name: str) -> FramePair:
     """Wrap a single image (3, H, W) RGB [0, 1] as a pair for the semantic backends.
 
-    The backends read only ``pair.image``; the camera is a nominal pinhole (focal = width) and
-    the previous image is the image itself.
+    The backends read only ``pair.image``; the camera is a nominal pinhole (focal = width, marked
+    ``meta["nominal_camera"]`` so that ``semantic.focal_px`` is not applied to it) and the previous
+    image is the image itself.
     """
     H, W = image.shape[-2:]
     K = torch.tensor([[float(W), 0.0, W / 2], [0.0, float(W), H / 2], [0.0, 0.0, 1.0]])
-    return FramePair(image=image, image_prev=image, camera=Camera(K=K, height=_NOMINAL_HEIGHT_M), name=name)
+    return FramePair(image=image, image_prev=image, camera=Camera(K=K, height=_NOMINAL_HEIGHT_M), name=name,
+                     meta={"nominal_camera": True})
 
 
 def evaluate_semantics(cfg: DictConfig, source: CamVidSource, *, progress: bool = True) -> dict[str, Any]:

@@ -40,6 +40,7 @@ from monostixels.data.base import FramePair
 
 __all__ = [
     "estimate_semantics",
+    "fcn8s_scale",
     "gt_scores",
     "resolve_model_path",
     "OnnxSegmenter",
@@ -106,10 +107,32 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig) -> torch.Tensor | None:
         return gt_scores(pair.gt.labels, confidence=float(cfg.get("confidence", 0.9)),
                          name=f"{pair.name or 'frame'}: gt.labels")
     if name == "fcn8s":
-        return _fcn8s_segmenter(cfg)(pair.image)
+        return _fcn8s_segmenter(cfg)(pair.image, scale=fcn8s_scale(pair, cfg))
     if name == "onnx":
         return _onnx_segmenter(cfg)(pair.image)
     raise InputError(f"semantic.name: unknown backend {name!r}; expected gt, fcn8s, onnx or none")
+
+
+def fcn8s_scale(pair: FramePair, cfg: DictConfig) -> float | None:
+    """Resize factor of the image before our FCN-8s: ``focal_px / fx`` or ``scale``.
+
+    With ``semantic.focal_px`` set and a calibrated camera, the image is resized so that its focal
+    length becomes ``focal_px`` pixels: the net then sees objects at the angular resolution it was
+    trained at, whatever the camera (KITTI fx 721 px and 1242 wide, DDAD fx ~2200 px). A pair
+    whose camera is nominal (``pair.meta["nominal_camera"]``: single labelled images such as
+    CamVid, which carry no calibration) uses ``semantic.scale``.
+
+    Returns:
+        the factor, or None (full resolution).
+    """
+    focal = cfg.get("focal_px", None)
+    if focal is not None and not pair.meta.get("nominal_camera", False):
+        fx = float(pair.camera.K[0, 0])
+        if not (float(focal) > 0 and fx > 0):
+            raise InputError(f"semantic.focal_px: needs a positive value and camera fx, got {focal} and {fx}")
+        return float(focal) / fx
+    scale = cfg.get("scale", None)
+    return None if scale is None else float(scale)
 
 
 def gt_scores(labels: torch.Tensor, *, confidence: float = 0.9, name: str = "labels") -> torch.Tensor:
@@ -323,9 +346,12 @@ class OnnxSegmenter:
         self.pad_to = max(1, int(pad_to))
         self.softmax = softmax
 
-    def logits(self, image: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int], tuple[int, int]]:
-        """Raw network output for ``image`` (3, H, W): ((1, C, h, w), unpadded size, input size)."""
-        x, size = _preprocess(image, input_size=self.input_size, scale=self.scale,
+    def logits(self, image: torch.Tensor, scale: float | None = None) -> tuple[torch.Tensor, tuple[int, int], tuple[int, int]]:
+        """Raw network output for ``image`` (3, H, W): ((1, C, h, w), unpadded size, input size).
+
+        ``scale`` replaces the configured resize factor for this call (None = the configured one).
+        """
+        x, size = _preprocess(image, input_size=self.input_size, scale=self.scale if scale is None else scale,
                               mean=self.mean, std=self.std, pad_to=self.pad_to)
         try:
             out = self.session.run(None, {self.input_name: x.numpy()})[0]
@@ -335,9 +361,10 @@ class OnnxSegmenter:
             ) from err
         return torch.from_numpy(np.asarray(out, dtype=np.float32)), size, (int(x.shape[-2]), int(x.shape[-1]))
 
-    def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        """(10, H, W) float32 class probabilities of ``image`` (3, H, W) RGB [0, 1]."""
-        out, size, in_hw = self.logits(image)
+    def __call__(self, image: torch.Tensor, scale: float | None = None) -> torch.Tensor:
+        """(10, H, W) float32 class probabilities of ``image`` (3, H, W) RGB [0, 1]; ``scale`` as in
+        :meth:`logits`."""
+        out, size, in_hw = self.logits(image, scale)
         name = f"ONNX model {self.path}"
         if out.ndim == 4 and self.mapping is not None and out.shape[1] != len(self.mapping):
             hint = ""
@@ -376,10 +403,11 @@ class TorchSegmenter:
         self.scale = scale
 
     @torch.no_grad()
-    def __call__(self, image: torch.Tensor) -> torch.Tensor:
-        """(10, H, W) float32 class probabilities of ``image`` (3, H, W) RGB [0, 1]."""
+    def __call__(self, image: torch.Tensor, scale: float | None = None) -> torch.Tensor:
+        """(10, H, W) float32 class probabilities of ``image`` (3, H, W) RGB [0, 1]; ``scale``
+        replaces the configured resize factor for this call (None = the configured one)."""
         # Normalisation is inside the model: feed RGB [0, 1].
-        x, size = _preprocess(image, input_size=None, scale=self.scale, mean=(0, 0, 0),
+        x, size = _preprocess(image, input_size=None, scale=self.scale if scale is None else scale, mean=(0, 0, 0),
                               std=(1, 1, 1), pad_to=FCN8S_PAD_TO)
         out = self.model.forward_aligned(x)
         name = f"FCN-8s {self.path}"
