@@ -41,9 +41,9 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from monostixels import _dp_cpp
 from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT, TYPE_CLASSES
-from monostixels import _dp_cpp
 from monostixels.energy import (
     GRAVITY_TOLERANCE_M,
     PriorParams,
@@ -206,8 +206,8 @@ def _block_sum(x: torch.Tensor, r: int, w: int, use_cpp: bool = False) -> torch.
     """Sum (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the bottom and columns of w.
 
     Each row's ``w`` pixels are added left to right, then the cell's rows bottom-up, as strided
-    adds: torch's reductions over short axes and padding the full image were half of the
-    solver's time. A partial last column / top cell sums the pixels it has. Where the C++ kernel
+    adds (torch's reductions over short axes after flipping and padding the full image took
+    twice as long). A partial last column / top cell sums the pixels it has. Where the C++ kernel
     is loaded (and with ``use_cpp``), it adds the same numbers in the same order in one pass.
     """
     B, ch, H, W = x.shape
