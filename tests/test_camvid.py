@@ -258,7 +258,10 @@ def test_shipped_real_net_onnx_matches_torch() -> None:
     p_torch = estimate_semantics(image_pair(image, "x"), OmegaConf.merge(cfg, {"runtime": "torch"}))
     assert p_onnx.shape == (NUM_CLASSES, 150, 230)
     assert float(p_onnx.max(0).values.std()) > 1e-3  # not a constant output
-    torch.testing.assert_close(p_onnx, p_torch, atol=1e-4, rtol=0)
+    # Both files hold float16 weights, but the ONNX graph's are rounded again after batch norm was
+    # folded into the convolutions: probabilities agree to ~4e-4, argmax nearly everywhere.
+    torch.testing.assert_close(p_onnx, p_torch, atol=1e-3, rtol=0)
+    assert float((p_onnx.argmax(0) == p_torch.argmax(0)).float().mean()) > 0.999
 
 
 @pytest.mark.skipif(not REAL_ONNX.is_file(), reason="models/fcn8s_real.onnx not present")
@@ -286,13 +289,22 @@ def test_training_on_camvid_layout_exports_parity_models(tmp_path: Path) -> None
             "model.width_mult=0.0625", "model.fc_channels=16", "model.init_from=null",
             f"data.camvid_root={tmp_path / 'camvid'}", "data.synthetic_per_epoch=0", "data.real_scale=1.0",
             f"data.cache={tmp_path / 'cache'}", "augment.crop=[64,64]", "train.epochs=2", "train.batch_size=2",
-            "train.time_limit_s=null", "train.val_every=1", f"run_dir={tmp_path / 'run'}",
+            "train.time_limit_s=null", "train.val_every=1", "train.keep_epochs=[1]", f"run_dir={tmp_path / 'run'}",
+            # The shipped recipe: the best checkpoint interpolated with an early one.
+            f"export.interpolate_from={tmp_path / 'run' / 'epoch_1.pt'}", "export.interpolate_alpha=0.5",
             f"export.onnx={tmp_path / 'm.onnx'}", f"export.pt={tmp_path / 'm.pt'}", "export.sample_size=[64,96]",
         ])
     result = mod.run(cfg)
     assert [h["epoch"] for h in result["history"]] == [1, 2]
     assert all(0.0 <= h["val_miou"] <= 1.0 for h in result["history"])
     assert "CamVid val" in result["val"]
+    # The exported weights are the midpoint of the best and the epoch-1 checkpoints.
+    best = torch.load(tmp_path / "run" / "best.pt", weights_only=True)["state_dict"]
+    early = torch.load(tmp_path / "run" / "epoch_1.pt", weights_only=True)["state_dict"]
+    shipped = torch.load(tmp_path / "m.pt", weights_only=True)["state_dict"]
+    k = "fc6.weight"
+    torch.testing.assert_close(shipped[k].float(), (0.5 * (best[k] + early[k])).half().float())
+    assert result["epoch"].endswith("epoch 1 (x0.5)")
     # float16 weights in both files: the ONNX file is about half of the float32 export, and the two
     # runtimes agree.
     n_params = sum(p.numel() for p in mod.fcn8s_vgg16(width_mult=0.0625, batch_norm=True, fc_kernel=3,

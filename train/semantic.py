@@ -68,6 +68,7 @@ __all__ = [
     "train_steps",
     "Schedule",
     "evaluate",
+    "interpolate_weights",
     "main",
 ]
 
@@ -563,9 +564,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         state["history"].append(entry)
         logger.info("epoch %d: loss %.4f, val mIoU %.4f (%s), %.0f s", epoch + 1, entry["loss"], miou,
                     ", ".join(f"{k} {v:.2f}" for k, v in per_class.items()), entry["seconds"])
+        snapshot = {"arch": arch, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_miou": miou}
         if math.isfinite(miou) and miou > state["best_miou"]:
             state["best_miou"] = miou
-            torch.save({"arch": arch, "state_dict": model.state_dict(), "epoch": epoch + 1, "val_miou": miou}, run_dir / "best.pt")
+            torch.save(snapshot, run_dir / "best.pt")
+        if epoch + 1 in set(cfg.train.get("keep_epochs") or ()):
+            torch.save(snapshot, run_dir / f"epoch_{epoch + 1}.pt")
         if complete:
             state["epoch"] = epoch + 1
         tmp = run_dir / "last.pt.tmp"
@@ -585,10 +589,32 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
+def interpolate_weights(final: dict[str, torch.Tensor], early: dict[str, torch.Tensor], alpha: float) -> dict[str, torch.Tensor]:
+    """``alpha * final + (1 - alpha) * early`` for every floating tensor (BN statistics included).
+
+    Weight-space interpolation between an early and the final checkpoint of one fine-tuning run
+    (Wortsman et al., "Robust fine-tuning of zero-shot models", CVPR 2022): the late epochs fit
+    CamVid's camera and town more closely, the interpolated net keeps more of the earlier, more
+    general solution (measured: KITTI bottoms within 10 px 0.84 -> 0.91 for a CamVid val mIoU
+    0.683 -> 0.677 at alpha 0.7; models/MODEL_CARD.md).
+    """
+    if set(final) != set(early):
+        raise InputError("export.interpolate_from: the checkpoint's tensors differ from the trained model's")
+    return {k: (alpha * v.float() + (1 - alpha) * early[k].float()).to(v.dtype) if v.is_floating_point() else v
+            for k, v in final.items()}
+
+
 def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dict[str, Any]:
     best = torch.load(run_dir / "best.pt", map_location="cpu", weights_only=True)
     model = fcn8s_vgg16(**best["arch"])
-    model.load_state_dict(best["state_dict"])
+    state = best["state_dict"]
+    early_path = cfg.export.get("interpolate_from")
+    if early_path:
+        early = torch.load(early_path, map_location="cpu", weights_only=True)
+        state = interpolate_weights(state, early["state_dict"], float(cfg.export.interpolate_alpha))
+        best = {**best, "epoch": f"{best['epoch']} (x{float(cfg.export.interpolate_alpha):g}) + epoch "
+                                 f"{early.get('epoch', '?')} (x{1 - float(cfg.export.interpolate_alpha):g})"}
+    model.load_state_dict(state)
     model.eval()
     half_pt, half_onnx = bool(cfg.export.half_pt), bool(cfg.export.get("half_onnx", False))
     real = cfg.data.get("camvid_root") is not None
@@ -615,8 +641,10 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
     pt_path = save_fcn8s(model, cfg.export.pt, arch=best["arch"], meta=meta, half=half_pt)
     # Final check of the shipped file through the backend the pipeline calls.
     if real:
-        # CamVid val at its own size, the backend scale that of training.
-        val_set, classes = _val_set(cfg, val_items)
+        # CamVid val at its own size (not the training set's pre-scaled copy), the backend
+        # resizing by the training scale, as `eval data=camvid` does.
+        val_set = RealSegmentation(read_camvid_split(cfg.data.camvid_root, "val"), scale=1.0)
+        classes = CAMVID_CLASSES_PRESENT
         backend_scale = float(cfg.data.real_scale)
         where = f"CamVid val (101 images) at 360x480, backend scale {backend_scale:g}"
     else:
