@@ -132,7 +132,10 @@ def _demo(cfg: DictConfig) -> float:
     out = Path(cfg.outputs) / "demo"
     pair = SyntheticSource(1, seed=int(cfg.data.seed), scale=float(cfg.data.scale), density=float(cfg.data.density))[0]
     logger.info("demo: synthetic scene %s (%dx%d), flow=%s semantic=%s motion=%s", pair.name, pair.size[1],
-                pair.size[0], cfg.flow.name, cfg.semantic.name, cfg.motion.name)
+                pair.size[0], cfg.flow.name,
+                # fcn8s and fcn8s_synthetic share the backend name: say which model runs.
+                f"{cfg.semantic.name} ({cfg.semantic.model})" if "model" in cfg.semantic else cfg.semantic.name,
+                cfg.motion.name)
     res = Pipeline(cfg).run(pair)
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     img = pair.image
