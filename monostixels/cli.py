@@ -122,6 +122,14 @@ def _source(cfg: DictConfig):
     return make_source(cfg)
 
 
+def _semantic_label(cfg: DictConfig) -> str:
+    """``name (model file)`` of the semantic config, or its name where it has no model."""
+    from omegaconf import OmegaConf
+
+    model = OmegaConf.select(cfg, "semantic.model", throw_on_missing=False)
+    return f"{cfg.semantic.name} ({model})" if model else str(cfg.semantic.name)
+
+
 def _demo(cfg: DictConfig) -> float:
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
@@ -134,7 +142,7 @@ def _demo(cfg: DictConfig) -> float:
     logger.info("demo: synthetic scene %s (%dx%d), flow=%s semantic=%s motion=%s", pair.name, pair.size[1],
                 pair.size[0], cfg.flow.name,
                 # fcn8s and fcn8s_synthetic share the backend name: say which model runs.
-                f"{cfg.semantic.name} ({cfg.semantic.model})" if "model" in cfg.semantic else cfg.semantic.name,
+                _semantic_label(cfg),
                 cfg.motion.name)
     res = Pipeline(cfg).run(pair)
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
