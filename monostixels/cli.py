@@ -220,7 +220,7 @@ def _eval_semantics(cfg: DictConfig) -> float:
     src = CamVidSource(cfg.data.root, split=str(cfg.data.split), frames=None if frames is None else int(frames),
                        step=int(cfg.data.get("step", 1)))
     report = evaluate_semantics(cfg, src)
-    report["semantic_backend"] = str(cfg.semantic.get("model", cfg.semantic.name))
+    report["semantic_backend"] = _semantic_label(cfg)
     print(format_semantic_table(report))
     if cfg.out:
         print(f"wrote {write_report(report, cfg.out)}")

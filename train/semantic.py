@@ -54,9 +54,10 @@ from tqdm import tqdm
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSource, read_camvid_split
+from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
-from monostixels.inputs.semantic import confusion_matrix, estimate_semantics, iou_from_confusion
+from monostixels.inputs.semantic import estimate_semantics
 
 __all__ = [
     "SEED_STRIDE",
@@ -166,7 +167,6 @@ class SyntheticSegmentation(_LabelledImages):
         return img, lab
 
 
-
 class RealSegmentation(_LabelledImages):
     """(image, labels) of labelled real images (CamVid), held in memory (367 images: ~190 MB).
 
@@ -197,7 +197,6 @@ class RealSegmentation(_LabelledImages):
                 lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
             self._data[i] = (img, lab)
         return self._data[i]  # type: ignore[return-value]
-
 
 
 def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
@@ -416,16 +415,18 @@ def evaluate(predict: Callable[[torch.Tensor], torch.Tensor], data: Dataset, des
     """mIoU of ``predict`` ((3, H, W) -> (H, W) class ids) over ``data``.
 
     Args:
-        classes: class ids the mean runs over (None = every class present in labels or predictions).
+        classes: class ids the mean runs over and that are reported (None = every class present
+            in labels or predictions); the metric of ``monostixels eval``.
 
     Returns:
         ``(miou, per-class IoU)`` from the confusion matrix accumulated over all frames.
     """
-    conf = torch.zeros(NUM_CLASSES, NUM_CLASSES, dtype=torch.int64)
+    acc = SemanticAccumulator()
     for i in tqdm(range(len(data)), desc=desc, leave=False):
         image, labels = data[i]
-        conf += confusion_matrix(predict(image), labels)
-    return iou_from_confusion(conf, classes=classes)
+        acc.add(predict(image), labels)
+    res = acc.result(classes=classes)
+    return res["miou"], res["per_class_iou"]
 
 
 def _torch_predict(model: FCN8s) -> Callable[[torch.Tensor], torch.Tensor]:

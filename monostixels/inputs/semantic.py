@@ -478,27 +478,20 @@ def confusion_matrix(pred: torch.Tensor, labels: torch.Tensor, num_classes: int 
     return torch.bincount(idx, minlength=num_classes * num_classes).view(num_classes, num_classes)
 
 
-def iou_from_confusion(conf: torch.Tensor, classes: Sequence[int] | None = None) -> tuple[float, dict[str, float]]:
+def iou_from_confusion(conf: torch.Tensor) -> tuple[float, dict[str, float]]:
     """Mean and per-class intersection over union from a confusion matrix.
 
     Args:
         conf: (10, 10) counts, rows = true class.
-        classes: the class ids the mean runs over (e.g. those a dataset labels: CamVid has no
-            terrain); None = every class with a non-empty union.
 
     Returns:
         ``(miou, {class name: iou})``; classes absent from both the ground truth and the prediction
-        (union 0) are left out of the mean and reported as NaN; classes outside ``classes`` are
-        reported but not averaged.
+        (union 0) are left out of the mean and reported as NaN.
     """
     conf = conf.double()
     tp = conf.diag()
     union = conf.sum(0) + conf.sum(1) - tp
     iou = torch.where(union > 0, tp / union.clamp_min(1), torch.full_like(tp, float("nan")))
     present = union > 0
-    if classes is not None:
-        chosen = torch.zeros_like(present)
-        chosen[list(classes)] = True
-        present = present & chosen
     miou = float(iou[present].mean()) if bool(present.any()) else float("nan")
     return miou, {name: float(iou[i]) for i, name in enumerate(CLASS_NAMES)}
