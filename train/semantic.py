@@ -32,6 +32,7 @@ model through ``monostixels.inputs.semantic``, per-class IoU, the exact command)
 """
 from __future__ import annotations
 
+import glob
 import json
 import logging
 import math
@@ -40,7 +41,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import cv2
 import hydra
@@ -57,13 +58,16 @@ from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSo
 from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
-from monostixels.inputs.semantic import estimate_semantics
+from monostixels.inputs.semantic import OnnxSegmenter, estimate_semantics
 
 __all__ = [
     "SEED_STRIDE",
     "scene_seed",
     "SyntheticSegmentation",
     "RealSegmentation",
+    "DistillFrame",
+    "PseudoLabelled",
+    "distill_frames",
     "augment",
     "build_model",
     "train_steps",
@@ -197,6 +201,113 @@ class RealSegmentation(_LabelledImages):
                 lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
             self._data[i] = (img, lab)
         return self._data[i]  # type: ignore[return-value]
+
+
+class DistillFrame(NamedTuple):
+    """One unlabelled real frame for distillation.
+
+    Attributes:
+        path: the image file (any format OpenCV reads).
+        fx: the camera's focal length in pixels (the image is resized so that it becomes
+            ``focal_px`` of :class:`PseudoLabelled`, the resolution the backend runs at).
+        teacher: ``(3, H, W) RGB [0, 1] -> (10, H, W)`` class probabilities in our classes.
+    """
+
+    path: Path
+    fx: float
+    teacher: Callable[[torch.Tensor], torch.Tensor]
+
+
+class PseudoLabelled(_LabelledImages):
+    """Unlabelled real frames with a teacher's labels (knowledge distillation, hard pseudo-labels).
+
+    A pixel gets the teacher's most likely class where its probability is at least
+    ``confidence`` and ``IGNORE_LABEL`` elsewhere (uncertain boundaries teach nothing). The teacher
+    sees the full image; image and labels are then resized to the focal length ``focal_px`` that
+    the ``fcn8s`` backend gives a calibrated camera at inference (``semantic.focal_px``).
+    Pseudo-labels are computed once per frame and kept in memory.
+
+    Args:
+        frames: the frames (:func:`distill_frames`).
+        focal_px: focal length (pixels) the frames are resized to.
+        confidence: smallest teacher probability that makes a label, in [0, 1).
+        repeat: the dataset lists every frame this many times (distinct augmentations of few frames).
+        transform: optional ``(image, labels, index) -> (image, labels)`` (augmentation).
+
+    Returns per item:
+        image (3, H, W) float32 RGB [0, 1], labels (H, W) int64 (``IGNORE_LABEL`` = unsure).
+    """
+
+    def __init__(self, frames: list[DistillFrame], *, focal_px: float, confidence: float, repeat: int = 1,
+                 transform: Callable[[torch.Tensor, torch.Tensor, int], tuple[torch.Tensor, torch.Tensor]] | None = None) -> None:
+        if not frames:
+            raise InputError("data.distill: no frames to distil on")
+        if not focal_px > 0:
+            raise InputError(f"data.distill.focal_px: must be positive, got {focal_px}")
+        if not 0 <= confidence < 1:
+            raise InputError(f"data.distill.confidence: must be in [0, 1), got {confidence}")
+        if int(repeat) < 1:
+            raise InputError(f"data.distill.repeat: must be >= 1, got {repeat}")
+        for f in frames:
+            if not f.fx > 0:
+                raise InputError(f"data.distill: frame {f.path}: focal length fx must be positive, got {f.fx}")
+        self.frames, self.focal_px, self.confidence = list(frames), float(focal_px), float(confidence)
+        self.repeat, self.transform = int(repeat), transform
+        self._data: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(self.frames)
+
+    def __len__(self) -> int:
+        return len(self.frames) * self.repeat
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """uint8 (H, W, 3) RGB and uint8 (H, W) pseudo-labels of item ``i`` at ``focal_px``."""
+        j = i % len(self.frames)
+        if self._data[j] is None:
+            f = self.frames[j]
+            bgr = cv2.imread(str(f.path), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise InputError(f"data.distill: cannot read image {f.path}")
+            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            probs = f.teacher(torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0)
+            if probs.shape != (NUM_CLASSES, *rgb.shape[:2]):
+                raise InputError(f"data.distill: teacher scores of {f.path} have shape {tuple(probs.shape)}, "
+                                 f"expected ({NUM_CLASSES}, {rgb.shape[0]}, {rgb.shape[1]})")
+            conf, lab = probs.max(0)
+            lab[conf < self.confidence] = IGNORE_LABEL
+            lab_np = lab.numpy().astype(np.uint8)
+            s = self.focal_px / f.fx
+            h, w = max(8, round(rgb.shape[0] * s)), max(8, round(rgb.shape[1] * s))
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+            lab_np = cv2.resize(lab_np, (w, h), interpolation=cv2.INTER_NEAREST)
+            self._data[j] = (rgb, lab_np)
+        return self._data[j]  # type: ignore[return-value]
+
+
+def distill_frames(dcfg: DictConfig | dict) -> list[DistillFrame]:
+    """The frames of the ``data.distill`` config, each with its teacher (ONNX Runtime).
+
+    ``dcfg.sets``: a list of ``{glob, fx, model, input_size}``: image files (a glob pattern,
+    sorted), their focal length in pixels, and the teacher ONNX model with its input size;
+    ``dcfg.teacher``: the shared teacher settings (``mean``, ``std``, ``mapping`` to our classes,
+    -1 drops a channel such as a background class, ``pad_to``), as in ``conf/semantic/onnx.yaml``.
+    A pattern that matches no file is an error (nothing is silently left out).
+    """
+    t = dcfg["teacher"]
+    teachers: dict[tuple, OnnxSegmenter] = {}
+    frames: list[DistillFrame] = []
+    for k, entry in enumerate(dcfg["sets"]):
+        pattern = str(entry["glob"])
+        paths = sorted(glob.glob(pattern))
+        if not paths:
+            raise InputError(f"data.distill.sets[{k}].glob: no file matches {pattern!r}")
+        size = None if entry.get("input_size") is None else tuple(int(v) for v in entry["input_size"])
+        key = (str(entry["model"]), size)
+        if key not in teachers:
+            teachers[key] = OnnxSegmenter(
+                str(entry["model"]), input_size=size, mean=tuple(t["mean"]), std=tuple(t["std"]),
+                mapping=None if t.get("mapping") is None else tuple(int(m) for m in t["mapping"]),
+                pad_to=int(t.get("pad_to", 1)))
+        frames += [DistillFrame(Path(p), float(entry["fx"]), teachers[key]) for p in paths]
+    return frames
 
 
 def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
@@ -462,6 +573,19 @@ def _real_set(cfg: DictConfig, split: str, transform: Callable | None) -> RealSe
                             transform=transform)
 
 
+def _distill_set(cfg: DictConfig, transform: Callable | None) -> PseudoLabelled | None:
+    """The pseudo-labelled frames of ``data.distill`` (None when absent or disabled)."""
+    d = cfg.data.get("distill")
+    if d is None or not d.get("enabled", False):
+        return None
+    data = PseudoLabelled(distill_frames(d), focal_px=float(d.focal_px), confidence=float(d.confidence),
+                          repeat=int(d.get("repeat", 1)), transform=transform)
+    for j in tqdm(range(len(data.frames)), desc="teacher labels", leave=False):
+        data.load(j)
+    logger.info("distillation: %d frames (x%d), %d drawn per epoch", len(data.frames), data.repeat, int(d.per_epoch))
+    return data
+
+
 def _val_set(cfg: DictConfig, val_items: list) -> tuple[Dataset, tuple[int, ...] | None]:
     """The validation set of ``data.val`` and the classes its mean IoU runs over."""
     which = str(cfg.data.get("val", "synthetic"))
@@ -504,16 +628,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     synth_set = SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale), transform=transform)
     real_set = _real_set(cfg, "train", transform)
     val_set, val_classes = _val_set(cfg, val_items)
-    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames drawn anew.
-    train_set = ConcatDataset([d for d in (real_set, synth_set) if d is not None])
+    distill_set = _distill_set(cfg, transform)
+    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames and
+    # `distill.per_epoch` pseudo-labelled frames drawn anew.
+    train_set = ConcatDataset([d for d in (real_set, synth_set, distill_set) if d is not None])
     n_real = 0 if real_set is None else len(real_set)
     n_synth = cfg.data.get("synthetic_per_epoch")
     n_synth = len(synth_set) if n_synth is None else min(int(n_synth), len(synth_set))
+    n_distill = 0 if distill_set is None else min(int(cfg.data.distill.per_epoch), len(distill_set))
     model, arch = build_model(cfg.model)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay))
     bs = int(cfg.train.batch_size)
-    steps_per_epoch = max(1, (n_real + n_synth) // bs)
+    steps_per_epoch = max(1, (n_real + n_synth + n_distill) // bs)
     epochs = int(cfg.train.epochs)
     total = max(1, epochs * steps_per_epoch)
     schedule = Schedule(float(cfg.train.lr), total, time_limit_s=cfg.train.time_limit_s)
@@ -544,9 +671,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         transform.epoch = epoch
         g = torch.Generator().manual_seed(int(cfg.train.seed) + epoch)
         synth_pick = (torch.randperm(len(synth_set), generator=g)[:n_synth] + n_real).tolist()
+        distill_pick = [] if distill_set is None else (
+            torch.randperm(len(distill_set), generator=g)[:n_distill] + n_real + len(synth_set)).tolist()
         loader = DataLoader(
             train_set, batch_size=bs, drop_last=True, num_workers=int(cfg.data.workers),
-            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick, generator=g),
+            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick + distill_pick, generator=g),
             persistent_workers=False,
         )
         t0 = time.monotonic()
@@ -623,6 +752,11 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
     if real:
         data = (f"CamVid train (SegNet split, 367 images) + {cfg.data.synthetic_per_epoch} of {data} per epoch; "
                 "CamVid terms CC BY-NC 4.0 (non-commercial)")
+    d = cfg.data.get("distill")
+    if d is not None and d.get("enabled", False):
+        data += (f"; + {d.per_epoch} per epoch of unlabelled frames ({', '.join(str(e.glob) for e in d.sets)}) "
+                 f"with pseudo-labels of the teacher {sorted({str(e.model) for e in d.sets})} "
+                 "(a Cityscapes-trained model: Cityscapes terms, non-commercial)")
     meta = {
         "classes": ",".join(CLASS_NAMES),
         "input": "RGB float32 [0,1], (B,3,H,W), H and W multiples of 32; normalisation inside",
