@@ -35,12 +35,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.eval.sfm import DEFAULT_MIN_PARALLAX_RAD
 from monostixels.geometry import Motion, apply_homography, homography, pixel_rays
 from monostixels.stixels import StixelWorld
 
@@ -87,6 +89,11 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
                  params: MoverCheckParams | None = None) -> StixelWorld:
     """Dynamic stixels that a static object explains become static (see the module docstring).
 
+    All dynamic stixels are checked at once: their pixels are gathered into flat arrays with a
+    stixel index, and the per-stixel medians are segment medians of the sorted values (the lower
+    median, as ``torch.median``). Only those pixels are triangulated when ``point_depth`` is not
+    given (the midpoint method of :func:`monostixels.eval.sfm.triangulate`).
+
     Args:
         stixels: the solver's result.
         flow: (2, H, W) current -> previous, pixels.
@@ -103,46 +110,95 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     dyn = torch.nonzero(stixels.type == DYNAMIC_OBJECT).flatten()
     if not prm.enabled or dyn.numel() == 0 or float(motion.t.norm()) == 0.0:
         return stixels  # without translation nothing triangulates (a flagged degenerate frame)
-    if point_depth is None:
-        from monostixels.eval.sfm import triangulate
-
-        point_depth = triangulate(flow, stixels.K, motion).depth
     K = stixels.K.double()
     R, t = motion.R.double(), motion.t.double()
-    n_all = stixels.normals().double()
-    z = point_depth.double()
-    f = flow.double()
+    S = dyn.numel()
+    # Pixels of every dynamic stixel, row-major within a stixel; sid = index into dyn.
+    c0 = stixels.column[dyn].long() * stixels.column_width
+    c1 = torch.clamp(c0 + stixels.column_width, max=W)
+    v0, v1 = stixels.v_top[dyn].long(), stixels.v_bottom[dyn].long() + 1
+    widths = c1 - c0
+    counts = (v1 - v0) * widths
+    sid = torch.repeat_interleave(torch.arange(S), counts)
+    local = torch.arange(int(counts.sum())) - torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
+    vi = v0[sid] + local // widths[sid]
+    ui = c0[sid] + local % widths[sid]
+    vv, uu = vi.double(), ui.double()
+    fu, fv = flow[0, vi, ui].double(), flow[1, vi, ui].double()
+    if point_depth is None:
+        # In the flow's dtype, as triangulate() returns it (the decisions then match the full-frame path).
+        z = _midpoint_depth(K, R, t, uu, vv, fu, fv).to(flow.dtype if flow.is_floating_point() else torch.float32).double()
+    else:
+        z = point_depth[vi, ui].double()
+    ok = torch.isfinite(z) & (z >= prm.min_depth) & (z <= prm.max_depth)
+    n_ok = torch.bincount(sid[ok], minlength=S)
+    n_all = stixels.normals().double()[dyn]  # S x 3
+    rays = pixel_rays(K, uu[ok], vv[ok])
+    proj = z[ok] * (rays * n_all[sid[ok]]).sum(-1)
+    d_s = _segment_lower_median(proj, sid[ok], n_ok)
+    # The stixel's median static-plane residual (over all its pixels), where a static fit exists.
+    fit = (n_ok >= prm.min_pixels) & (d_s > 0)
+    d_fit = torch.where(fit, d_s, torch.ones_like(d_s))
+    Hs = homography(K, R, t, n_all, 1.0 / d_fit)  # S x 3 x 3
+    up, vp = apply_homography(Hs[sid], uu, vv)
+    res = torch.hypot(up - uu - fu, vp - vv - fv)
+    e_s = _segment_lower_median(res, sid, counts)
+    p_model = stixels.inverse_depth[dyn].double()
+    d_model = torch.where(p_model > 0, 1.0 / p_model, torch.full_like(p_model, math.inf))
+    still = fit & ~(e_s > prm.max_static_residual_px) & ~((d_model / d_s - 1.0).abs() > prm.min_depth_discrepancy)
+    k = dyn[still]
     types, p_out = stixels.type.clone(), stixels.inverse_depth.clone()
     mot, tau = stixels.motion.clone(), stixels.tau.clone()
-    changed = 0
-    for k in dyn.tolist():
-        c0 = int(stixels.column[k]) * stixels.column_width
-        c1 = min(c0 + stixels.column_width, W)
-        v0, v1 = int(stixels.v_top[k]), int(stixels.v_bottom[k]) + 1
-        vv, uu = torch.meshgrid(torch.arange(v0, v1, dtype=torch.float64), torch.arange(c0, c1, dtype=torch.float64),
-                                indexing="ij")
-        zz = z[v0:v1, c0:c1]
-        ok = torch.isfinite(zz) & (zz >= prm.min_depth) & (zz <= prm.max_depth)
-        if int(ok.sum()) < prm.min_pixels:
-            continue
-        n = n_all[k]
-        rays = pixel_rays(K, uu[ok], vv[ok])
-        d_s = float((zz[ok] * (rays @ n)).median())
-        if d_s <= 0:
-            continue
-        Hs = homography(K, R, t, n, torch.tensor(1.0 / d_s, dtype=torch.float64))
-        up, vp = apply_homography(Hs, uu, vv)
-        res = torch.hypot(up - uu - f[0, v0:v1, c0:c1], vp - vv - f[1, v0:v1, c0:c1])
-        e_s = float(res.median())
-        d_model = 1.0 / float(stixels.inverse_depth[k]) if float(stixels.inverse_depth[k]) > 0 else float("inf")
-        if e_s > prm.max_static_residual_px or abs(d_model / d_s - 1.0) > prm.min_depth_discrepancy:
-            continue
-        types[k] = STATIC_OBJECT
-        p_out[k] = torch.as_tensor(1.0 / d_s, dtype=p_out.dtype)
-        mot[k] = 0.0
-        tau[k] = 0.0  # (t̃x, t̃y) belong to dynamic stixels only
-        changed += 1
+    types[k] = STATIC_OBJECT
+    p_out[k] = (1.0 / d_s[still]).to(p_out.dtype)
+    mot[k] = 0.0
+    tau[k] = 0.0  # (t̃x, t̃y) belong to dynamic stixels only
+    changed = int(still.sum())
     flags = dict(stixels.flags)
     flags["static_checked"] = changed
-    logger.debug("mover check: %d of %d dynamic stixels explained by a static object", changed, dyn.numel())
+    logger.debug("mover check: %d of %d dynamic stixels explained by a static object", changed, S)
     return dataclasses.replace(stixels, type=types, inverse_depth=p_out, motion=mot, tau=tau, flags=flags)
+
+
+def _segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """Per-segment lower median (S,) of ``values`` (N,) with non-decreasing segment ids ``seg`` (N,)
+    and segment sizes ``counts`` (S,); NaN where a segment holds a NaN (as ``torch.median``) or is empty."""
+    S = counts.numel()
+    out = torch.full((S,), math.nan, dtype=values.dtype)
+    if values.numel() == 0:
+        return out
+    order = torch.argsort(values, stable=True)  # NaN last
+    order = order[torch.argsort(seg[order], stable=True)]
+    srt = values[order]
+    start = torch.cumsum(counts, 0) - counts
+    has = counts > 0
+    med = srt[(start + torch.div(counts - 1, 2, rounding_mode="floor")).clamp(min=0)[has]]
+    # A NaN sorts last within its segment: the segment's last value tells.
+    nan_in = torch.isnan(srt[(start + counts - 1)[has]])
+    out[has] = torch.where(nan_in, torch.full_like(med, math.nan), med)
+    return out
+
+
+def _midpoint_depth(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                    fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
+    """Depth (N,) of pixels (u, v) with flow (fu, fv), as :func:`monostixels.eval.sfm.triangulate` gives it
+    (midpoint method, float64; ``+inf`` without parallax, negative behind a camera), for these pixels only."""
+    d0 = pixel_rays(K, u, v)  # N x 3, current ray (z = 1)
+    d1 = pixel_rays(K, u + fu, v + fv) @ R  # previous ray in current coordinates (R^T r')
+    c1 = -(R.T @ t)
+    a = (d0 * d0).sum(-1)
+    b = (d0 * d1).sum(-1)
+    c = (d1 * d1).sum(-1)
+    d = (d0 * c1).sum(-1)
+    e = (d1 * c1).sum(-1)
+    den = a * c - b * b
+    sin2 = (den / (a * c)).clamp(0.0, 1.0)
+    no_parallax = torch.asin(sin2.sqrt()) <= DEFAULT_MIN_PARALLAX_RAD
+    safe = torch.where(no_parallax, torch.ones_like(den), den)
+    s0 = (c * d - b * e) / safe
+    s1 = (b * d - a * e) / safe
+    X = 0.5 * (s0[..., None] * d0 + c1 + s1[..., None] * d1)
+    z = X[..., 2]
+    z_prev = (X @ R.T + t)[..., 2]
+    depth = torch.where((z <= 0) | (z_prev <= 0), -z.abs(), z)
+    return torch.where(no_parallax, torch.full_like(z, math.inf), depth)

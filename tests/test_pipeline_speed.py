@@ -1,0 +1,131 @@
+"""The faster paths of issue 13 against their plain definitions: the vectorised mover check
+(monostixels.movers) and the flow at a reduced resolution (``flow.scale``, monostixels.inputs.flow)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from monostixels._checks import InputError
+from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.data.base import FramePair
+from monostixels.eval.sfm import triangulate
+from monostixels.geometry import Camera, Motion, apply_homography, homography, intrinsics, pixel_rays
+from monostixels.inputs.flow import compute_flow, estimate_flow, flow_metrics
+from monostixels.movers import MoverCheckParams, _segment_lower_median, check_movers
+from monostixels.stixels import StixelWorld
+
+# Asymmetric camera (fx != fy, cx, cy off centre), H != W, a small yaw.
+H, W, WS = 48, 70, 5
+K = intrinsics(60.0, 55.0, 37.0, 21.0)
+N_G = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+_YAW = 0.01
+R = torch.tensor([[math.cos(_YAW), 0.0, math.sin(_YAW)], [0.0, 1.0, 0.0], [-math.sin(_YAW), 0.0, math.cos(_YAW)]],
+                 dtype=torch.float64)
+MOTION = Motion(R, torch.tensor([0.03, 0.01, 1.0], dtype=torch.float64))
+
+
+def _check_movers_loop(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, prm: MoverCheckParams) -> StixelWorld:
+    """The mover check written stixel by stixel (its definition before it was vectorised)."""
+    z = triangulate(flow, stixels.K, motion).depth.double()
+    Kd, Rd, td = stixels.K.double(), motion.R.double(), motion.t.double()
+    n_all, f = stixels.normals().double(), flow.double()
+    out_type, out_p = stixels.type.clone(), stixels.inverse_depth.clone()
+    for k in torch.nonzero(stixels.type == DYNAMIC_OBJECT).flatten().tolist():
+        c0 = int(stixels.column[k]) * stixels.column_width
+        c1 = min(c0 + stixels.column_width, W)
+        v0, v1 = int(stixels.v_top[k]), int(stixels.v_bottom[k]) + 1
+        vv, uu = torch.meshgrid(torch.arange(v0, v1, dtype=torch.float64), torch.arange(c0, c1, dtype=torch.float64),
+                                indexing="ij")
+        zz = z[v0:v1, c0:c1]
+        ok = torch.isfinite(zz) & (zz >= prm.min_depth) & (zz <= prm.max_depth)
+        if int(ok.sum()) < prm.min_pixels:
+            continue
+        d_s = float((zz[ok] * (pixel_rays(Kd, uu[ok], vv[ok]) @ n_all[k])).median())
+        if d_s <= 0:
+            continue
+        up, vp = apply_homography(homography(Kd, Rd, td, n_all[k], torch.tensor(1.0 / d_s, dtype=torch.float64)), uu, vv)
+        e_s = float(torch.hypot(up - uu - f[0, v0:v1, c0:c1], vp - vv - f[1, v0:v1, c0:c1]).median())
+        d_model = 1.0 / float(stixels.inverse_depth[k]) if float(stixels.inverse_depth[k]) > 0 else math.inf
+        if e_s > prm.max_static_residual_px or abs(d_model / d_s - 1.0) > prm.min_depth_discrepancy:
+            continue
+        out_type[k] = STATIC_OBJECT
+        out_p[k] = torch.as_tensor(1.0 / d_s, dtype=out_p.dtype)
+    return StixelWorld(**{**stixels.__dict__, "type": out_type, "inverse_depth": out_p})
+
+
+def _random_scene(seed: int) -> tuple[StixelWorld, torch.Tensor]:
+    """Random stixels (2-4 per column, mixed types) and a flow: static walls at random depths, some
+    columns pushed sideways (crossing movers), noise."""
+    g = torch.Generator().manual_seed(seed)
+    ncol = -(-W // WS)
+    cols, tops, bots, types, ps = [], [], [], [], []
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    flow = torch.zeros(2, H, W, dtype=torch.float64)
+    for c in range(ncol):
+        cuts = sorted(torch.randperm(H - 2, generator=g)[: int(torch.randint(1, 4, (1,), generator=g))].add(1).tolist())
+        edges = [0, *cuts, H]
+        for a, b in zip(edges[:-1], edges[1:]):
+            depth = float(torch.empty(1).uniform_(3.0, 40.0, generator=g))
+            n = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+            Hm = homography(K.double(), R, MOTION.t, n, torch.tensor(1.0 / depth, dtype=torch.float64))
+            up, vp = apply_homography(Hm, u[a:b, c * WS:(c + 1) * WS], v[a:b, c * WS:(c + 1) * WS])
+            flow[0, a:b, c * WS:(c + 1) * WS] = up - u[a:b, c * WS:(c + 1) * WS]
+            flow[1, a:b, c * WS:(c + 1) * WS] = vp - v[a:b, c * WS:(c + 1) * WS]
+            if float(torch.rand(1, generator=g)) < 0.25:
+                flow[0, a:b, c * WS:(c + 1) * WS] += 5.0  # crossing mover
+            cols.append(c)
+            tops.append(a)
+            bots.append(b - 1)
+            types.append(DYNAMIC_OBJECT if float(torch.rand(1, generator=g)) < 0.7 else STATIC_OBJECT)
+            # Model depth: right, 10-50 % off, or sky-like 0 (no depth).
+            r = float(torch.rand(1, generator=g))
+            ps.append(0.0 if r < 0.1 else 1.0 / (depth * (1.0 + 0.5 * r)))
+    flow = flow + 0.3 * torch.randn(flow.shape, generator=g, dtype=torch.float64)
+    n = len(cols)
+    st = StixelWorld(
+        column_width=WS, image_size=(H, W), K=K, ground_normal=N_G,
+        column=torch.tensor(cols), v_top=torch.tensor(tops), v_bottom=torch.tensor(bots),
+        type=torch.tensor(types), cls=torch.full((n,), 6), inverse_depth=torch.tensor(ps, dtype=torch.float32),
+        motion=torch.full((n, 3), 0.1, dtype=torch.float64), cost=torch.zeros(n),
+        tau=torch.full((n, 2), 0.2, dtype=torch.float64), energy=torch.zeros(ncol))
+    return st, flow.float()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_vectorised_mover_check_equals_the_loop(seed):
+    st, flow = _random_scene(seed)
+    prm = MoverCheckParams(min_pixels=5)
+    want = _check_movers_loop(st, flow, MOTION, prm)
+    got = check_movers(st, flow, MOTION, params=prm)
+    assert torch.equal(got.type, want.type)
+    assert torch.equal(got.inverse_depth, want.inverse_depth)
+    changed = (st.type == DYNAMIC_OBJECT) & (got.type == STATIC_OBJECT)
+    assert got.flags["static_checked"] == int(changed.sum())
+    assert 0 < int(changed.sum()) < int((st.type == DYNAMIC_OBJECT).sum())  # the scene exercises both outcomes
+    assert float(got.motion[changed].abs().max()) == 0.0 and float(got.tau[changed].abs().max()) == 0.0
+    assert torch.equal(got.motion[~changed], st.motion[~changed])
+    # A given point depth (the SfM baseline's) gives the same answer as triangulating here.
+    depth = triangulate(flow, st.K, MOTION).depth
+    assert torch.equal(check_movers(st, flow, MOTION, point_depth=depth, params=prm).type, got.type)
+
+
+def test_segment_lower_median_matches_torch_median():
+    g = torch.Generator().manual_seed(3)
+    counts = torch.tensor([1, 2, 5, 0, 6, 3])
+    values = torch.randn(int(counts.sum()), generator=g, dtype=torch.float64)
+    values[3] = values[4]  # a tie
+    values[-2] = math.nan  # the last segment holds a NaN
+    seg = torch.repeat_interleave(torch.arange(len(counts)), counts)
+    got = _segment_lower_median(values, seg, counts)
+    start = 0
+    for s, n in enumerate(counts.tolist()):
+        if n == 0:
+            assert math.isnan(float(got[s]))
+        else:
+            want = values[start:start + n].median()
+            assert (math.isnan(float(got[s])) and math.isnan(float(want))) or float(got[s]) == float(want)
+        start += n
