@@ -129,3 +129,110 @@ def test_segment_lower_median_matches_torch_median():
             want = values[start:start + n].median()
             assert (math.isnan(float(got[s])) and math.isnan(float(want))) or float(got[s]) == float(want)
         start += n
+
+
+# --- flow.scale / flow.refine -------------------------------------------------------------------
+
+
+def _texture(h: int, w: int, seed: int = 0) -> torch.Tensor:
+    """Smooth random texture (3, h, w) in [0, 1]."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img = np.zeros((h, w), np.float32)
+    for k, amp in ((2, 0.5), (5, 0.3), (11, 0.2)):
+        img += amp * cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), k / 3.0)
+    img = (img - img.min()) / (img.max() - img.min())
+    return torch.from_numpy(img)[None].repeat(3, 1, 1)
+
+
+def _shift_pair(d: tuple[int, int], h: int = 90, w: int = 132) -> FramePair:
+    """cur(x) = prev(x - d): the flow current -> previous is -d everywhere (d = (du, dv) pixels)."""
+    big = _texture(h + 24, w + 24, seed=2)
+    prev = big[:, 12:12 + h, 12:12 + w].contiguous()
+    cur = big[:, 12 - d[1]:12 - d[1] + h, 12 - d[0]:12 - d[0] + w].contiguous()
+    return FramePair(image=cur, image_prev=prev, camera=Camera(K=intrinsics(100.0, 95.0, 70.0, 40.0)), name="shift")
+
+
+@pytest.mark.parametrize("name", ["deepflow", "dis"])
+@pytest.mark.parametrize("refine", [False, True])
+def test_scaled_flow_is_in_full_size_pixels(name, refine):
+    # An asymmetric shift (du != dv) on H != W at scale 0.6 (h / H != w / W): a vector left in grid
+    # pixels would read 0.6 d, a swapped axis would read (dv, du).
+    d = (5, 2)
+    pair = _shift_pair(d)
+    res = estimate_flow(pair, OmegaConf.create({"name": name, "scale": 0.6, "refine": refine,
+                                                "confidence": "structure_tensor"}))
+    assert res.flow.shape == (2, 90, 132) and res.cov.shape == (90, 132, 2, 2)
+    inner = res.flow[:, 15:-15, 15:-15]
+    assert float(inner[0].median()) == pytest.approx(-d[0], abs=0.3)
+    assert float(inner[1].median()) == pytest.approx(-d[1], abs=0.3)
+    ev = torch.linalg.eigvalsh(res.cov.double())
+    assert float(ev.min()) > 0
+
+
+def test_scaled_flow_upsampling_convention():
+    # A zoom about the continuous point c: x_prev = c + k (x - c), with pixel centres at u + 0.5.
+    # Sampled at the grid's pixel centres, upsampled and rescaled, it must be the full-size zoom flow.
+    from monostixels.inputs.flow import _upsample_flow
+
+    k, cu, cv = 1.04, 50.3, 20.7
+    H, W, h, w = 60, 150, 24, 50  # grid scales 0.4 (rows) and 1/3 (columns)
+    vl, ul = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    sx, sy = w / W, h / H
+    low = torch.stack([(k - 1) * ((ul + 0.5) - cu * sx), (k - 1) * ((vl + 0.5) - cv * sy)]).float()
+    up = _upsample_flow(low, (H, W))
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    want = torch.stack([(k - 1) * ((u + 0.5) - cu), (k - 1) * ((v + 0.5) - cv)]).float()
+    assert torch.allclose(up[:, 3:-3, 3:-3], want[:, 3:-3, 3:-3], atol=1e-4)
+
+
+def test_scaled_covariance_units():
+    # Without refinement the covariance is computed on the grid and mapped to full-size pixels^2:
+    # `constant` must still be sigma^2 (full-size pixels), floor and ceiling hold.
+    pair = _shift_pair((3, 1))
+    res = estimate_flow(pair, OmegaConf.create({"name": "dis", "scale": 0.5, "confidence": "constant", "sigma": 0.8,
+                                                "sigma_min": 0.8}))
+    assert torch.allclose(res.cov, 0.64 * torch.eye(2).expand(90, 132, 2, 2), rtol=0.02, atol=1e-6)
+    st = estimate_flow(pair, OmegaConf.create({"name": "dis", "scale": 0.5, "confidence": "structure_tensor",
+                                               "sigma_min": 1.0, "sigma_max": 20.0}))
+    ev = torch.linalg.eigvalsh(st.cov.double())
+    assert float(ev.min()) >= 1.0 * 0.98 and float(ev.max()) <= 400.0 * 1.02
+    # Below the floor, textured pixels are pinned less on the grid than at full size (the grid lost
+    # the finest texture), and in full-size pixels^2 (not grid pixels^2, 4x smaller).
+    low = {"name": "dis", "confidence": "structure_tensor", "sigma_min": 0.01, "sigma_max": 20.0}
+    grid = estimate_flow(pair, OmegaConf.create({**low, "scale": 0.5})).cov[10:-10, 10:-10, 0, 0].median()
+    full = estimate_flow(pair, OmegaConf.create(low)).cov[10:-10, 10:-10, 0, 0].median()
+    assert 3.0 * float(full) < float(grid) < 40.0 * float(full)
+
+
+def test_half_resolution_deepflow_on_a_rendered_street():
+    # Known ground-truth flow: DeepFlow with its variational stage at half size stays close to the
+    # full-size result; the full-size refinement brings it back to within 0.15 px of it.
+    from monostixels.data.synthetic import render_pair
+
+    pair = render_pair(9, scale=0.4)
+    epe = {}
+    for key, extra in (("full", {}), ("half", {"scale": 0.5}), ("half_refined", {"scale": 0.5, "refine": True})):
+        res = estimate_flow(pair, OmegaConf.create({"name": "deepflow", "confidence": "structure_tensor", **extra}))
+        epe[key] = flow_metrics(res.flow, pair.gt.flow, pair.gt.flow_valid)["epe"]
+    assert epe["full"] < 2.0
+    assert epe["half"] < epe["full"] + 0.5
+    assert epe["half_refined"] < epe["full"] + 0.15
+
+
+@pytest.mark.parametrize("bad", [0, -0.5, 1.5, float("nan"), "half"])
+def test_bad_flow_scale_names_the_option(bad):
+    pair = _shift_pair((2, 1))
+    with pytest.raises(InputError, match=r"flow\.scale"):
+        estimate_flow(pair, OmegaConf.create({"name": "dis", "scale": bad}))
+    with pytest.raises(InputError, match=r"flow\.scale"):
+        compute_flow(pair.image, pair.image_prev, OmegaConf.create({"name": "deepflow", "scale": bad}))
+
+
+def test_flow_scale_too_small_and_bad_refine():
+    pair = _shift_pair((2, 1))
+    with pytest.raises(InputError, match=r"flow\.scale.*16 px"):
+        estimate_flow(pair, OmegaConf.create({"name": "dis", "scale": 0.1}))
+    with pytest.raises(InputError, match=r"flow\.refine"):
+        estimate_flow(pair, OmegaConf.create({"name": "dis", "refine": "yes"}))

@@ -16,9 +16,22 @@ Convention: every backend returns the flow from the *current* to the *previous* 
 ``calc(current, previous)``. The covariance comes from
 :func:`monostixels.inputs.confidence.flow_covariance` (``cfg.confidence``), optionally with
 forward-backward consistency (``cfg.fb_consistency: true`` runs the backend both ways).
+
+Resolution (``cfg.scale``, image backends) and refinement (``cfg.refine``): the dense estimate
+may run on the images downscaled by ``scale`` in (0, 1] (area averaging); its flow is upsampled
+bilinearly to the input size and its vectors multiplied by the size ratio. DeepFlow guided by DIS
+matches keeps the matches at full resolution (cheap, and what follows large displacements) and
+runs only its variational stage, the expensive part, at ``scale``. ``refine: true`` then polishes
+the full-size flow with one variational refinement at full resolution (OpenCV's
+``VariationalRefinement``, the energy DIS uses), which restores the sub-pixel accuracy the
+downscaled stage gives away. The covariance is computed on the grid of the last stage: the
+full-size image after a refinement or at ``scale = 1``, else the downscaled image (its
+``window_sigma`` in pixels of that grid, ``sigma``/``sigma_min``/``sigma_max`` in full-size
+pixels), mapped to full-size pixels^2. Measured choices: README "Pipeline speed".
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -29,6 +42,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from monostixels._checks import InputError, check_finite, check_same_size, check_shape
 from monostixels.data.base import FramePair
@@ -42,6 +56,7 @@ __all__ = [
     "estimate_flow",
     "compute_flow",
     "confidence_params",
+    "flow_scale",
     "resolve_path",
     "flow_metrics",
 ]
@@ -104,6 +119,70 @@ def confidence_params(cfg: Any) -> ConfidenceParams:
     )
 
 
+def flow_scale(cfg: Any) -> float:
+    """``cfg.scale`` (default 1): the factor the images are downscaled by before an image backend runs.
+
+    Raises:
+        InputError: not a number in (0, 1].
+    """
+    raw = _get(cfg, "scale", 1.0)
+    try:
+        scale = float(raw)
+    except (TypeError, ValueError):
+        raise InputError(f"flow.scale: must be a number in (0, 1], got {raw!r}") from None
+    if not (math.isfinite(scale) and 0.0 < scale <= 1.0):
+        raise InputError(f"flow.scale: must be in (0, 1] (1 = full resolution), got {scale}")
+    return scale
+
+
+#: Smallest image side (px) an image backend is run at (DIS patches are 8 px, its pyramid needs more).
+_MIN_SCALED_SIDE = 16
+
+
+def _scaled_size(H: int, W: int, scale: float) -> tuple[int, int]:
+    """(h, w) of an (H, W) image downscaled by ``scale``; an error if a side falls below 16 px."""
+    h, w = max(1, round(H * scale)), max(1, round(W * scale))
+    if min(h, w) < _MIN_SCALED_SIDE:
+        raise InputError(f"flow.scale: {scale} turns the {W}x{H} images into {w}x{h}; "
+                         f"each side must stay >= {_MIN_SCALED_SIDE} px (raise flow.scale)")
+    return h, w
+
+
+def _downscale(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """(C, H, W) float image resampled to ``size`` = (h, w) by area averaging (OpenCV INTER_AREA)."""
+    h, w = size
+    arr = np.ascontiguousarray(image.float().permute(1, 2, 0).numpy())
+    small = cv2.resize(arr, (w, h), interpolation=cv2.INTER_AREA)
+    if small.ndim == 2:
+        small = small[..., None]
+    return torch.from_numpy(np.ascontiguousarray(small.transpose(2, 0, 1)))
+
+
+def _upsample_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Flow (2, h, w) in pixels of its grid -> (2, H, W) in pixels of the ``size`` = (H, W) grid.
+
+    Convention: pixel centres map as ``u_full = (u + 0.5) W / w - 0.5`` (``align_corners=False``),
+    so a displacement of ``du`` grid pixels is ``du W / w`` full-size pixels (and ``dv H / h``).
+    """
+    H, W = size
+    h, w = flow.shape[-2:]
+    up = F.interpolate(flow[None].float(), size=(H, W), mode="bilinear", align_corners=False)[0]
+    return up * torch.tensor([W / w, H / h], dtype=torch.float32).view(2, 1, 1)
+
+
+def _upsample_cov(cov: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Covariance (h, w, 2, 2) in grid pixels^2 -> (H, W, 2, 2) in full-size pixels^2: ``D C D``
+    with ``D = diag(W / w, H / h)``, interpolated bilinearly (a convex combination of symmetric
+    positive definite matrices stays positive definite, within the same eigenvalue bounds)."""
+    H, W = size
+    h, w = cov.shape[:2]
+    d = torch.tensor([W / w, H / h], dtype=torch.float32)
+    scaled = cov.float() * (d[:, None] * d[None, :])
+    flat = scaled.reshape(h, w, 4).permute(2, 0, 1)[None]  # 1 x 4 x h x w
+    up = F.interpolate(flat, size=(H, W), mode="bilinear", align_corners=False)[0]
+    return up.permute(1, 2, 0).reshape(H, W, 2, 2).contiguous()
+
+
 def resolve_path(path: str | Path) -> Path:
     """A file path from the config: as given if it exists (absolute or relative to the working
     directory), else relative to the repository root (where ``models/`` lives)."""
@@ -127,6 +206,17 @@ def _remap(img: np.ndarray, flow: np.ndarray) -> np.ndarray:
     return cv2.remap(img, xx + flow[..., 0], yy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+def _at_scale(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarray, b: np.ndarray,
+              scale: float) -> np.ndarray:
+    """``calc(a, b)`` (an (h, w, 2) flow of two grey images) run at ``scale``, returned at full size, full-size pixels."""
+    if scale == 1.0:
+        return calc(a, b)
+    H, W = a.shape
+    h, w = _scaled_size(H, W, scale)
+    small = calc(cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA), cv2.resize(b, (w, h), interpolation=cv2.INTER_AREA))
+    return _upsample_flow(torch.from_numpy(np.ascontiguousarray(small.transpose(2, 0, 1))), (H, W)).permute(1, 2, 0).numpy()
+
+
 def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     """DeepFlow current -> previous.
 
@@ -136,23 +226,36 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     the near road). With ``matches: dis`` (default) dense patch matches from DIS stand in for
     DeepMatching: the previous image is warped by them and DeepFlow's energy then solves for the
     residual, composed as ``f(x) = r(x) + f0(x + r(x))``. ``matches: none`` is OpenCV's DeepFlow
-    as is.
+    as is. ``cfg.scale < 1``: the matches stay at full resolution, the residual (or, without
+    matches, the whole DeepFlow) is solved on the downscaled images.
     """
     a, b = _gray_u8(cur), _gray_u8(prev)
-    algo = cv2.optflow.createOptFlow_DeepFlow()
+    scale = flow_scale(cfg)
+
+    def variational(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return cv2.optflow.createOptFlow_DeepFlow().calc(x, y, None)
+
     matches = str(_get(cfg, "matches", "dis"))
     if matches == "none":
-        f = algo.calc(a, b, None)
+        f = _at_scale(variational, a, b, scale)
     elif matches == "dis":
         preset = str(_get(cfg, "matches_preset", "medium"))
         if preset not in _DIS_PRESETS:
             raise InputError(f"flow.matches_preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
         f0 = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset]).calc(a, b, None)
-        r = algo.calc(a, _remap(b, f0), None)
+        r = np.ascontiguousarray(_at_scale(variational, a, _remap(b, f0), scale))
         f = r + _remap(f0, r)
     else:
         raise InputError(f"flow.matches: must be 'dis' or 'none', got {matches!r}")
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
+
+
+def _refine(cur: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """One full-resolution variational refinement of ``flow`` (2, H, W) (OpenCV ``VariationalRefinement``
+    with its defaults: the energy and iterations DIS uses at each of its levels)."""
+    f = np.ascontiguousarray(flow.permute(1, 2, 0).numpy(), dtype=np.float32)
+    cv2.VariationalRefinement_create().calc(_gray_u8(cur), _gray_u8(prev), f)
+    return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1)))
 
 
 def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
@@ -190,20 +293,78 @@ _BACKENDS: dict[str, Callable[[torch.Tensor, torch.Tensor, Any], torch.Tensor]] 
 }
 
 
-def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
-    """Flow (2, H, W) float32 from ``image_cur`` to ``image_prev`` ((3, H, W) RGB in [0, 1]) with
-    the image backend ``cfg.name`` (deepflow | dis | raft), no covariance."""
-    name = str(_get(cfg, "name", ""))
-    if name not in _BACKENDS:
-        raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
+def _check_images(image_cur: torch.Tensor, image_prev: torch.Tensor) -> None:
     check_shape(image_cur, [3, "H", "W"], "image (current)")
     check_shape(image_prev, [3, "H", "W"], "image_prev")
     check_same_size(image_cur, image_prev, "image (current)", "image_prev")
     check_finite(image_cur, "image (current)")
     check_finite(image_prev, "image_prev")
+
+
+def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    """The backend's flow on the images as given (no resampling)."""
     flow = _BACKENDS[name](image_cur.float(), image_prev.float(), cfg)
     check_finite(flow, f"flow from backend {name}")
     return flow
+
+
+#: Backends that apply ``cfg.scale`` themselves (DeepFlow keeps its matches at full resolution).
+_OWN_SCALE = frozenset({"deepflow"})
+
+
+def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    """Flow (2, H, W) float32 from ``image_cur`` to ``image_prev`` ((3, H, W) RGB in [0, 1]) with
+    the image backend ``cfg.name`` (deepflow | dis | raft), no covariance.
+
+    With ``cfg.scale < 1`` the backend runs on the downscaled images and the flow is upsampled to
+    (H, W), in full-size pixels; ``cfg.refine`` then refines it at full size (module docstring).
+    """
+    name = str(_get(cfg, "name", ""))
+    if name not in _BACKENDS:
+        raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
+    _check_images(image_cur, image_prev)
+    scale = flow_scale(cfg)
+    refine = _refine_enabled(cfg)
+    if scale == 1.0 or name in _OWN_SCALE:
+        flow = _backend(name, image_cur, image_prev, cfg)
+    else:
+        H, W = image_cur.shape[-2:]
+        size = _scaled_size(H, W, scale)
+        flow = _upsample_flow(_backend(name, _downscale(image_cur, size), _downscale(image_prev, size), cfg), (H, W))
+    if refine:
+        flow = _refine(image_cur.float(), image_prev.float(), flow)
+        check_finite(flow, f"flow from backend {name} after flow.refine")
+    return flow
+
+
+def _refine_enabled(cfg: Any) -> bool:
+    val = _get(cfg, "refine", False)
+    if not isinstance(val, bool):
+        raise InputError(f"flow.refine: must be true or false, got {val!r}")
+    return val
+
+
+def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flow and covariance of an image backend; the covariance on the grid of the last stage (module docstring)."""
+    flow = compute_flow(pair.image, pair.image_prev, cfg)
+    fb_err = None
+    if bool(_get(cfg, "fb_consistency", False)):
+        fb_err = fb_consistency_error(flow, compute_flow(pair.image_prev, pair.image, cfg))
+    scale = flow_scale(cfg)
+    if scale == 1.0 or _refine_enabled(cfg):
+        return flow, flow_covariance(pair.image, params, fb_error=fb_err)
+    # The structure tensor of the downscaled image (texture finer than the grid no longer pins
+    # the flow), floor and ceiling converted from full-size to grid pixels, then mapped back.
+    H, W = pair.image.shape[-2:]
+    size = _scaled_size(H, W, scale)
+    s = math.sqrt((size[0] / H) * (size[1] / W))
+    grid_params = dataclasses.replace(params, sigma=params.sigma * s, sigma_min=params.sigma_min * s,
+                                      sigma_max=params.sigma_max * s)
+    fb_grid = None
+    if fb_err is not None:  # nearest sampling keeps inf (unchecked); pixels -> grid pixels
+        fb_grid = torch.from_numpy(cv2.resize(fb_err.numpy(), (size[1], size[0]), interpolation=cv2.INTER_NEAREST)) * s
+    cov = flow_covariance(_downscale(pair.image, size), grid_params, fb_error=fb_grid)
+    return flow, _upsample_cov(cov, (H, W))
 
 
 def _gt_flow(pair: FramePair, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
@@ -234,14 +395,17 @@ def estimate_flow(pair: FramePair, cfg: Any) -> FlowResult:
         pair: the frame pair (images (3, H, W) RGB in [0, 1]).
         cfg: the ``flow`` config group node: ``name`` in gt|deepflow|dis|raft, confidence keys
             (``confidence``, ``sigma``, ``noise``, ``window_sigma``, ``sigma_min``, ``sigma_max``,
-            ``fb_consistency``, ``fb_weight``) and backend keys (``preset``; ``size``, ``weights``,
+            ``fb_consistency``, ``fb_weight``), ``scale`` and ``refine`` (image backends: resolution
+            the backend runs at, in (0, 1], and a full-resolution refinement; ``gt`` ignores both)
+            and backend keys (``preset``; ``size``, ``weights``,
             ``onnx``, ``runtime``, ``iters``).
 
     Returns:
         A :class:`FlowResult`: flow (2, H, W) pixels, covariance (H, W, 2, 2) pixels^2.
 
     Raises:
-        InputError: unknown backend, missing ground truth / weights, bad image shapes, NaN flow.
+        InputError: unknown backend, missing ground truth / weights, bad image shapes, NaN flow,
+            ``scale`` outside (0, 1].
     """
     name = str(_get(cfg, "name", ""))
     if name not in FLOW_BACKENDS:
@@ -251,12 +415,7 @@ def estimate_flow(pair: FramePair, cfg: Any) -> FlowResult:
     if name == "gt":
         flow, cov = _gt_flow(pair, params)
     else:
-        flow = compute_flow(pair.image, pair.image_prev, cfg)
-        fb_err = None
-        if bool(_get(cfg, "fb_consistency", False)):
-            back = compute_flow(pair.image_prev, pair.image, cfg)
-            fb_err = fb_consistency_error(flow, back)
-        cov = flow_covariance(pair.image, params, fb_error=fb_err)
+        flow, cov = _image_flow(pair, cfg, params)
     seconds = time.perf_counter() - t0
     logger.debug("flow %s on %s: %.2f s", name, pair.name, seconds)
     return FlowResult(flow=flow.contiguous(), cov=cov.contiguous(), seconds=seconds, backend=name)
