@@ -236,3 +236,34 @@ def test_flow_scale_too_small_and_bad_refine():
         estimate_flow(pair, OmegaConf.create({"name": "dis", "scale": 0.1}))
     with pytest.raises(InputError, match=r"flow\.refine"):
         estimate_flow(pair, OmegaConf.create({"name": "dis", "refine": "yes"}))
+
+
+# --- closed-form covariance -----------------------------------------------------------------------
+
+
+def test_clip_eigenvalues_closed_form_matches_eigh():
+    from monostixels.inputs.confidence import _clip_eigenvalues
+
+    g = torch.Generator().manual_seed(5)
+    A = torch.randn(200, 2, 2, generator=g, dtype=torch.float64)
+    C = A @ A.transpose(-1, -2) * torch.rand(200, 1, 1, generator=g, dtype=torch.float64) * 30
+    C[0] = 7.0 * torch.eye(2, dtype=torch.float64)  # isotropic, inside the bounds
+    C[1] = torch.tensor([[1e-4, 0.0], [0.0, 1e-4]], dtype=torch.float64)  # isotropic, below the floor
+    C[2] = torch.tensor([[500.0, 3.0], [3.0, 0.01]], dtype=torch.float64)  # both bounds hit
+    lo, hi = 0.5, 100.0
+    got = _clip_eigenvalues(C[:, 0, 0].numpy(), C[:, 0, 1].numpy(), C[:, 1, 1].numpy(), lo, hi).double()
+    L, V = torch.linalg.eigh(C)
+    want = V @ torch.diag_embed(L.clamp(lo, hi)) @ V.transpose(-1, -2)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert torch.equal(got[:, 0, 1], got[:, 1, 0])
+
+
+def test_structure_tensor_of_a_diagonal_ramp():
+    # I = gu u + gv v (gu != gv, opposite signs): J = [[gu^2, gu gv], [gu gv, gv^2]] away from the border.
+    from monostixels.inputs.confidence import structure_tensor
+
+    gu, gv = 0.004, -0.007
+    v, u = torch.meshgrid(torch.arange(40, dtype=torch.float32), torch.arange(70, dtype=torch.float32), indexing="ij")
+    J = structure_tensor(0.5 + gu * u + gv * v, 2.0)[10:-10, 10:-10]
+    want = torch.tensor([[gu * gu, gu * gv], [gu * gv, gv * gv]])
+    assert torch.allclose(J, want.expand_as(J), rtol=1e-3, atol=1e-9)
