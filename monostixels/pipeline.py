@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -64,7 +66,7 @@ class PipelineResult:
         scores or None. motion: the camera motion used (``X_prev = R X_cur + t``) and how it was
         obtained. stixels: the result. sfm_depth: (H, W) depth of the triangulation baseline
         (metres; invalid = negative or inf), None from a pipeline made with ``sfm=False``.
-        seconds: wall time of each stage.
+        seconds: wall time of each stage (flow and semantic may overlap) and of the pair (``wall``).
     """
 
     pair: FramePair
@@ -78,6 +80,8 @@ class PipelineResult:
     @property
     def total_seconds(self) -> float:
         """Wall time of the mono-stixel pipeline (inputs + solver), without the SfM baseline."""
+        if "wall" in self.seconds:
+            return self.seconds["wall"] - self.seconds.get("sfm", 0.0)
         return sum(v for k, v in self.seconds.items() if k != "sfm")
 
 
@@ -88,11 +92,17 @@ class Pipeline:
         cfg: the composed config (see :func:`load_config`).
         allow_motion_failure: see :meth:`motion_for`.
         sfm: also triangulate the SfM baseline (``eval``, ``demo``); ``run`` does not read it.
+        overlap: estimate the semantics in a second thread while the flow is computed (they are
+            independent; OpenCV's flow and ONNX Runtime release the GIL, and DeepFlow runs on one
+            core). Results are the same either way; ``seconds`` then holds each stage's own wall
+            time, which overlap, and ``seconds["wall"]`` the pair's.
     """
 
-    def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False, sfm: bool = True) -> None:
+    def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False, sfm: bool = True,
+                 overlap: bool = True) -> None:
         self.cfg = cfg
         self.sfm = sfm
+        self.overlap = overlap
         prior = OmegaConf.to_container(cfg.prior, resolve=True)
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
@@ -150,12 +160,18 @@ class Pipeline:
     def run(self, pair: FramePair) -> PipelineResult:
         """Run every stage on one frame pair."""
         sec: dict[str, float] = {}
-        t0 = time.perf_counter()
-        flow = estimate_flow(pair, self.cfg.flow)
-        sec["flow"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        semantic = estimate_semantics(pair, self.cfg.semantic)
-        sec["semantic"] = time.perf_counter() - t0
+        start = time.perf_counter()
+
+        def semantics() -> tuple[torch.Tensor | None, float]:
+            t = time.perf_counter()
+            return estimate_semantics(pair, self.cfg.semantic), time.perf_counter() - t
+
+        with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
+            future = pool.submit(semantics) if pool is not None else None
+            t0 = time.perf_counter()
+            flow = estimate_flow(pair, self.cfg.flow)
+            sec["flow"] = time.perf_counter() - t0
+            semantic, sec["semantic"] = future.result() if future is not None else semantics()
         t0 = time.perf_counter()
         motion = self.motion_for(pair, flow, semantic)
         sec["motion"] = time.perf_counter() - t0
@@ -180,6 +196,7 @@ class Pipeline:
             sfm = triangulate(flow.flow, pair.camera.K, motion.motion,
                               min_parallax_rad=float(self.cfg.eval.sfm_min_parallax_rad)).depth
             sec["sfm"] = time.perf_counter() - t0
+        sec["wall"] = time.perf_counter() - start
         logger.debug("%s: %d stixels, seconds %s", pair.name, len(stixels), sec)
         return PipelineResult(pair=pair, flow=flow, semantic=semantic, motion=motion, stixels=stixels,
                               sfm_depth=sfm, seconds=sec)

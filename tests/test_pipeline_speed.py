@@ -267,3 +267,30 @@ def test_structure_tensor_of_a_diagonal_ramp():
     J = structure_tensor(0.5 + gu * u + gv * v, 2.0)[10:-10, 10:-10]
     want = torch.tensor([[gu * gu, gu * gv], [gu * gv, gv * gv]])
     assert torch.allclose(J, want.expand_as(J), rtol=1e-3, atol=1e-9)
+
+
+# --- pipeline: semantics beside the flow ----------------------------------------------------------
+
+
+def test_overlapped_inputs_give_the_same_result():
+    from monostixels.data.synthetic import render_pair
+    from monostixels.pipeline import Pipeline, load_config
+
+    pair = render_pair(1, scale=0.25)
+    cfg = load_config(["flow=dis", "semantic=gt", "motion=gt"])
+    a = Pipeline(cfg, overlap=True).run(pair)
+    b = Pipeline(cfg, overlap=False).run(pair)
+    assert torch.equal(a.flow.flow, b.flow.flow) and torch.equal(a.semantic, b.semantic)
+    assert torch.equal(a.stixels.type, b.stixels.type) and torch.equal(a.stixels.inverse_depth, b.stixels.inverse_depth)
+    assert set(a.seconds) >= {"flow", "semantic", "motion", "solver", "wall"}
+    assert a.seconds["wall"] >= a.seconds["flow"] and a.total_seconds <= a.seconds["wall"]
+
+
+def test_overlapped_semantics_error_reaches_the_caller():
+    from monostixels.data.synthetic import render_pair
+    from monostixels.pipeline import Pipeline, load_config
+
+    pair = render_pair(1, scale=0.25)
+    pair.gt.labels = None  # semantic=gt without ground-truth labels: the semantics thread raises
+    with pytest.raises(InputError, match="no ground-truth labels"):
+        Pipeline(load_config(["flow=dis", "semantic=gt", "motion=gt"]), overlap=True).run(pair)
