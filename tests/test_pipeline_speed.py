@@ -294,3 +294,49 @@ def test_overlapped_semantics_error_reaches_the_caller():
     pair.gt.labels = None  # semantic=gt without ground-truth labels: the semantics thread raises
     with pytest.raises(InputError, match="no ground-truth labels"):
         Pipeline(load_config(["flow=dis", "semantic=gt", "motion=gt"]), overlap=True).run(pair)
+
+
+# --- flow.bands -----------------------------------------------------------------------------------
+
+
+def test_bands_stitch_strips_in_place():
+    # A "flow" that reads the image content: stitched strips must give back the image exactly,
+    # so every strip sits at its own columns and the blend weights add up to 1.
+    from monostixels.inputs.flow import _in_bands
+
+    h, w = 20, 301
+    a = (np.arange(w, dtype=np.float32)[None, :] * 0.7 + np.arange(h, dtype=np.float32)[:, None]).astype(np.float32)
+
+    def calc(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.stack([p, 2.0 * q], -1)
+
+    for bands in (1, 2, 3):
+        out = _in_bands(calc, a, a, bands)
+        assert out.shape == (h, w, 2)
+        np.testing.assert_allclose(out[..., 0], a, rtol=1e-6)
+        np.testing.assert_allclose(out[..., 1], 2.0 * a, rtol=1e-6)
+
+
+def test_deepflow_in_two_bands_matches_one():
+    d = (4, 1)
+    pair = _shift_pair(d, h=80, w=200)
+    base = {"name": "deepflow", "scale": 1.0, "confidence": "structure_tensor"}
+    one = estimate_flow(pair, OmegaConf.create({**base, "bands": 1})).flow
+    two = estimate_flow(pair, OmegaConf.create({**base, "bands": 2})).flow
+    inner = (slice(None), slice(12, -12), slice(12, -12))
+    assert float(two[inner][0].median()) == pytest.approx(-d[0], abs=0.25)
+    assert float(two[inner][1].median()) == pytest.approx(-d[1], abs=0.25)
+    assert float((two - one)[inner].abs().mean()) < 0.1
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_bad_flow_bands_names_the_option(bad):
+    pair = _shift_pair((2, 1))
+    with pytest.raises(InputError, match=r"flow\.bands"):
+        estimate_flow(pair, OmegaConf.create({"name": "deepflow", "bands": bad}))
+
+
+def test_too_many_bands_for_the_image():
+    pair = _shift_pair((2, 1))  # 132 px wide: 3 strips of 44 px < 2 * 24 + 16
+    with pytest.raises(InputError, match=r"flow\.bands.*too narrow"):
+        estimate_flow(pair, OmegaConf.create({"name": "deepflow", "bands": 3}))

@@ -35,6 +35,7 @@ import dataclasses
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -217,6 +218,49 @@ def _at_scale(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarra
     return _upsample_flow(torch.from_numpy(np.ascontiguousarray(small.transpose(2, 0, 1))), (H, W)).permute(1, 2, 0).numpy()
 
 
+#: Overlap (px of the grid DeepFlow runs on) on each side of a seam between bands; blended linearly.
+_BAND_MARGIN = 24
+
+
+def _bands(cfg: Any) -> int:
+    raw = _get(cfg, "bands", 1)
+    if isinstance(raw, bool) or not isinstance(raw, int) or raw < 1:
+        raise InputError(f"flow.bands: must be a whole number >= 1, got {raw!r}")
+    return raw
+
+
+def _in_bands(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarray, b: np.ndarray,
+              bands: int) -> np.ndarray:
+    """``calc(a, b)`` on ``bands`` vertical strips side by side, one thread each (OpenCV releases the
+    GIL; DeepFlow itself runs on one core). Neighbouring strips overlap by ``2 * _BAND_MARGIN``
+    columns, blended linearly, so no seam shows; a strip sees its own image part only, which the
+    DIS warp before it makes harmless (the residual flow left to solve is short-range)."""
+    if bands == 1:
+        return calc(a, b)
+    h, w = a.shape
+    m = _BAND_MARGIN
+    cuts = [round(k * w / bands) for k in range(bands + 1)]
+    if min(c1 - c0 for c0, c1 in zip(cuts[:-1], cuts[1:])) < 2 * m + _MIN_SCALED_SIDE:
+        raise InputError(f"flow.bands: {bands} strips of a {w} px wide grid are too narrow "
+                         f"(each needs >= {2 * m + _MIN_SCALED_SIDE} px); lower flow.bands")
+    spans = [(max(c0 - m, 0), min(c1 + m, w)) for c0, c1 in zip(cuts[:-1], cuts[1:])]
+    with ThreadPoolExecutor(max_workers=bands) as pool:
+        parts = list(pool.map(lambda sp: calc(np.ascontiguousarray(a[:, sp[0]:sp[1]]),
+                                              np.ascontiguousarray(b[:, sp[0]:sp[1]])), spans))
+    out = np.zeros((h, w, 2), np.float32)
+    weight = np.zeros((1, w, 1), np.float32)
+    for (s0, s1), part in zip(spans, parts):
+        # Weights 1 inside the strip's own columns, ramping to 0 across each overlap with a
+        # neighbour (the two ramps of an overlap add up to 1).
+        cols = np.arange(s0, s1, dtype=np.float32)
+        left = (cols - s0 + 0.5) / (2 * m) if s0 > 0 else np.ones_like(cols)
+        right = (s1 - 0.5 - cols) / (2 * m) if s1 < w else np.ones_like(cols)
+        wgt = np.clip(np.minimum(left, right), 0.0, 1.0)
+        out[:, s0:s1] += wgt[None, :, None] * part
+        weight[:, s0:s1] += wgt[None, :, None]
+    return out / weight
+
+
 def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     """DeepFlow current -> previous.
 
@@ -227,13 +271,15 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     DeepMatching: the previous image is warped by them and DeepFlow's energy then solves for the
     residual, composed as ``f(x) = r(x) + f0(x + r(x))``. ``matches: none`` is OpenCV's DeepFlow
     as is. ``cfg.scale < 1``: the matches stay at full resolution, the residual (or, without
-    matches, the whole DeepFlow) is solved on the downscaled images.
+    matches, the whole DeepFlow) is solved on the downscaled images. ``cfg.bands > 1``: that
+    variational solve runs on as many overlapping vertical strips in parallel threads.
     """
     a, b = _gray_u8(cur), _gray_u8(prev)
     scale = flow_scale(cfg)
+    bands = _bands(cfg)
 
     def variational(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return cv2.optflow.createOptFlow_DeepFlow().calc(x, y, None)
+        return _in_bands(lambda p, q: cv2.optflow.createOptFlow_DeepFlow().calc(p, q, None), x, y, bands)
 
     matches = str(_get(cfg, "matches", "dis"))
     if matches == "none":
