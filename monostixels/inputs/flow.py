@@ -391,17 +391,32 @@ def _refine_enabled(cfg: Any) -> bool:
 
 
 def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flow and covariance of an image backend; the covariance on the grid of the last stage (module docstring)."""
-    flow = compute_flow(pair.image, pair.image_prev, cfg)
-    fb_err = None
+    """Flow and covariance of an image backend; the covariance on the grid of the last stage (module docstring).
+
+    Without the forward-backward check the covariance depends on the image only: it is computed
+    in a second thread while the backend runs (the same numbers; a core DeepFlow leaves idle).
+    """
+    _check_images(pair.image, pair.image_prev)
+    _refine_enabled(cfg)
+    flow_scale(cfg)
     if bool(_get(cfg, "fb_consistency", False)):
+        flow = compute_flow(pair.image, pair.image_prev, cfg)
         fb_err = fb_consistency_error(flow, compute_flow(pair.image_prev, pair.image, cfg))
+        return flow, _covariance(pair.image, cfg, params, fb_err)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        cov = pool.submit(_covariance, pair.image, cfg, params, None)
+        flow = compute_flow(pair.image, pair.image_prev, cfg)
+        return flow, cov.result()
+
+
+def _covariance(image: torch.Tensor, cfg: Any, params: ConfidenceParams, fb_err: torch.Tensor | None) -> torch.Tensor:
+    """The flow covariance (H, W, 2, 2) of :func:`_image_flow`: full-size, or on the grid of a
+    downscaled backend without refinement (floor and ceiling converted from full-size to grid
+    pixels; the structure tensor of the downscaled image, whose finest texture no longer pins the flow)."""
     scale = flow_scale(cfg)
     if scale == 1.0 or _refine_enabled(cfg):
-        return flow, flow_covariance(pair.image, params, fb_error=fb_err)
-    # The structure tensor of the downscaled image (texture finer than the grid no longer pins
-    # the flow), floor and ceiling converted from full-size to grid pixels, then mapped back.
-    H, W = pair.image.shape[-2:]
+        return flow_covariance(image, params, fb_error=fb_err)
+    H, W = image.shape[-2:]
     size = _scaled_size(H, W, scale)
     s = math.sqrt((size[0] / H) * (size[1] / W))
     grid_params = dataclasses.replace(params, sigma=params.sigma * s, sigma_min=params.sigma_min * s,
@@ -409,8 +424,8 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[to
     fb_grid = None
     if fb_err is not None:  # nearest sampling keeps inf (unchecked); pixels -> grid pixels
         fb_grid = torch.from_numpy(cv2.resize(fb_err.numpy(), (size[1], size[0]), interpolation=cv2.INTER_NEAREST)) * s
-    cov = flow_covariance(_downscale(pair.image, size), grid_params, fb_error=fb_grid)
-    return flow, _upsample_cov(cov, (H, W))
+    cov = flow_covariance(_downscale(image, size), grid_params, fb_error=fb_grid)
+    return _upsample_cov(cov, (H, W))
 
 
 def _gt_flow(pair: FramePair, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
