@@ -477,8 +477,11 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
         q2 = a2 + k * c2
         u, v = (a0 + k * c0) / q2, (a1 + k * c1) / q2
         inside = (q2 > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-        if inside.mean() < 0.5:
+        n_in = int(np.count_nonzero(inside))
+        if 2 * n_in < len(inside):  # fewer than half of the pixels land in the previous image
             out = math.inf
+        elif n_in == len(inside):  # the usual case: no selection needed
+            out = float(np.median(np.abs(_sample(prev, u, v) - ref)))
         else:
             out = float(np.median(np.abs(_sample(prev, u[inside], v[inside]) - ref[inside])))
         cost_cache[key] = out
