@@ -60,3 +60,90 @@ def test_standing_still_vs_crossing_vs_oncoming():
     assert check_movers(st, flow, MOTION, params=MoverCheckParams(enabled=False)) is st
     still = Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
     assert check_movers(st, flow, still) is st
+
+
+# A camera with a KITTI-like focal length, so that a depth difference shows as rows at the ground contact.
+KC = intrinsics(500.0, 500.0, 90.0, 20.0)  # the columns lie 70-90 px left of the focus of expansion
+HC, WC, H_CAM = 120, 20, 1.5
+
+
+def _contact_world(d_model: float, upper: bool = False) -> StixelWorld:
+    """Two columns: a dynamic object stixel standing on a ground stixel (height H_CAM) at the row where a
+    plane at ``d_model`` meets the ground (the scene model's contact); optionally a dynamic stixel on top."""
+    v_c = int(round(20.0 + 500.0 * H_CAM / d_model))  # contact row (camera looks straight ahead)
+    cols, tops, bots, types, ps = [], [], [], [], []
+    for c in range(2):
+        segs = [(v_c, HC - 1, 0, 1.0 / H_CAM), (30 if upper else 0, v_c - 1, DYNAMIC_OBJECT, 1.0 / d_model)]
+        if upper:
+            segs.append((0, 29, DYNAMIC_OBJECT, 1.0 / d_model))
+        for a, b, ty, p in segs:
+            cols.append(c), tops.append(a), bots.append(b), types.append(ty), ps.append(p)
+    n = len(cols)
+    return StixelWorld(
+        column_width=WS, image_size=(HC, WC), K=KC, ground_normal=N_G,
+        column=torch.tensor(cols), v_top=torch.tensor(tops), v_bottom=torch.tensor(bots),
+        type=torch.tensor(types), cls=torch.full((n,), 7), inverse_depth=torch.tensor(ps, dtype=torch.float64),
+        motion=torch.tensor([[0.0, 0.0, 0.2]] * n, dtype=torch.float64), cost=torch.zeros(n),
+        tau=torch.zeros(n, 2, dtype=torch.float64), energy=torch.zeros(2))
+
+
+def _moving_wall_flow(depth: float, delta_z: float) -> torch.Tensor:
+    """Exact flow (2, HC, WC) under MOTION of a wall ``z = depth`` that moves by ``delta_z`` metres forward
+    (``X_prev = X_cur - Δ + t``): along the camera's own direction, so the flow stays on the epipolar lines."""
+    v, u = torch.meshgrid(torch.arange(HC, dtype=torch.float64), torch.arange(WC, dtype=torch.float64), indexing="ij")
+    t_rel = MOTION.t - torch.tensor([0.0, 0.0, delta_z], dtype=torch.float64)
+    Hm = homography(KC, MOTION.R, t_rel, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                    torch.tensor(1.0 / depth, dtype=torch.float64))
+    up, vp = apply_homography(Hm, u, v)
+    return torch.stack([up - u, vp - v]).float()
+
+
+def test_mover_along_epipolar_lines_on_the_ground_stays_dynamic():
+    # A two-wheeler 10 m ahead riding away at 0.25 m per frame (2.5 m/s), the camera 1 m per frame: its
+    # flow is that of a static object at 13.3 m (d_model / d_s - 1 = -25 %) with a small residual; the old
+    # rule (30 % relative depth window) made it static at 13.3 m. Its contact with the road says 10 m: a
+    # static object at 13.3 m would meet the road 19 rows above the stixel's bottom (tolerance 12).
+    flow = _moving_wall_flow(10.0, 0.25)
+    st = _contact_world(10.0)
+    old = check_movers(st, flow, MOTION, params=MoverCheckParams(max_contact_gap_px=float("inf"), follow_below=False))
+    assert old.flags["static_checked"] == 2  # the old rule flipped both columns
+    out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    assert out.flags["static_checked"] == 0
+    assert torch.equal(out.type, st.type) and torch.equal(out.inverse_depth, st.inverse_depth)
+    # The upper part of the same moving object (stacked on it) stays dynamic too: the stack stands on the road.
+    flow_u = _moving_wall_flow(10.0, 0.25)
+    st_u = _contact_world(10.0, upper=True)
+    old_u = check_movers(st_u, flow_u, MOTION, params=MoverCheckParams(max_contact_gap_px=float("inf"), follow_below=False))
+    assert old_u.flags["static_checked"] == 4
+    assert check_movers(st_u, flow_u, MOTION, params=MoverCheckParams()).flags["static_checked"] == 0
+
+
+def test_parked_object_on_the_ground_still_becomes_static():
+    # Parked 10.5 m away, the scene model says 10 m (5 % off, 3.6 rows at the contact): it stands still,
+    # and so does the part stacked on it (compared with the lower part's static depth).
+    flow = _wall_flow_kc(10.5)
+    for upper in (False, True):
+        st = _contact_world(10.0, upper=upper)
+        out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+        dyn = st.type == DYNAMIC_OBJECT
+        assert out.flags["static_checked"] == int(dyn.sum())
+        assert bool((out.type[dyn] == STATIC_OBJECT).all()) and float(out.motion[dyn].abs().max()) == 0.0
+        d = 1.0 / out.inverse_depth[dyn]
+        assert bool(((d / 10.5 - 1.0).abs() < 0.02).all())  # at the static fit's depth
+
+
+def test_static_part_above_a_parked_object_follows_its_static_depth():
+    # Lower part parked at 10.5 m (model 10 m); the stixel above it is a wall 14.7 m away that the
+    # structural prior put at the lower part's depth: 10 / 14.7 - 1 is beyond the 30 % window, but against the
+    # lower part's static depth (10.5 m) it is within it -> it stands still as well.
+    flow = _wall_flow_kc(10.5)
+    flow[:, :30] = _wall_flow_kc(14.7)[:, :30]
+    st = _contact_world(10.0, upper=True)
+    out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    assert out.flags["static_checked"] == 4
+    no_follow = check_movers(st, flow, MOTION, params=MoverCheckParams(follow_below=False))
+    assert no_follow.flags["static_checked"] == 2
+
+
+def _wall_flow_kc(depth: float) -> torch.Tensor:
+    return _moving_wall_flow(depth, 0.0)

@@ -29,29 +29,57 @@ MOTION = Motion(R, torch.tensor([0.03, 0.01, 1.0], dtype=torch.float64))
 
 
 def _check_movers_loop(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, prm: MoverCheckParams) -> StixelWorld:
-    """The mover check written stixel by stixel (its definition before it was vectorised)."""
+    """The mover check written stixel by stixel, each column bottom-up (its definition before it was vectorised)."""
     z = triangulate(flow, stixels.K, motion).depth.double()
     Kd, Rd, td = stixels.K.double(), motion.R.double(), motion.t.double()
     n_all, f = stixels.normals().double(), flow.double()
+    ng = stixels.ground_normal.double()
     out_type, out_p = stixels.type.clone(), stixels.inverse_depth.clone()
-    for k in torch.nonzero(stixels.type == DYNAMIC_OBJECT).flatten().tolist():
+    still: dict[int, bool] = {}
+    d_static: dict[int, float] = {}
+    d_ground: dict[int, float] = {}  # ground height under a dynamic stixel's stack (nan: none)
+
+    def contact_row(k: int, d: float, h: float) -> float:
+        x = Kd @ (d * n_all[k] + h * ng)
+        return float(x[1] / x[2])
+
+    order = sorted(range(len(stixels.type)), key=lambda k: (int(stixels.column[k]), -int(stixels.v_top[k])))
+    for k in order:
+        if int(stixels.type[k]) != DYNAMIC_OBJECT:
+            continue
         c0 = int(stixels.column[k]) * stixels.column_width
         c1 = min(c0 + stixels.column_width, W)
         v0, v1 = int(stixels.v_top[k]), int(stixels.v_bottom[k]) + 1
+        below = [b for b in range(len(stixels.type))
+                 if int(stixels.column[b]) == int(stixels.column[k]) and int(stixels.v_top[b]) == v1]
+        b = below[0] if below else None
+        p_model = float(stixels.inverse_depth[k])
+        d_model = 1.0 / p_model if p_model > 0 else math.inf
+        b_still = b is not None and int(stixels.type[b]) == DYNAMIC_OBJECT and still[b]
+        if b is not None and int(stixels.type[b]) == 0 and float(stixels.inverse_depth[b]) > 0 and math.isfinite(d_model):
+            d_ground[k] = 1.0 / float(stixels.inverse_depth[b])  # on a ground stixel
+        elif b is not None and int(stixels.type[b]) == DYNAMIC_OBJECT and not b_still and prm.follow_below:
+            d_ground[k] = d_ground[b]  # on a moving stack: the stack's ground
+        else:
+            d_ground[k] = math.nan
+        d_ref = d_static[b] if (b_still and prm.follow_below) else d_model
+        still[k] = False
         vv, uu = torch.meshgrid(torch.arange(v0, v1, dtype=torch.float64), torch.arange(c0, c1, dtype=torch.float64),
                                 indexing="ij")
         zz = z[v0:v1, c0:c1]
         ok = torch.isfinite(zz) & (zz >= prm.min_depth) & (zz <= prm.max_depth)
-        if int(ok.sum()) < prm.min_pixels:
-            continue
-        d_s = float((zz[ok] * (pixel_rays(Kd, uu[ok], vv[ok]) @ n_all[k])).median())
-        if d_s <= 0:
+        d_static[k] = float((zz[ok] * (pixel_rays(Kd, uu[ok], vv[ok]) @ n_all[k])).median()) if ok.any() else math.nan
+        d_s = d_static[k]
+        if int(ok.sum()) < prm.min_pixels or not d_s > 0:
             continue
         up, vp = apply_homography(homography(Kd, Rd, td, n_all[k], torch.tensor(1.0 / d_s, dtype=torch.float64)), uu, vv)
         e_s = float(torch.hypot(up - uu - f[0, v0:v1, c0:c1], vp - vv - f[1, v0:v1, c0:c1]).median())
-        d_model = 1.0 / float(stixels.inverse_depth[k]) if float(stixels.inverse_depth[k]) > 0 else math.inf
-        if e_s > prm.max_static_residual_px or abs(d_model / d_s - 1.0) > prm.min_depth_discrepancy:
+        if e_s > prm.max_static_residual_px or abs(d_ref / d_s - 1.0) > prm.min_depth_discrepancy:
             continue
+        h = d_ground[k]
+        if math.isfinite(h) and abs(contact_row(k, d_s, h) - contact_row(k, d_model, h)) > prm.max_contact_gap_px:
+            continue
+        still[k] = True
         out_type[k] = STATIC_OBJECT
         out_p[k] = torch.as_tensor(1.0 / d_s, dtype=out_p.dtype)
     return StixelWorld(**{**stixels.__dict__, "type": out_type, "inverse_depth": out_p})
@@ -84,6 +112,8 @@ def _random_scene(seed: int) -> tuple[StixelWorld, torch.Tensor]:
             # Model depth: right, 10-50 % off, or sky-like 0 (no depth).
             r = float(torch.rand(1, generator=g))
             ps.append(0.0 if r < 0.1 else 1.0 / (depth * (1.0 + 0.5 * r)))
+            if b == H and c % 2 == 0:
+                types[-1], ps[-1] = 0, 1.0 / float(torch.empty(1).uniform_(1.0, 2.0, generator=g))  # ground, height
     flow = flow + 0.3 * torch.randn(flow.shape, generator=g, dtype=torch.float64)
     n = len(cols)
     st = StixelWorld(
@@ -95,10 +125,14 @@ def _random_scene(seed: int) -> tuple[StixelWorld, torch.Tensor]:
     return st, flow.float()
 
 
+@pytest.mark.parametrize("variant", ["default", "tight_contact", "no_follow"])
 @pytest.mark.parametrize("seed", range(6))
-def test_vectorised_mover_check_equals_the_loop(seed):
+def test_vectorised_mover_check_equals_the_loop(seed, variant):
     st, flow = _random_scene(seed)
-    prm = MoverCheckParams(min_pixels=5)
+    # The test camera is small (f = 60 px): a tight contact tolerance makes the ground-contact test decide.
+    prm = {"default": MoverCheckParams(min_pixels=5),
+           "tight_contact": MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3),
+           "no_follow": MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3, follow_below=False)}[variant]
     want = _check_movers_loop(st, flow, MOTION, prm)
     got = check_movers(st, flow, MOTION, params=prm)
     assert torch.equal(got.type, want.type)
@@ -111,6 +145,19 @@ def test_vectorised_mover_check_equals_the_loop(seed):
     # A given point depth (the SfM baseline's) gives the same answer as triangulating here.
     depth = triangulate(flow, st.K, MOTION).depth
     assert torch.equal(check_movers(st, flow, MOTION, point_depth=depth, params=prm).type, got.type)
+
+
+def test_mover_check_variants_decide_differently():
+    """The random scenes exercise the ground-contact test and the bottom-up reference depth."""
+    differ = {"contact": 0, "follow": 0}
+    for seed in range(6):
+        st, flow = _random_scene(seed)
+        a = check_movers(st, flow, MOTION, params=MoverCheckParams(min_pixels=5, max_contact_gap_px=math.inf))
+        b = check_movers(st, flow, MOTION, params=MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3))
+        c = check_movers(st, flow, MOTION, params=MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3, follow_below=False))
+        differ["contact"] += int((a.type != b.type).sum())
+        differ["follow"] += int((b.type != c.type).sum())
+    assert differ["contact"] > 0 and differ["follow"] > 0
 
 
 def test_segment_lower_median_matches_torch_median():
