@@ -76,7 +76,7 @@ class MoverCheckParams:
             fit's depth above which the stixel is a mover along the epipolar lines.
         max_contact_gap_px: for a stixel standing on the road (on a ground stixel, or on a stack of
             dynamic stixels that does): the most rows between where its static plane and where the
-            scene model's plane meet that road. Chosen on synthetic seed 5 and drive 0023 pairs 1-3.
+            scene model's plane meet that road. Chosen on synthetic seeds 5-6 and drive 0023 pairs 1-3.
         follow_below: a stixel stacked on a dynamic stixel that the check makes static is compared with
             that stixel's static depth instead of the solver's depth.
         min_pixels: fewest pixels with a valid triangulation for a decision.
