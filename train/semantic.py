@@ -743,7 +743,7 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
         early = torch.load(early_path, map_location="cpu", weights_only=True)
         state = interpolate_weights(state, early["state_dict"], float(cfg.export.interpolate_alpha))
         best = {**best, "epoch": f"{best['epoch']} (x{float(cfg.export.interpolate_alpha):g}) + epoch "
-                                 f"{early.get('epoch', '?')} (x{1 - float(cfg.export.interpolate_alpha):g})"}
+                                 f"{early.get('epoch', Path(early_path).name)} (x{1 - float(cfg.export.interpolate_alpha):g})"}
     model.load_state_dict(state)
     model.eval()
     half_pt, half_onnx = bool(cfg.export.half_pt), bool(cfg.export.get("half_onnx", False))
