@@ -58,7 +58,7 @@ from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSo
 from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
-from monostixels.inputs.semantic import OnnxSegmenter, estimate_semantics
+from monostixels.inputs.semantic import estimate_semantics, onnx_segmenter
 
 __all__ = [
     "SEED_STRIDE",
@@ -291,22 +291,18 @@ def distill_frames(dcfg: DictConfig | dict) -> list[DistillFrame]:
     -1 drops a channel such as a background class, ``pad_to``), as in ``conf/semantic/onnx.yaml``.
     A pattern that matches no file is an error (nothing is silently left out).
     """
-    t = dcfg["teacher"]
-    teachers: dict[tuple, OnnxSegmenter] = {}
+    teacher = OmegaConf.to_container(dcfg["teacher"], resolve=True) if isinstance(dcfg["teacher"], DictConfig) \
+        else dict(dcfg["teacher"])
     frames: list[DistillFrame] = []
     for k, entry in enumerate(dcfg["sets"]):
         pattern = str(entry["glob"])
         paths = sorted(glob.glob(pattern))
         if not paths:
             raise InputError(f"data.distill.sets[{k}].glob: no file matches {pattern!r}")
-        size = None if entry.get("input_size") is None else tuple(int(v) for v in entry["input_size"])
-        key = (str(entry["model"]), size)
-        if key not in teachers:
-            teachers[key] = OnnxSegmenter(
-                str(entry["model"]), input_size=size, mean=tuple(t["mean"]), std=tuple(t["std"]),
-                mapping=None if t.get("mapping") is None else tuple(int(m) for m in t["mapping"]),
-                pad_to=int(t.get("pad_to", 1)))
-        frames += [DistillFrame(Path(p), float(entry["fx"]), teachers[key]) for p in paths]
+        # The `onnx` semantic backend itself (one cached session per model file and settings).
+        segment = onnx_segmenter(OmegaConf.create(
+            {**teacher, "name": "onnx", "model": str(entry["model"]), "input_size": entry.get("input_size")}))
+        frames += [DistillFrame(Path(p), float(entry["fx"]), segment) for p in paths]
     return frames
 
 

@@ -48,6 +48,7 @@ __all__ = [
     "map_scores",
     "CITYSCAPES19_CLASSES",
     "CITYSCAPES19_MAPPING",
+    "onnx_segmenter",
     "REPO_ROOT",
     "confusion_matrix",
     "iou_from_confusion",
@@ -109,7 +110,7 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig) -> torch.Tensor | None:
     if name == "fcn8s":
         return _fcn8s_segmenter(cfg)(pair.image, scale=fcn8s_scale(pair, cfg))
     if name == "onnx":
-        return _onnx_segmenter(cfg)(pair.image)
+        return onnx_segmenter(cfg)(pair.image)
     raise InputError(f"semantic.name: unknown backend {name!r}; expected gt, fcn8s, onnx or none")
 
 
@@ -430,7 +431,10 @@ def _fcn8s_segmenter(cfg: DictConfig) -> OnnxSegmenter | TorchSegmenter:
     raise InputError(f"semantic.runtime: expected onnx or torch, got {runtime!r}")
 
 
-def _onnx_segmenter(cfg: DictConfig) -> OnnxSegmenter:
+def onnx_segmenter(cfg: DictConfig) -> OnnxSegmenter:
+    """The ``onnx`` backend's segmenter for a ``semantic`` config node (``model``, ``input_size``,
+    ``scale``, ``mean``, ``std``, ``mapping``, ``pad_to``, ``softmax``); one cached session per
+    model file and settings. Also the teacher of ``train.semantic``'s distillation."""
     if "model" not in cfg or OmegaConf.is_missing(cfg, "model"):
         raise InputError("semantic.model: semantic=onnx needs the path of an ONNX model "
                          "(semantic.model=/path/to/model.onnx)")
