@@ -574,10 +574,10 @@ def _distill_set(cfg: DictConfig, transform: Callable | None) -> PseudoLabelled 
     d = cfg.data.get("distill")
     if d is None or not d.get("enabled", False):
         return None
+    # Teacher labels are made lazily, on a frame's first draw: an export-only run (train.epochs=0)
+    # never pays for them.
     data = PseudoLabelled(distill_frames(d), focal_px=float(d.focal_px), confidence=float(d.confidence),
                           repeat=int(d.get("repeat", 1)), transform=transform)
-    for j in tqdm(range(len(data.frames)), desc="teacher labels", leave=False):
-        data.load(j)
     logger.info("distillation: %d frames (x%d), %d drawn per epoch", len(data.frames), data.repeat, int(d.per_epoch))
     return data
 
