@@ -387,3 +387,74 @@ def test_too_many_bands_for_the_image():
     pair = _shift_pair((2, 1))  # 132 px wide: 3 strips of 44 px < 2 * 24 + 16
     with pytest.raises(InputError, match=r"flow\.bands.*too narrow"):
         estimate_flow(pair, OmegaConf.create({"name": "deepflow", "bands": 3}))
+
+
+# --- ego-motion (monostixels.inputs.motion) -------------------------------------------------------
+
+
+def test_one_partition_median_equals_numpy():
+    from monostixels.inputs.motion import _median
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 4, 7, 100, 101, 40000, 40001):
+        for kind in ("float32", "ties", "float64"):
+            x = rng.random(n)
+            x = np.round(x * 5) / 5 if kind == "ties" else x
+            x = x.astype(np.float64 if kind == "float64" else np.float32)
+            assert _median(x) == float(np.median(x)), (n, kind)
+    assert math.isnan(_median(np.array([1.0, np.nan, 2.0], dtype=np.float32)))
+
+
+def test_max_eigenvalue_test_matches_eigvalsh():
+    from monostixels.inputs.motion import _max_eigenvalue_at_most
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(5000, 2, 2)) * rng.choice([0.3, 1.0, 3.0], size=(5000, 1, 1))
+    cov = (A @ A.transpose(0, 2, 1) + 0.5 * np.eye(2)).astype(np.float32)
+    # On the bound: eigenvalue exactly 4 (isotropic, axis-aligned), and just above / below it.
+    edge = np.array([[[4, 0], [0, 4]], [[4, 0], [0, 1]], [[1, 0], [0, 4]], [[4.0001, 0], [0, 1]], [[3.9999, 0], [0, 1]],
+                     [[2.5, 1.5], [1.5, 2.5]], [[2.5, 1.5001], [1.5001, 2.5]]], dtype=np.float32)
+    cov = np.concatenate([cov, edge])
+    lam = torch.linalg.eigvalsh(torch.from_numpy(cov).double()).numpy()[:, -1]
+    got = _max_eigenvalue_at_most(cov, 4.0)
+    assert np.array_equal(got, lam <= 4.0)
+    assert got[-7:].tolist() == [True, True, True, False, True, True, False]
+    assert 0.2 < got.mean() < 0.8  # both outcomes exercised
+
+
+def test_grey_equals_the_torch_weighted_sum():
+    import cv2
+
+    from monostixels.inputs.motion import _grey
+
+    img = torch.rand(3, 37, 53, generator=torch.Generator().manual_seed(5)) * 1.2 - 0.1  # values outside [0, 1] too
+    ref = img.float().clamp(0, 1).mul(torch.tensor([0.299, 0.587, 0.114])[:, None, None]).sum(0).numpy()
+    assert np.array_equal(_grey(img), cv2.GaussianBlur(ref, (0, 0), 1.0))
+
+
+def test_threaded_photometric_search_equals_the_sequential_one(monkeypatch):
+    # The search warms its cost cache in a second thread; the result must be the sequential one.
+    from monostixels.data.synthetic import render_pair
+    from monostixels.inputs import motion as motion_mod
+    from monostixels.inputs.flow import FlowResult
+    from monostixels.inputs.motion import estimate_motion, motion_errors
+    from monostixels.inputs.semantic import estimate_semantics
+
+    pair = render_pair(3, scale=0.5)
+    sem = estimate_semantics(pair, OmegaConf.create({"name": "gt"}))
+    road = pair.gt.labels == 0
+    flow = pair.gt.flow.clone()
+    flow[:, road] = 20.0 * torch.randn(2, int(road.sum()), generator=torch.Generator().manual_seed(0))
+    cov = (0.25 * torch.eye(2)).expand(*pair.size, 2, 2).contiguous()
+    fr = FlowResult(flow=flow, cov=cov, seconds=0.0, backend="corrupted")
+    cfg = OmegaConf.create({"name": "mono"})
+    est = {}
+    for workers in (1, 2, 3):
+        monkeypatch.setattr(motion_mod, "_photometric_workers", lambda w=workers: w)
+        est[workers] = estimate_motion(pair, fr, cfg, semantic=sem)
+    assert "photometric" in est[1].reason
+    assert motion_errors(est[1].motion, pair.motion)["scale_rel_err"] < 0.02
+    for workers in (2, 3):
+        assert est[workers].reason == est[1].reason
+        assert torch.equal(est[workers].motion.t, est[1].motion.t) and torch.equal(est[workers].motion.R, est[1].motion.R)
+        assert torch.equal(est[workers].ground_normal, est[1].ground_normal)
