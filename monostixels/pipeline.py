@@ -164,7 +164,10 @@ class Pipeline:
 
         def semantics() -> tuple[torch.Tensor | None, float]:
             t = time.perf_counter()
-            return estimate_semantics(pair, self.cfg.semantic), time.perf_counter() - t
+            # Beside the flow, one ONNX Runtime thread: its default pool (one spinning thread per
+            # core) took the cores of DeepFlow's strips (same scores either way).
+            sem = estimate_semantics(pair, self.cfg.semantic, threads=1 if self.overlap else 0)
+            return sem, time.perf_counter() - t
 
         with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
             future = pool.submit(semantics) if pool is not None else None

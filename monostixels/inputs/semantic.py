@@ -84,12 +84,16 @@ CITYSCAPES19_MAPPING: tuple[int, ...] = (
 )
 
 
-def estimate_semantics(pair: FramePair, cfg: DictConfig) -> torch.Tensor | None:
+def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) -> torch.Tensor | None:
     """Semantic class scores of the current image of ``pair``.
 
     Args:
         pair: the frame pair (only ``pair.image`` and, for ``gt``, ``pair.gt.labels`` are used).
         cfg: the ``semantic`` config node; ``cfg.name`` in ``gt | fcn8s | onnx | none``.
+        threads: ONNX Runtime intra-op threads of the network (0 = its default, one per physical
+            core). The scores do not depend on it. The pipeline passes 1 when the semantics run
+            beside the flow: a pool of spinning ORT threads there takes the cores DeepFlow's strips
+            need (README "Pipeline speed").
 
     Returns:
         (10, H, W) float32 scores summing to 1 per pixel, classes in ``CLASS_NAMES`` order; or
@@ -108,9 +112,9 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig) -> torch.Tensor | None:
         return gt_scores(pair.gt.labels, confidence=float(cfg.get("confidence", 0.9)),
                          name=f"{pair.name or 'frame'}: gt.labels")
     if name == "fcn8s":
-        return _fcn8s_segmenter(cfg)(pair.image, scale=fcn8s_scale(pair, cfg))
+        return _fcn8s_segmenter(cfg, threads)(pair.image, scale=fcn8s_scale(pair, cfg))
     if name == "onnx":
-        return onnx_segmenter(cfg)(pair.image)
+        return onnx_segmenter(cfg, threads=threads)(pair.image)
     raise InputError(f"semantic.name: unknown backend {name!r}; expected gt, fcn8s, onnx or none")
 
 
@@ -306,6 +310,7 @@ class OnnxSegmenter:
         mapping: model class -> our class id (or -1), None = identity (C must be 10).
         pad_to: pad the network input to a multiple of this (32 for FCN-8s; 1 = none).
         softmax: the model outputs logits (True) or probabilities already (False).
+        threads: ONNX Runtime intra-op threads (0 = its default: one per physical core).
     """
 
     def __init__(
@@ -319,12 +324,15 @@ class OnnxSegmenter:
         mapping: Sequence[int] | None = None,
         pad_to: int = 1,
         softmax: bool = True,
+        threads: int = 0,
     ) -> None:
         import onnxruntime as ort  # local: only the network backends need it
 
         self.path = Path(path)
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = max(0, int(threads))
         try:
-            self.session = ort.InferenceSession(str(self.path), providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises its own exception types
             raise InputError(f"ONNX model {self.path}: cannot be loaded ({err})") from err
         inputs = self.session.get_inputs()
@@ -417,24 +425,25 @@ class TorchSegmenter:
         return _postprocess(out, size, tuple(image.shape[-2:]), tuple(x.shape[-2:]), name)
 
 
-def _fcn8s_segmenter(cfg: DictConfig) -> OnnxSegmenter | TorchSegmenter:
+def _fcn8s_segmenter(cfg: DictConfig, threads: int = 0) -> OnnxSegmenter | TorchSegmenter:
     runtime = str(cfg.get("runtime", "onnx"))
     scale = cfg.get("scale", None)
     scale = None if scale is None else float(scale)
     if runtime == "onnx":
         path = resolve_model_path(cfg.get("model", None), "semantic.model")
         return _cached_onnx(str(path), path.stat().st_mtime_ns, None, scale,
-                            (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), None, FCN8S_PAD_TO)
+                            (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), None, FCN8S_PAD_TO, True, int(threads))
     if runtime == "torch":
         path = resolve_model_path(cfg.get("weights", None), "semantic.weights")
         return _cached_torch(str(path), path.stat().st_mtime_ns, scale)
     raise InputError(f"semantic.runtime: expected onnx or torch, got {runtime!r}")
 
 
-def onnx_segmenter(cfg: DictConfig) -> OnnxSegmenter:
+def onnx_segmenter(cfg: DictConfig, *, threads: int = 0) -> OnnxSegmenter:
     """The ``onnx`` backend's segmenter for a ``semantic`` config node (``model``, ``input_size``,
     ``scale``, ``mean``, ``std``, ``mapping``, ``pad_to``, ``softmax``); one cached session per
-    model file and settings. Also the teacher of ``train.semantic``'s distillation."""
+    model file and settings (``threads``: ONNX Runtime intra-op threads, 0 = its default). Also the
+    teacher of ``train.semantic``'s distillation."""
     if "model" not in cfg or OmegaConf.is_missing(cfg, "model"):
         raise InputError("semantic.model: semantic=onnx needs the path of an ONNX model "
                          "(semantic.model=/path/to/model.onnx)")
@@ -451,15 +460,16 @@ def onnx_segmenter(cfg: DictConfig) -> OnnxSegmenter:
         None if mapping is None else tuple(int(v) for v in mapping),
         int(cfg.get("pad_to", 1)),
         bool(cfg.get("softmax", True)),
+        int(threads),
     )
 
 
-# Sessions are expensive to create; one per (file, modification time, settings).
+# Sessions are expensive to create; one per (file, modification time, settings, threads).
 @functools.lru_cache(maxsize=4)
 def _cached_onnx(path: str, mtime: int, input_size, scale, mean, std, mapping, pad_to,
-                 softmax: bool = True) -> OnnxSegmenter:
+                 softmax: bool = True, threads: int = 0) -> OnnxSegmenter:
     return OnnxSegmenter(path, input_size=input_size, scale=scale, mean=mean, std=std,
-                         mapping=mapping, pad_to=pad_to, softmax=softmax)
+                         mapping=mapping, pad_to=pad_to, softmax=softmax, threads=threads)
 
 
 @functools.lru_cache(maxsize=2)
