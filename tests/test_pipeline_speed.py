@@ -343,6 +343,60 @@ def test_overlapped_semantics_error_reaches_the_caller():
         Pipeline(load_config(["flow=dis", "semantic=gt", "motion=gt"]), overlap=True).run(pair)
 
 
+def test_semantics_beside_the_flow_use_one_onnx_thread_and_give_the_same_scores():
+    from monostixels.data.synthetic import render_pair
+    from monostixels.inputs.semantic import _fcn8s_segmenter, estimate_semantics
+    from monostixels.pipeline import load_config
+
+    pair = render_pair(1, scale=0.25)
+    cfg = load_config(["semantic=fcn8s"]).semantic
+    one = estimate_semantics(pair, cfg, threads=1)
+    assert _fcn8s_segmenter(cfg, 1).session.get_session_options().intra_op_num_threads == 1
+    assert _fcn8s_segmenter(cfg, 1) is not _fcn8s_segmenter(cfg)
+    assert torch.equal(one, estimate_semantics(pair, cfg))
+
+
+def test_numpy_grey_images_equal_the_torch_formulas():
+    import cv2
+
+    from monostixels.inputs.confidence import to_gray
+    from monostixels.inputs.flow import _gray_u8
+
+    img = torch.rand(3, 41, 67, generator=torch.Generator().manual_seed(6)) * 1.2 - 0.1  # values outside [0, 1] too
+    rgb = (img.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    assert np.array_equal(_gray_u8(img), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    ref = (img.float() * torch.tensor([0.299, 0.587, 0.114]).view(3, 1, 1)).sum(0)
+    assert torch.equal(to_gray(img), ref) and torch.equal(to_gray(img.double()), ref)
+
+
+def test_fast_finite_check_raises_the_same_error():
+    from monostixels.inputs.confidence import check_finite_fast
+
+    x = torch.zeros(2, 5, 7)
+    check_finite_fast(x, "flow")
+    check_finite_fast(torch.zeros(3, 4, dtype=torch.uint8), "image")
+    x[1, 2, 3] = float("nan")
+    with pytest.raises(InputError, match=r"flow: 1 non-finite values .* first at index \(1, 2, 3\)"):
+        check_finite_fast(x, "flow")
+    with pytest.raises(InputError, match="non-finite"):
+        estimate_flow(FramePair(image=torch.full((3, 20, 30), float("inf")), image_prev=torch.zeros(3, 20, 30),
+                                camera=Camera(K=K)), OmegaConf.create({"name": "dis"}))
+
+
+def test_refined_flow_shares_the_grey_images_with_the_backend():
+    # One grey conversion for DeepFlow and the refinement: the same flow as each doing its own.
+    import cv2
+
+    from monostixels.inputs.flow import _deepflow, _gray_u8
+
+    pair = _shift_pair((3, 1), h=64, w=120)
+    cfg = OmegaConf.create({"name": "deepflow", "scale": 0.5, "refine": True})
+    got = compute_flow(pair.image, pair.image_prev, cfg)
+    f = np.ascontiguousarray(_deepflow(pair.image, pair.image_prev, cfg).permute(1, 2, 0).numpy())
+    cv2.VariationalRefinement_create().calc(_gray_u8(pair.image), _gray_u8(pair.image_prev), f)
+    assert torch.equal(got, torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))))
+
+
 # --- flow.bands -----------------------------------------------------------------------------------
 
 

@@ -37,6 +37,7 @@ import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable
 
@@ -47,7 +48,7 @@ import torch.nn.functional as F
 
 from monostixels._checks import InputError, check_finite, check_same_size, check_shape
 from monostixels.data.base import FramePair
-from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
+from monostixels.inputs.confidence import ConfidenceParams, check_finite_fast, fb_consistency_error, flow_covariance
 
 __all__ = [
     "FLOW_BACKENDS",
@@ -195,15 +196,25 @@ def resolve_path(path: str | Path) -> Path:
 
 
 def _gray_u8(image: torch.Tensor) -> np.ndarray:
-    """(3, H, W) RGB in [0, 1] -> (H, W) uint8 grey (OpenCV flow backends work on 8-bit grey)."""
-    rgb = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    """(3, H, W) float32 RGB in [0, 1] -> (H, W) uint8 grey (OpenCV flow backends work on 8-bit grey)."""
+    # numpy rather than torch ops (the same values): no thread hand-offs beside the other threads
+    # of the flow stage; the channels interleaved once, in uint8, as cvtColor wants them.
+    x = np.clip(image.detach().numpy(), 0.0, 1.0)
+    rgb = np.ascontiguousarray((x * 255.0 + 0.5).astype(np.uint8).transpose(1, 2, 0))
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+@lru_cache(maxsize=4)
+def _pixel_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates ``(u, v)`` (h, w) float32 of an (h, w) grid, read-only (shared between calls)."""
+    xx, yy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    xx.flags.writeable = yy.flags.writeable = False
+    return xx, yy
 
 
 def _remap(img: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """``img`` sampled at ``x + flow(x)`` (bilinear, border replicated); flow (H, W, 2) pixels."""
-    h, w = flow.shape[:2]
-    xx, yy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    xx, yy = _pixel_grid(*flow.shape[:2])
     return cv2.remap(img, xx + flow[..., 0], yy + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
@@ -261,7 +272,8 @@ def _in_bands(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarra
     return out / weight
 
 
-def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+              grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
     """DeepFlow current -> previous.
 
     DeepFlow is a variational energy plus a matching term fed by DeepMatching, which is what lets
@@ -272,9 +284,10 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     residual, composed as ``f(x) = r(x) + f0(x + r(x))``. ``matches: none`` is OpenCV's DeepFlow
     as is. ``cfg.scale < 1``: the matches stay at full resolution, the residual (or, without
     matches, the whole DeepFlow) is solved on the downscaled images. ``cfg.bands > 1``: that
-    variational solve runs on as many overlapping vertical strips in parallel threads.
+    variational solve runs on as many overlapping vertical strips in parallel threads. ``grey``:
+    the images' :func:`_gray_u8`, when the caller has them.
     """
-    a, b = _gray_u8(cur), _gray_u8(prev)
+    a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
     scale = flow_scale(cfg)
     bands = _bands(cfg)
 
@@ -296,24 +309,28 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
-def _refine(cur: torch.Tensor, prev: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """One full-resolution variational refinement of ``flow`` (2, H, W) (OpenCV ``VariationalRefinement``
-    with its defaults: the energy and iterations DIS uses at each of its levels)."""
+def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor) -> torch.Tensor:
+    """One full-resolution variational refinement of ``flow`` (2, H, W) on the (current, previous)
+    grey images (:func:`_gray_u8`) (OpenCV ``VariationalRefinement`` with its defaults: the energy
+    and iterations DIS uses at each of its levels)."""
     f = np.ascontiguousarray(flow.permute(1, 2, 0).numpy(), dtype=np.float32)
-    cv2.VariationalRefinement_create().calc(_gray_u8(cur), _gray_u8(prev), f)
+    cv2.VariationalRefinement_create().calc(grey[0], grey[1], f)
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1)))
 
 
-def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+         grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
     preset = str(_get(cfg, "preset", "medium"))
     if preset not in _DIS_PRESETS:
         raise InputError(f"flow.preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
     algo = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
-    f = algo.calc(_gray_u8(cur), _gray_u8(prev), None)
+    a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
+    f = algo.calc(a, b, None)
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
-def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+          grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
     runtime = str(_get(cfg, "runtime", "torch"))
@@ -332,7 +349,8 @@ def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any) -> torch.Tensor:
     return net(cur, prev)
 
 
-_BACKENDS: dict[str, Callable[[torch.Tensor, torch.Tensor, Any], torch.Tensor]] = {
+#: Image backends: (current, previous, cfg, grey images or None) -> flow (2, H, W).
+_BACKENDS: dict[str, Callable[..., torch.Tensor]] = {
     "deepflow": _deepflow,
     "dis": _dis,
     "raft": _raft,
@@ -343,15 +361,20 @@ def _check_images(image_cur: torch.Tensor, image_prev: torch.Tensor) -> None:
     check_shape(image_cur, [3, "H", "W"], "image (current)")
     check_shape(image_prev, [3, "H", "W"], "image_prev")
     check_same_size(image_cur, image_prev, "image (current)", "image_prev")
-    check_finite(image_cur, "image (current)")
-    check_finite(image_prev, "image_prev")
+    check_finite_fast(image_cur, "image (current)")
+    check_finite_fast(image_prev, "image_prev")
 
 
-def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
-    """The backend's flow on the images as given (no resampling)."""
-    flow = _BACKENDS[name](image_cur.float(), image_prev.float(), cfg)
-    check_finite(flow, f"flow from backend {name}")
+def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
+             grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
+    """The backend's flow on the images as given (no resampling); ``grey``: their :func:`_gray_u8`."""
+    flow = _BACKENDS[name](image_cur.float(), image_prev.float(), cfg, grey)
+    check_finite_fast(flow, f"flow from backend {name}")
     return flow
+
+
+#: Backends that run on the 8-bit grey images (:func:`_gray_u8`).
+_GREY_BACKENDS = frozenset({"deepflow", "dis"})
 
 
 #: Backends that apply ``cfg.scale`` themselves (DeepFlow keeps its matches at full resolution).
@@ -369,17 +392,28 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
     if name not in _BACKENDS:
         raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
     _check_images(image_cur, image_prev)
+    return _flow_of_checked_images(image_cur, image_prev, cfg)
+
+
+def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
+    """:func:`compute_flow` on images that passed :func:`_check_images`, backend name known."""
+    name = str(_get(cfg, "name", ""))
     scale = flow_scale(cfg)
     refine = _refine_enabled(cfg)
-    if scale == 1.0 or name in _OWN_SCALE:
-        flow = _backend(name, image_cur, image_prev, cfg)
+    full_size = scale == 1.0 or name in _OWN_SCALE
+    # The full-size grey images once, for the backend and the refinement alike.
+    grey = None
+    if refine or (full_size and name in _GREY_BACKENDS):
+        grey = (_gray_u8(image_cur.float()), _gray_u8(image_prev.float()))
+    if full_size:
+        flow = _backend(name, image_cur, image_prev, cfg, grey)
     else:
         H, W = image_cur.shape[-2:]
         size = _scaled_size(H, W, scale)
         flow = _upsample_flow(_backend(name, _downscale(image_cur, size), _downscale(image_prev, size), cfg), (H, W))
     if refine:
-        flow = _refine(image_cur.float(), image_prev.float(), flow)
-        check_finite(flow, f"flow from backend {name} after flow.refine")
+        flow = _refine(grey, flow)
+        check_finite_fast(flow, f"flow from backend {name} after flow.refine")
     return flow
 
 
@@ -400,12 +434,12 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[to
     _refine_enabled(cfg)
     flow_scale(cfg)
     if bool(_get(cfg, "fb_consistency", False)):
-        flow = compute_flow(pair.image, pair.image_prev, cfg)
-        fb_err = fb_consistency_error(flow, compute_flow(pair.image_prev, pair.image, cfg))
+        flow = _flow_of_checked_images(pair.image, pair.image_prev, cfg)
+        fb_err = fb_consistency_error(flow, _flow_of_checked_images(pair.image_prev, pair.image, cfg))
         return flow, _covariance(pair.image, cfg, params, fb_err)
     with ThreadPoolExecutor(max_workers=1) as pool:
         cov = pool.submit(_covariance, pair.image, cfg, params, None)
-        flow = compute_flow(pair.image, pair.image_prev, cfg)
+        flow = _flow_of_checked_images(pair.image, pair.image_prev, cfg)
         return flow, cov.result()
 
 
