@@ -397,6 +397,25 @@ def test_refined_flow_shares_the_grey_images_with_the_backend():
     assert torch.equal(got, torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))))
 
 
+def test_pipeline_asks_for_one_onnx_thread_only_beside_an_image_flow(monkeypatch):
+    from monostixels import pipeline as pipeline_mod
+    from monostixels.data.synthetic import render_pair
+    from monostixels.pipeline import Pipeline, load_config
+
+    asked = []
+    real = pipeline_mod.estimate_semantics
+
+    def recording(pair, cfg, *, threads=0):
+        asked.append(threads)
+        return real(pair, cfg, threads=threads)
+
+    monkeypatch.setattr(pipeline_mod, "estimate_semantics", recording)
+    pair = render_pair(1, scale=0.25)
+    for flow, overlap in (("dis", True), ("dis", False), ("gt", True)):
+        Pipeline(load_config([f"flow={flow}", "semantic=gt", "motion=gt"]), overlap=overlap, sfm=False).run(pair)
+    assert asked == [1, 0, 0]
+
+
 # --- flow.bands -----------------------------------------------------------------------------------
 
 
