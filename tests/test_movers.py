@@ -147,3 +147,112 @@ def test_static_part_above_a_parked_object_follows_its_static_depth():
 
 def _wall_flow_kc(depth: float) -> torch.Tensor:
     return _moving_wall_flow(depth, 0.0)
+
+
+def test_kept_classes_stay_dynamic_where_the_geometry_cannot_tell():
+    # A pedestrian 10 m ahead walking away at 0.05 m per frame: a static object at 10.5 m explains its flow
+    # (5 %, 3.8 rows at the contact), so the geometric check makes it static; a kept class stays dynamic,
+    # and so does the part stacked on it (the stack stands on the road).
+    import dataclasses
+
+    from monostixels.classes import CLASS_NAMES
+
+    flow = _moving_wall_flow(10.0, 0.05)
+    person, vehicle = CLASS_NAMES.index("person"), CLASS_NAMES.index("vehicle")
+    for upper in (False, True):
+        base = _contact_world(10.0, upper=upper)
+        dyn = base.type == DYNAMIC_OBJECT
+        walker = dataclasses.replace(base, cls=torch.where(dyn, person, 0))
+        car = dataclasses.replace(base, cls=torch.where(dyn, vehicle, 0))
+        keep = MoverCheckParams(keep_classes=("person", "two_wheeler"))
+        assert check_movers(walker, flow, MOTION, params=MoverCheckParams()).flags["static_checked"] == int(dyn.sum())
+        out = check_movers(walker, flow, MOTION, params=keep)
+        assert out.flags["static_checked"] == 0
+        assert torch.equal(out.type, walker.type) and torch.equal(out.inverse_depth, walker.inverse_depth)
+        # Other classes are still decided by the geometry.
+        assert check_movers(car, flow, MOTION, params=keep).flags["static_checked"] == int(dyn.sum())
+
+
+def test_keep_classes_from_the_config_and_bad_names():
+    import pytest
+    from omegaconf import OmegaConf
+
+    from monostixels._checks import InputError
+    from monostixels.pipeline import load_config
+
+    assert MoverCheckParams.from_config(load_config([]).movers).keep_classes == ("person", "two_wheeler")
+    assert MoverCheckParams.from_config(OmegaConf.create({"keep_classes": []})).keep_classes == ()
+    with pytest.raises(InputError, match="movers.keep_classes.*'pedestrian'"):
+        MoverCheckParams.from_config(OmegaConf.create({"keep_classes": ["person", "pedestrian"]}))
+    with pytest.raises(InputError, match="movers.keep_classes.*string"):
+        MoverCheckParams.from_config(OmegaConf.create({"keep_classes": "person"}))
+
+
+
+def _ground_flow_kc() -> torch.Tensor:
+    """Exact flow (2, HC, WC) under MOTION of the road H_CAM below the camera (rows below the horizon)."""
+    v, u = torch.meshgrid(torch.arange(HC, dtype=torch.float64), torch.arange(WC, dtype=torch.float64), indexing="ij")
+    Hm = homography(KC, MOTION.R, MOTION.t, N_G, torch.tensor(1.0 / H_CAM, dtype=torch.float64))
+    up, vp = apply_homography(Hm, u, v)
+    return torch.stack([up - u, vp - v]).float()
+
+
+def test_dynamic_plane_must_explain_the_flow_markedly_better():
+    # Column 0: the near road taken for an object (rows 40-119, 37 m to 8 m away), dynamic with no motion
+    # at its median depth: neither the static nor that dynamic upright plane explains the flow of a
+    # surface whose depth runs over the whole range (both residuals well above max_static_residual_px),
+    # so no motion is detected. Column 1: a crossing mover 10 m away, 8 px sideways, whose dynamic plane
+    # carries that motion: it stays dynamic.
+    flow = _ground_flow_kc()
+    flow[:, :, 10:] = _wall_flow_kc(10.0)[:, :, 10:]
+    flow[0, :, 10:] += 8.0
+    v, u = torch.meshgrid(torch.arange(40, HC, dtype=torch.float64), torch.arange(10, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(KC.double(), u, v)
+    n0 = ray[0, 5] * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    z = H_CAM / ray[..., 1]  # on the road
+    d_road = float((z * (ray @ (n0 / n0.norm()))).median())
+    dx = -8.0 * (10.0 + float(MOTION.t[2])) / float(KC[0, 0])
+
+    def world(p1: float, motion1: torch.Tensor) -> StixelWorld:
+        return StixelWorld(
+            column_width=WS, image_size=(HC, WC), K=KC, ground_normal=N_G,
+            column=torch.tensor([0, 1]), v_top=torch.tensor([40, 0]), v_bottom=torch.tensor([HC - 1, HC - 1]),
+            type=torch.tensor([DYNAMIC_OBJECT] * 2), cls=torch.tensor([6, 6]),
+            inverse_depth=torch.tensor([1.0 / d_road, p1], dtype=torch.float64),
+            motion=torch.stack([torch.zeros(3, dtype=torch.float64), motion1]), cost=torch.zeros(2),
+            tau=torch.zeros(2, 2, dtype=torch.float64), energy=torch.zeros(2))
+
+    # Give the mover the static fit's depth (so that only the residual tests decide) and the motion that
+    # makes its dynamic plane produce its flow there: g = p (t - Δ) equal to the true wall's.
+    probe = check_movers(world(0.1, torch.tensor([dx, 0.0, 0.0], dtype=torch.float64)), flow, MOTION,
+                         params=MoverCheckParams(max_static_residual_px=float("inf"), min_depth_discrepancy=float("inf")))
+    p1 = float(probe.inverse_depth[1])
+    g = 0.1 * (MOTION.t - torch.tensor([dx, 0.0, 0.0], dtype=torch.float64))
+    st = world(p1, MOTION.t - g / p1)
+    off = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    assert off.flags["static_checked"] == 0  # the residual test alone keeps both dynamic
+    on = check_movers(st, flow, MOTION, params=MoverCheckParams(max_dynamic_residual_ratio=0.3))
+    assert on.type.tolist() == [STATIC_OBJECT, DYNAMIC_OBJECT]
+    assert float(on.motion[0].abs().max()) == 0.0 and torch.equal(on.motion[1], st.motion[1])
+    # Without the residual test the mover's flow would pass as static: its dynamic plane alone keeps it.
+    assert check_movers(st, flow, MOTION, params=MoverCheckParams(max_static_residual_px=float("inf"))).type[1] == STATIC_OBJECT
+    # The static depth is the road points' median distance along the viewing direction.
+    assert abs(1.0 / float(on.inverse_depth[0]) / d_road - 1.0) < 0.05
+
+
+def test_background_above_a_parked_object_may_lie_behind_it():
+    # Lower part parked at 10.5 m (model 10 m, made static); above it, the structural prior's stack holds the
+    # background 20 m away (90 % behind the lower part's static depth). With allow_behind_still the
+    # background stands still at its own depth; a stixel 40 % *nearer* than the object below stays dynamic.
+    for d_up, behind in ((20.0, True), (6.0, False)):
+        flow = _wall_flow_kc(10.5)
+        flow[:, :30] = _wall_flow_kc(d_up)[:, :30]
+        st = _contact_world(10.0, upper=True)
+        upper = st.v_bottom == 29
+        default = check_movers(st, flow, MOTION, params=MoverCheckParams())
+        assert bool((default.type[upper] == DYNAMIC_OBJECT).all())
+        out = check_movers(st, flow, MOTION, params=MoverCheckParams(allow_behind_still=True))
+        assert bool((out.type[~upper & (st.type == DYNAMIC_OBJECT)] == STATIC_OBJECT).all())
+        assert bool((out.type[upper] == (STATIC_OBJECT if behind else DYNAMIC_OBJECT)).all())
+        if behind:
+            assert bool(((1.0 / out.inverse_depth[upper]) / d_up - 1.0).abs().max() < 0.03)
