@@ -590,6 +590,29 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
     return math.exp(x[0]), normal(x), float(best / np.median(costs[finite]))
 
 
+def _photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: np.ndarray | None, K: np.ndarray,
+                        n_g: np.ndarray, height: float, params: MonoParams,
+                        rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The grey images (current, previous) and ground pixels (N, 2) of :func:`_photometric_ground`.
+
+    The pixels are every second pixel that is road (``road_scores``: (10, H, W) class scores)
+    or, without them, every second pixel of the road region ahead; at most
+    ``photometric_pixels`` of them (a seeded subset drawn from ``rng``). They depend on the
+    images, the semantics and the camera only, not on the flow.
+    """
+    H, W = images[0].shape[-2:]
+    if road_scores is not None:
+        dense_2 = np.argmax(road_scores[:, ::2, ::2], axis=0) == _ROAD_CLASS
+    else:
+        dense_2 = np.ones(((H + 1) // 2, (W + 1) // 2), dtype=bool)
+    vv, uu = np.nonzero(dense_2)  # every second pixel
+    pts = np.c_[uu * 2, vv * 2].astype(np.float64)
+    pts = pts[_ground_candidates(K, n_g, height, pts, params, lateral=road_scores is None)]
+    if len(pts) > params.photometric_pixels:
+        pts = pts[np.sort(rng.choice(len(pts), size=params.photometric_pixels, replace=False))]
+    return _grey(images[0]), _grey(images[1]), pts
+
+
 def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray, t: np.ndarray, n_g: np.ndarray,
                           head: str, pixels: str, inlier_ratio: float, note: str = "") -> MotionEstimate:
     """The estimate from a :func:`_photometric_ground` result; ``head``, ``pixels``, ``note`` word its reason."""
@@ -668,6 +691,22 @@ def estimate_mono(
     if len(idx) > params.max_points:
         idx = np.sort(rng.choice(idx, size=params.max_points, replace=False))
     pc, pp = p_cur[idx], p_prev[idx]
+    road = labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points
+    photometric = images is not None and params.photometric_scale
+    # The photometric search's inputs need no flow: made in a second thread during steps 2-3
+    # (single-threaded). ``rng`` is that thread's alone until it is joined: steps 2-3 draw nothing.
+    with ThreadPoolExecutor(max_workers=1) if photometric else nullcontext() as pool:
+        prep = (pool.submit(_photometric_inputs, images, sem_np if road else None, Kn, n_g, height, params, rng)
+                if pool is not None else None)
+        return _mono_from_vectors(Kn, n_g, height, params, rng, H, W, ok, labels, idx, p_cur, p_prev, road, prep)
+
+
+def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, rng: np.random.Generator,
+                       H: int, W: int, ok: np.ndarray, labels: np.ndarray | None, idx: np.ndarray, p_cur: np.ndarray,
+                       p_prev: np.ndarray, road: bool, prep: Any) -> MotionEstimate:
+    """Steps 2-4 of :func:`estimate_mono` on the grid of usable vectors (``ok``, the subset ``idx``);
+    ``prep``: the future of :func:`_photometric_inputs`, or None without the photometric search."""
+    pc, pp = p_cur[idx], p_prev[idx]
 
     # 2. Degeneracy: does a rotation alone explain the flow?
     R0, res0 = _fit_rotation(Kn, pc, pp)
@@ -701,24 +740,14 @@ def estimate_mono(
 
     # 4. Metric scale (and road normal) from the ground.
     head = f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers, median parallax {parallax:.1f} px"
-    road = labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points
     src = "road pixels" if road else "road region ahead"
     failures = []
     found = None
-    if images is not None and params.photometric_scale:
-        if road:
-            dense_2 = np.argmax(sem_np[:, ::2, ::2], axis=0) == _ROAD_CLASS
-        else:
-            dense_2 = np.ones(((H + 1) // 2, (W + 1) // 2), dtype=bool)
-        vv, uu = np.nonzero(dense_2)  # every second pixel
-        pts = np.c_[uu * 2, vv * 2].astype(np.float64)
-        pts = pts[_ground_candidates(Kn, n_g, height, pts, params, lateral=not road)]
-        if len(pts) > params.photometric_pixels:
-            pts = pts[np.sort(rng.choice(len(pts), size=params.photometric_pixels, replace=False))]
+    if prep is not None:
+        grey_cur, grey_prev, pts = prep.result()
         pixels = f"{len(pts)} ground pixels ({src}"
         if len(pts) >= params.min_points:
-            found = _photometric_ground(_grey(images[0]), _grey(images[1]), Kn, R, t, n_g, height, pts,
-                                        params.ground_max_tilt)
+            found = _photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt)
         if found is None:
             failures.append(f"photometric: no clear minimum over {pixels})")
         elif found[2] <= params.photometric_sharp:
