@@ -118,8 +118,20 @@ class _Column:
         key = ("L", cls)
         if key not in self._cache:
             self._cache[key] = [min(_f(self.prm.alpha_L), _f(self.prob.nll[self.c, j, cls])) * _f(self.prob.rows[j])
-                                * _f(self.prm.delta_L) for j in range(self.n)]
+                                * _f(self.prm.delta_L)
+                                + (self._sky_extra(j) if cls in TYPE_CLASSES[SKY] else 0.0) for j in range(self.n)]
         return sum(self._cache[key][b:t + 1])
+
+    def _sky_extra(self, j: int) -> float:
+        """Both caps per row where cell ``j``'s ray points more than ``sky_horizon_margin_deg`` below the
+        horizon (solver._semantic_prefix): sky is not seen there."""
+        prob, c = self.prob, self.c
+        ray = pixel_rays(prob.K[c].double(), prob.u[c].double(), prob.v[j].double())
+        below = float(ray @ self.n_g) / float(ray.norm())
+        if not below > math.sin(math.radians(self.cfg.sky_horizon_margin_deg)):
+            return 0.0
+        prm = self.prm
+        return (_f(prm.alpha_F) * _f(prm.delta_F) + _f(prm.alpha_L) * _f(prm.delta_L)) * _f(prob.rows[j])
 
     def n_hyp(self, T: int) -> int:
         return [len(self.p_ground), len(self.p_object), len(self.tau), 1][T]

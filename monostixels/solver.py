@@ -43,7 +43,7 @@ import torch
 
 from monostixels import _dp_cpp
 from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT, TYPE_CLASSES
+from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
 from monostixels.energy import (
     GRAVITY_TOLERANCE_M,
     PriorParams,
@@ -72,6 +72,7 @@ logger = logging.getLogger(__name__)
 
 #: Default class of each type when there is no semantic input (road, building, vehicle, sky).
 _DEFAULT_CLASS = (0, 3, 6, 9)
+_SKY_CLASS = TYPE_CLASSES[SKY][0]
 #: Hypothesis-cell pairs evaluated at once when computing flow costs (bounds peak memory).
 _CHUNK_ELEMENTS = 4_000_000
 #: Which predecessor types are objects (the ordering prior applies above them).
@@ -99,6 +100,7 @@ class SolverConfig:
     min_translation: float
     standing_hypotheses: bool
     backend: str
+    sky_horizon_margin_deg: float
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
@@ -127,6 +129,8 @@ class SolverConfig:
             raise InputError(f"solver.dtype: float32 or float64, got {self.dtype!r}")
         if not self.min_translation >= 0:
             raise InputError(f"solver.min_translation: must be >= 0, got {self.min_translation}")
+        if not self.sky_horizon_margin_deg >= 0:
+            raise InputError(f"solver.sky_horizon_margin_deg: must be >= 0 (.inf = off), got {self.sky_horizon_margin_deg}")
         if self.backend not in BACKENDS:
             raise InputError(f"solver.backend: one of {', '.join(BACKENDS)}, got {self.backend!r}")
 
@@ -468,14 +472,33 @@ def _structural_object(inv_p: torch.Tensor, q: torch.Tensor, inv_pp: torch.Tenso
     return torch.where(_IS_OBJECT, torch.minimum(grav, ordv), grav)
 
 
-def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype) -> tuple[torch.Tensor, list[list[int]]]:
+def _sky_unseen(prob: ColumnProblem, margin_deg: float) -> torch.Tensor:
+    """(C, n) cells whose ray points more than ``margin_deg`` below the horizon of the road plane."""
+    ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
+    sin_below = (ray * prob.n_g[:, None]).sum(-1) / ray.norm(dim=-1)
+    return sin_below > math.sin(math.radians(margin_deg))
+
+
+def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype,
+                     sky_margin_deg: float = math.inf) -> tuple[torch.Tensor, list[list[int]]]:
     """Prefix-summed semantic cost (C, 10, n + 1) and the classes of each type.
 
+    With semantics, the sky class also pays the flow and semantic caps (``alpha_F delta_F + alpha_L
+    delta_L`` per row) in cells more than ``sky_margin_deg`` below the horizon: the flow term alone
+    only caps the sky there (:func:`beyond_horizon`), the cost of any type whose flow fails, so where
+    the flow fails (the image's lower corners, which leave the previous frame) the net's score decided,
+    and a bright patch of road read as sky became a sky stixel 6 m ahead (KITTI drive 0023). A road's
+    grade changes by a few degrees, so sky is seen at most slightly below the road plane's horizon.
     Without semantics: zeros (C, 1, n + 1) and the default class of each type.
     """
     C, n = prob.num_columns, prob.num_cells
     if prob.nll is not None:
         sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
+        if math.isfinite(sky_margin_deg):
+            unseen = _sky_unseen(prob, sky_margin_deg)
+            extra = (prm.alpha_F * prm.delta_F + prm.alpha_L * prm.delta_L) * prob.rows[None, :]
+            sky = torch.where(unseen, sem[..., _SKY_CLASS] + extra, sem[..., _SKY_CLASS])
+            sem = torch.cat([sem[..., :_SKY_CLASS], sky[..., None], sem[..., _SKY_CLASS + 1:]], -1)
         return _prefix(sem.transpose(1, 2)), [list(cs) for cs in TYPE_CLASSES]  # C x 10 x (n + 1)
     return torch.zeros(C, 1, n + 1, dtype=dt), [[c] for c in _DEFAULT_CLASS]
 
@@ -509,7 +532,7 @@ def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig)
     dt = cfg.torch_dtype
     hyp = _hypotheses(prob, cfg)
     a, cK, s_g, s_o, g = _flow_geometry(prob, hyp)
-    Lp, classes = _semantic_prefix(prob, prm, dt)
+    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg)
     cls_table = torch.tensor([cs + [-1] * (3 - len(cs)) for cs in classes], dtype=torch.long)  # 4 x 3
     ncs = torch.tensor([len(cs) for cs in classes], dtype=torch.long)
     params = torch.stack([getattr(prm, k) for k in _dp_cpp.PARAM_ORDER]
@@ -542,7 +565,7 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
     P = _flow_prefix(prob, hyp, prm)  # per type: C x K_T x (n + 1)
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
 
-    Lp, classes = _semantic_prefix(prob, prm, dt)
+    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg)
     cls_idx = [torch.tensor(cs) if prob.nll is not None else torch.tensor([0]) for cs in classes]
     L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
 

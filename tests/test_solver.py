@@ -287,3 +287,29 @@ def test_image_sizes_not_multiple_of_cells():
         col = _column(st, c)
         assert int(col["v_bottom"].max()) == 10 and int(col["v_top"].min()) == 0
     assert bool((st.index_map() >= 0).all())
+
+
+def test_no_sky_far_below_the_horizon():
+    """Where the flow fails everywhere and the net reads the lower rows as sky (bright road), the sky
+    no longer reaches down there: more than ``sky_horizon_margin_deg`` below the horizon it pays both
+    caps. Off (``.inf``), the net's score decides and the bottom of the column is sky."""
+    H, W = 40, 10
+    K = intrinsics(50.0, 50.0, 4.5, 5.0)
+    cam = Camera(K, height=1.5)
+    mot = Motion(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    g = torch.Generator().manual_seed(0)
+    flow = 40.0 * torch.randn(2, H, W, generator=g, dtype=torch.float64)  # no type fits it
+    cov = torch.eye(2, dtype=torch.float64).expand(H, W, 2, 2).clone()
+    scores = torch.full((10, H, W), 0.01, dtype=torch.float64)
+    scores[9] = 0.6
+    scores[0] = 0.31  # road second
+    prm = PriorParams.from_yaml()
+    rows_below = torch.arange(H, dtype=torch.float64) - 5.0
+    deep = rows_below / 50.0 > math.tan(math.radians(5.0))  # rows more than 5 deg below the horizon
+    for margin, sky_deep in ((5.0, False), (math.inf, True)):
+        cfg = SolverConfig.from_yaml(column_width=5, cell_rows=2, dtype="float64", sky_horizon_margin_deg=margin)
+        st = solve(flow, cov, scores, cam, mot, prm, cfg)
+        sky = st.type_map() == SKY
+        assert bool(sky[deep].any()) == sky_deep
+    with pytest.raises(InputError, match="sky_horizon_margin_deg"):
+        SolverConfig.from_yaml(sky_horizon_margin_deg=-1.0)
