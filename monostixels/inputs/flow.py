@@ -331,6 +331,7 @@ def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
 
 def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
           grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
+    """RAFT current -> previous (``cfg.runtime`` torch | onnx); it reads the RGB images, not ``grey``."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
     runtime = str(_get(cfg, "runtime", "torch"))

@@ -425,10 +425,15 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
 _SCALE_GRID_M = np.geomspace(0.02, 5.0, 96)
 
 
+#: Most threads of the photometric search: its grid is 96 costs of ~0.5 ms, its pattern search
+#: asks for two at a time.
+_MAX_PHOTOMETRIC_WORKERS = 4
+
+
 def _photometric_workers() -> int:
     """Threads of the photometric search: torch's thread count, which stands for the cores this
-    process may use (``--threads`` of the benchmarks, ``torch.set_num_threads``)."""
-    return max(1, torch.get_num_threads())
+    process may use (``--threads`` of the benchmarks, ``torch.set_num_threads``), at most 4."""
+    return max(1, min(_MAX_PHOTOMETRIC_WORKERS, torch.get_num_threads()))
 
 
 #: Rec. 601 luma weights of the grey image the photometric search compares.
