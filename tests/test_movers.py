@@ -256,3 +256,29 @@ def test_background_above_a_parked_object_may_lie_behind_it():
         assert bool((out.type[upper] == (STATIC_OBJECT if behind else DYNAMIC_OBJECT)).all())
         if behind:
             assert bool(((1.0 / out.inverse_depth[upper]) / d_up - 1.0).abs().max() < 0.03)
+
+
+def test_an_isolated_dynamic_stixel_stands_still():
+    # A mover in columns 3-4 whose flow leaves the epipolar lines (4 px down); in a second scene only column
+    # 3 carries the motion (a one-column sliver). The residual test keeps both dynamic; with
+    # isolated_stand_still the two-column mover stays, the sliver (no dynamic neighbour) stands still at
+    # the static fit's depth. A kept class is never made static.
+    import dataclasses
+
+    prm = MoverCheckParams(isolated_stand_still=True)
+    for cols, want_dynamic in (((3, 4), True), ((3,), False)):
+        flow = _wall_flow(10.0)
+        for c in cols:
+            flow[1, :, c * WS:(c + 1) * WS] += 4.0
+        types = [STATIC_OBJECT] * 6
+        for c in cols:
+            types[c] = DYNAMIC_OBJECT
+        st = _world([1 / 10.0] * 6, types)
+        assert check_movers(st, flow, MOTION, params=MoverCheckParams()).flags["static_checked"] == 0
+        out = check_movers(st, flow, MOTION, params=prm)
+        assert bool((out.type[list(cols)] == DYNAMIC_OBJECT).all()) == want_dynamic
+        if not want_dynamic:
+            assert float(out.motion[3].abs().max()) == 0.0 and out.cls[3] == st.cls[3]
+            walker = dataclasses.replace(st, cls=torch.full_like(st.cls, 8))
+            kept = check_movers(walker, flow, MOTION, params=dataclasses.replace(prm, keep_classes=("person",)))
+            assert kept.type[3] == DYNAMIC_OBJECT
