@@ -370,7 +370,7 @@ def test_numpy_grey_images_equal_the_torch_formulas():
 
 
 def test_fast_finite_check_raises_the_same_error():
-    from monostixels.inputs.confidence import check_finite_fast
+    from monostixels._checks import check_finite_fast
 
     x = torch.zeros(2, 5, 7)
     check_finite_fast(x, "flow")

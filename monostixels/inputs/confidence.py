@@ -35,13 +35,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from monostixels._checks import InputError, check_finite, check_shape
+from monostixels._checks import InputError, check_finite_fast, check_shape
 
 __all__ = [
     "ConfidenceParams",
     "CONFIDENCE_METHODS",
     "to_gray",
-    "check_finite_fast",
     "structure_tensor",
     "fb_consistency_error",
     "flow_covariance",
@@ -105,14 +104,6 @@ def to_gray(image: torch.Tensor) -> torch.Tensor:
     x = image.numpy().astype(np.float32, copy=False)
     w = np.asarray(_LUMA_WEIGHTS, dtype=np.float32)
     return torch.from_numpy(x[0] * w[0] + x[1] * w[1] + x[2] * w[2])
-
-
-def check_finite_fast(x: torch.Tensor, name: str) -> None:
-    """:func:`monostixels._checks.check_finite` with numpy's test first for CPU float tensors: a
-    single pass, ~10x faster than torch's on a full frame when another thread holds the cores."""
-    if x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and np.isfinite(x.detach().numpy()).all():
-        return
-    check_finite(x, name)
 
 
 def structure_tensor(gray: torch.Tensor, window_sigma: float) -> torch.Tensor:

@@ -46,9 +46,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels._checks import InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape
 from monostixels.data.base import FramePair
-from monostixels.inputs.confidence import ConfidenceParams, check_finite_fast, fb_consistency_error, flow_covariance
+from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 
 __all__ = [
     "FLOW_BACKENDS",
@@ -358,14 +358,6 @@ _BACKENDS: dict[str, Callable[..., torch.Tensor]] = {
 }
 
 
-def _check_images(image_cur: torch.Tensor, image_prev: torch.Tensor) -> None:
-    check_shape(image_cur, [3, "H", "W"], "image (current)")
-    check_shape(image_prev, [3, "H", "W"], "image_prev")
-    check_same_size(image_cur, image_prev, "image (current)", "image_prev")
-    check_finite_fast(image_cur, "image (current)")
-    check_finite_fast(image_prev, "image_prev")
-
-
 def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
              grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
     """The backend's flow on the images as given (no resampling); ``grey``: their :func:`_gray_u8`."""
@@ -392,12 +384,12 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
     name = str(_get(cfg, "name", ""))
     if name not in _BACKENDS:
         raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
-    _check_images(image_cur, image_prev)
+    check_image_pair(image_cur, image_prev)
     return _flow_of_checked_images(image_cur, image_prev, cfg)
 
 
 def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
-    """:func:`compute_flow` on images that passed :func:`_check_images`, backend name known."""
+    """:func:`compute_flow` on images that passed :func:`monostixels._checks.check_image_pair`, backend name known."""
     name = str(_get(cfg, "name", ""))
     scale = flow_scale(cfg)
     refine = _refine_enabled(cfg)
@@ -431,7 +423,7 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[to
     Without the forward-backward check the covariance depends on the image only: it is computed
     in a second thread while the backend runs (the same numbers; a core DeepFlow leaves idle).
     """
-    _check_images(pair.image, pair.image_prev)
+    check_image_pair(pair.image, pair.image_prev)
     _refine_enabled(cfg)
     flow_scale(cfg)
     if bool(_get(cfg, "fb_consistency", False)):

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels._checks import InputError, check_image_pair
 from monostixels._torchvision import torchvision
 
 __all__ = [
@@ -149,14 +149,6 @@ def pad_images(*images: torch.Tensor, size: tuple[int, int] | None = None) -> tu
     return out, (H, W)
 
 
-def _check_pair(image_cur: torch.Tensor, image_prev: torch.Tensor) -> None:
-    check_shape(image_cur, [3, "H", "W"], "image (current)")
-    check_shape(image_prev, [3, "H", "W"], "image_prev")
-    check_same_size(image_cur, image_prev, "image (current)", "image_prev")
-    check_finite(image_cur, "image (current)")
-    check_finite(image_prev, "image_prev")
-
-
 class TorchRaft:
     """RAFT inference in torch on (3, H, W) images; pads and crops."""
 
@@ -165,7 +157,7 @@ class TorchRaft:
 
     def __call__(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> torch.Tensor:
         """Flow (2, H, W) current -> previous, pixels."""
-        _check_pair(image_cur, image_prev)
+        check_image_pair(image_cur, image_prev)
         (a, b), (H, W) = pad_images(image_cur[None].float(), image_prev[None].float())
         with torch.inference_mode():
             flow = self.module(a, b)
@@ -222,7 +214,7 @@ class OnnxRaft:
 
     def __call__(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> torch.Tensor:
         """Flow (2, H, W) current -> previous, pixels."""
-        _check_pair(image_cur, image_prev)
+        check_image_pair(image_cur, image_prev)
         H, W = image_cur.shape[-2:]
         Hp, Wp = padded_size(H, W)
         if Hp > self.size[0] or Wp > self.size[1]:
