@@ -156,7 +156,10 @@ class MoverCheckParams:
             elif isinstance(getattr(d, k), tuple):
                 kw[k] = v if isinstance(v, str) else tuple(v)  # a lone string is refused by __post_init__
             else:
-                kw[k] = type(getattr(d, k))(v)
+                try:
+                    kw[k] = type(getattr(d, k))(v)
+                except (TypeError, ValueError):
+                    raise InputError(f"movers.{k}: expected a {type(getattr(d, k)).__name__}, got {v!r}") from None
         return MoverCheckParams(**kw)
 
 

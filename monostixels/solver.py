@@ -129,8 +129,13 @@ class SolverConfig:
             raise InputError(f"solver.dtype: float32 or float64, got {self.dtype!r}")
         if not self.min_translation >= 0:
             raise InputError(f"solver.min_translation: must be >= 0, got {self.min_translation}")
-        if not self.sky_horizon_margin_deg >= 0:
-            raise InputError(f"solver.sky_horizon_margin_deg: must be >= 0 (.inf = off), got {self.sky_horizon_margin_deg}")
+        try:  # a command line gives `inf` as a float, but `.inf` (YAML's spelling) as a string
+            margin = float(self.sky_horizon_margin_deg)
+        except (TypeError, ValueError):
+            margin = math.nan
+        if not margin >= 0:
+            raise InputError(f"solver.sky_horizon_margin_deg: degrees >= 0 (inf = off), got {self.sky_horizon_margin_deg!r}")
+        self.sky_horizon_margin_deg = margin
         if self.backend not in BACKENDS:
             raise InputError(f"solver.backend: one of {', '.join(BACKENDS)}, got {self.backend!r}")
 

@@ -186,6 +186,8 @@ def test_keep_classes_from_the_config_and_bad_names():
         MoverCheckParams.from_config(OmegaConf.create({"keep_classes": ["person", "pedestrian"]}))
     with pytest.raises(InputError, match="movers.keep_classes.*string"):
         MoverCheckParams.from_config(OmegaConf.create({"keep_classes": "person"}))
+    with pytest.raises(InputError, match="movers.max_dynamic_residual_ratio.*'lots'"):
+        MoverCheckParams.from_config(OmegaConf.create({"max_dynamic_residual_ratio": "lots"}))
 
 
 

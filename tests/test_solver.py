@@ -311,5 +311,7 @@ def test_no_sky_far_below_the_horizon():
         st = solve(flow, cov, scores, cam, mot, prm, cfg)
         sky = st.type_map() == SKY
         assert bool(sky[deep].any()) == sky_deep
-    with pytest.raises(InputError, match="sky_horizon_margin_deg"):
-        SolverConfig.from_yaml(sky_horizon_margin_deg=-1.0)
+    for bad in (-1.0, ".inf", None):
+        with pytest.raises(InputError, match="sky_horizon_margin_deg"):
+            SolverConfig.from_yaml(sky_horizon_margin_deg=bad)
+    assert SolverConfig.from_yaml(sky_horizon_margin_deg="inf").sky_horizon_margin_deg == math.inf
