@@ -67,6 +67,7 @@ from monostixels._checks import InputError, check_finite, check_shape
 from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
 from monostixels.data.base import FramePair
 from monostixels.geometry import Motion
+from monostixels.inputs.confidence import to_gray
 
 __all__ = [
     "MOTION_BACKENDS",
@@ -436,16 +437,12 @@ def _photometric_workers() -> int:
     return max(1, min(_MAX_PHOTOMETRIC_WORKERS, torch.get_num_threads()))
 
 
-#: Rec. 601 luma weights of the grey image the photometric search compares.
-_LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
-
-
 def _grey(image: torch.Tensor) -> np.ndarray:
     """(3, H, W) RGB in [0, 1] -> (H, W) float32 grey, lightly smoothed (a wider basin for the search)."""
-    # numpy, channels added in order: the same float32 values as torch's weighted sum over the
-    # channel axis, without torch's thread hand-offs (3-6x faster on a loaded machine).
+    # Clipped in numpy, then the covariance's grey conversion (numpy, the same float32 values as
+    # torch's weighted channel sum), without torch's thread hand-offs.
     x = np.clip(image.detach().cpu().numpy().astype(np.float32, copy=False), 0.0, 1.0)
-    g = x[0] * _LUMA[0] + x[1] * _LUMA[1] + x[2] * _LUMA[2]
+    g = to_gray(torch.from_numpy(x)).numpy()
     return cv2.GaussianBlur(g, (0, 0), 1.0)
 
 
