@@ -154,6 +154,31 @@ def test_fb_consistency_marks_pixels_that_leave_the_image():
     assert 0.0 <= float(added) < 0.5
 
 
+def test_shipped_deepflow_covariance_is_small_where_the_flow_is_right():
+    # The `deepflow_fb` config group checks the flow forward-backward and lowers the noise floor: its
+    # covariance must separate good from bad flow vectors (the solver then trusts sub-pixel flow
+    # where the round trip closes) — on a rendered street, against the ground-truth flow.
+    from monostixels.data.synthetic import render_pair
+    from monostixels.pipeline import load_config
+
+    cfg = load_config(["flow=deepflow_fb"]).flow
+    assert cfg.fb_consistency and cfg.sigma_min < 1.0
+    pair = render_pair(9, scale=0.5)
+    res = estimate_flow(pair, cfg)
+    err = (res.flow - pair.gt.flow).norm(dim=0)
+    sigma = torch.linalg.eigvalsh(res.cov.double())[..., 1].sqrt()
+    valid = pair.gt.flow_valid
+    good, bad = valid & (err < 0.5), valid & (err > 3.0)
+    assert int(good.sum()) > 1000 and int(bad.sum()) > 100
+    # Right vectors get (near) the floor, wrong ones several times more.
+    assert float(sigma[good].median()) < 0.6
+    assert float(sigma[bad].median()) > 3 * float(sigma[good].median())
+    # Without the check, the same floor would call the wrong vectors just as certain.
+    plain = estimate_flow(pair, OmegaConf.merge(cfg, {"fb_consistency": False}))
+    sigma_plain = torch.linalg.eigvalsh(plain.cov.double())[..., 1].sqrt()
+    assert float(sigma_plain[bad].median()) < float(sigma[bad].median()) / 2
+
+
 def test_gt_backend_and_missing_gt():
     H, W = 16, 20
     img = _texture(H, W)
