@@ -32,8 +32,10 @@ The check, per dynamic stixel (model selection with a minimum detectable motion)
    relative window that lets real false movers through (their model depth 10-30 % off, most of them
    far away or not on the road) also let those through. In rows, the contact is as accurate as the
    stixel's bottom: near objects resolve small relative differences, far ones do not. "Standing on the
-   road": directly on a ground stixel (the road's height is that stixel's), or on a stack of dynamic
-   stixels that does and stays dynamic (the structural prior gave the stack its contact's depth).
+   road": directly on a ground stixel (the road's height is that stixel's), on an object at most
+   ``contact_sliver_rows`` tall that stands on one (the shadow or bumper rows under a car, a stixel of
+   their own when the flow is trusted to sub-pixel level), or on a stack of dynamic stixels that does
+   and stays dynamic (the structural prior gave the stack its contact's depth).
    A stixel stacked on a dynamic stixel that the check made static is compared with that stixel's
    static depth (the prior's depth for it was the object below), with no ground contact; columns are
    therefore decided bottom-up. With ``allow_behind_still`` (off by default) such a stixel may lie any
@@ -118,6 +120,11 @@ class MoverCheckParams:
             the check never makes static (slow movers whose motion it cannot detect); empty = the
             purely geometric check (the dataclass default). The config group sets ``person`` and
             ``two_wheeler``.
+        contact_sliver_rows: a stixel stacked on an object at most this many rows tall that stands on a
+            ground stixel stands on that ground for the contact test (0 = off, the dataclass default; the
+            config group sets 12). With sub-pixel flow (``flow=deepflow_fb``) the rows where a car meets the
+            road become a stixel of their own with the road's flow; made static, it would hand the car above
+            it its static depth, and an epipolar mover then stood still at its motion-biased static depth.
         min_pixels: fewest pixels with a valid triangulation for a decision.
         min_depth, max_depth: triangulated depths outside this range (metres) do not vote.
     """
@@ -134,6 +141,7 @@ class MoverCheckParams:
     isolated_stand_still: bool = False
     max_dynamic_residual_ratio: float = math.inf
     keep_classes: tuple[str, ...] = ()
+    contact_sliver_rows: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.keep_classes, str):
@@ -254,8 +262,19 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     #   stack's ground (same test, the structural prior gave the stack the depth of its contact).
     # - on a dynamic stixel made static: it stood on that object's (wrong) depth; the reference
     #   depth becomes that object's static depth, and no ground contact is known.
-    on_gnd = has_below & (stixels.type[bi] == GROUND) & (p_below > 0) & d_model.isfinite()
-    d_g0 = torch.where(on_gnd, 1.0 / p_below.clamp(min=1e-12), torch.full_like(p_below, math.nan))
+    # - on a thin object (at most ``contact_sliver_rows`` tall) that stands on a ground stixel: it
+    #   stands on that ground too. With a flow trusted to sub-pixel level (flow=deepflow_fb) the rows
+    #   where a car meets the road (shadow, bumper) become a stixel of their own, whose flow is the
+    #   road's; made static, it would otherwise hand the car above it its static depth and no contact.
+    p_all = stixels.inverse_depth.double()
+    below2 = start[stixels.column.long()[bi], (stixels.v_bottom.long()[bi] + 1).clamp(max=H)]
+    b2 = below2.clamp(min=0)
+    sliver = (has_below & ((stixels.type[bi] == STATIC_OBJECT) | (stixels.type[bi] == DYNAMIC_OBJECT))
+              & ((stixels.v_bottom[bi] - stixels.v_top[bi] + 1).double() <= prm.contact_sliver_rows)
+              & (below2 >= 0) & (stixels.type[b2] == GROUND) & (p_all[b2] > 0))
+    p_gnd = torch.where(sliver, p_all[b2], p_below)
+    on_gnd = ((has_below & (stixels.type[bi] == GROUND)) | sliver) & (p_gnd > 0) & d_model.isfinite()
+    d_g0 = torch.where(on_gnd, 1.0 / p_gnd.clamp(min=1e-12), torch.full_like(p_gnd, math.nan))
     ng = stixels.ground_normal.double()
     v_model = _contact_row(K, n_all, ng, torch.where(d_model.isfinite(), d_model, d_fit), torch.ones_like(d_fit))
     bp = below_pos.clamp(min=0)

@@ -284,3 +284,35 @@ def test_an_isolated_dynamic_stixel_stands_still():
             walker = dataclasses.replace(st, cls=torch.full_like(st.cls, 8))
             kept = check_movers(walker, flow, MOTION, params=dataclasses.replace(prm, keep_classes=("person",)))
             assert kept.type[3] == DYNAMIC_OBJECT
+
+
+def test_mover_on_a_contact_sliver_keeps_its_ground_contact():
+    # flow=deepflow_fb trusts sub-pixel flow, and the rows where a car meets the road (shadow, bumper)
+    # become a stixel of their own whose flow is the road's. The same two-wheeler as above (10 m ahead,
+    # riding away at 0.25 m per frame: static fit 13.3 m) stands on a 5-row sliver with the road's flow.
+    v_c = int(round(20.0 + 500.0 * H_CAM / 10.0))  # 95: where the stack meets the road
+    cols, tops, bots, types, ps = [], [], [], [], []
+    for c in range(2):
+        for a, b, ty, p in ((v_c, HC - 1, 0, 1.0 / H_CAM), (v_c - 5, v_c - 1, DYNAMIC_OBJECT, 0.1),
+                            (0, v_c - 6, DYNAMIC_OBJECT, 0.1)):
+            cols.append(c), tops.append(a), bots.append(b), types.append(ty), ps.append(p)
+    st = StixelWorld(
+        column_width=WS, image_size=(HC, WC), K=KC, ground_normal=N_G,
+        column=torch.tensor(cols), v_top=torch.tensor(tops), v_bottom=torch.tensor(bots),
+        type=torch.tensor(types), cls=torch.full((6,), 7), inverse_depth=torch.tensor(ps, dtype=torch.float64),
+        motion=torch.tensor([[0.0, 0.0, 0.2]] * 6, dtype=torch.float64), cost=torch.zeros(6),
+        tau=torch.zeros(6, 2, dtype=torch.float64), energy=torch.zeros(2))
+    flow = _moving_wall_flow(10.0, 0.25)
+    flow[:, v_c - 5:] = _ground_flow_kc()[:, v_c - 5:]
+    sliver, mover = torch.tensor([1, 4]), torch.tensor([2, 5])
+    # Off: the sliver stands still (its flow is the road's), and the mover above it, compared only with
+    # the sliver's static depth (10.4 m vs 13.3 m: within the 30 % window), stands still at 13.3 m.
+    off = check_movers(st, flow, MOTION, params=MoverCheckParams(contact_sliver_rows=0.0))
+    assert bool((off.type[sliver] == STATIC_OBJECT).all()) and bool((off.type[mover] == STATIC_OBJECT).all())
+    # On: the mover stands on the road through the sliver; a static object at 13.3 m would meet it 19 rows
+    # above the contact (tolerance 12), so it keeps its motion and the contact's depth.
+    on = check_movers(st, flow, MOTION, params=MoverCheckParams(contact_sliver_rows=12.0))
+    assert bool((on.type[sliver] == STATIC_OBJECT).all())
+    assert bool((on.type[mover] == DYNAMIC_OBJECT).all()) and torch.equal(on.inverse_depth[mover], st.inverse_depth[mover])
+    # A sliver taller than the setting is an object of its own: the old comparison applies.
+    assert bool((check_movers(st, flow, MOTION, params=MoverCheckParams(contact_sliver_rows=4.0)).type[mover] == STATIC_OBJECT).all())
