@@ -67,13 +67,18 @@ KC = intrinsics(500.0, 500.0, 90.0, 20.0)  # the columns lie 70-90 px left of th
 HC, WC, H_CAM = 120, 20, 1.5
 
 
-def _contact_world(d_model: float, upper: bool = False) -> StixelWorld:
+def _contact_world(d_model: float, upper: bool = False, sliver_rows: int = 0) -> StixelWorld:
     """Two columns: a dynamic object stixel standing on a ground stixel (height H_CAM) at the row where a
-    plane at ``d_model`` meets the ground (the scene model's contact); optionally a dynamic stixel on top."""
+    plane at ``d_model`` meets the ground (the scene model's contact); optionally a dynamic stixel on top,
+    and optionally a dynamic stixel ``sliver_rows`` tall between the object and the ground."""
     v_c = int(round(20.0 + 500.0 * H_CAM / d_model))  # contact row (camera looks straight ahead)
+    v_o = v_c - sliver_rows  # the object's lower end
     cols, tops, bots, types, ps = [], [], [], [], []
     for c in range(2):
-        segs = [(v_c, HC - 1, 0, 1.0 / H_CAM), (30 if upper else 0, v_c - 1, DYNAMIC_OBJECT, 1.0 / d_model)]
+        segs = [(v_c, HC - 1, 0, 1.0 / H_CAM)]
+        if sliver_rows:
+            segs.append((v_o, v_c - 1, DYNAMIC_OBJECT, 1.0 / d_model))
+        segs.append((30 if upper else 0, v_o - 1, DYNAMIC_OBJECT, 1.0 / d_model))
         if upper:
             segs.append((0, 29, DYNAMIC_OBJECT, 1.0 / d_model))
         for a, b, ty, p in segs:
@@ -291,17 +296,7 @@ def test_mover_on_a_contact_sliver_keeps_its_ground_contact():
     # become a stixel of their own whose flow is the road's. The same two-wheeler as above (10 m ahead,
     # riding away at 0.25 m per frame: static fit 13.3 m) stands on a 5-row sliver with the road's flow.
     v_c = int(round(20.0 + 500.0 * H_CAM / 10.0))  # 95: where the stack meets the road
-    cols, tops, bots, types, ps = [], [], [], [], []
-    for c in range(2):
-        for a, b, ty, p in ((v_c, HC - 1, 0, 1.0 / H_CAM), (v_c - 5, v_c - 1, DYNAMIC_OBJECT, 0.1),
-                            (0, v_c - 6, DYNAMIC_OBJECT, 0.1)):
-            cols.append(c), tops.append(a), bots.append(b), types.append(ty), ps.append(p)
-    st = StixelWorld(
-        column_width=WS, image_size=(HC, WC), K=KC, ground_normal=N_G,
-        column=torch.tensor(cols), v_top=torch.tensor(tops), v_bottom=torch.tensor(bots),
-        type=torch.tensor(types), cls=torch.full((6,), 7), inverse_depth=torch.tensor(ps, dtype=torch.float64),
-        motion=torch.tensor([[0.0, 0.0, 0.2]] * 6, dtype=torch.float64), cost=torch.zeros(6),
-        tau=torch.zeros(6, 2, dtype=torch.float64), energy=torch.zeros(2))
+    st = _contact_world(10.0, sliver_rows=5)
     flow = _moving_wall_flow(10.0, 0.25)
     flow[:, v_c - 5:] = _ground_flow_kc()[:, v_c - 5:]
     sliver, mover = torch.tensor([1, 4]), torch.tensor([2, 5])
