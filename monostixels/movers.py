@@ -249,7 +249,8 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     below = start[stixels.column[dyn].long(), (v1).clamp(max=H)]
     has_below = below >= 0
     bi = below.clamp(min=0)
-    p_below = stixels.inverse_depth.double()[bi]
+    p_all = stixels.inverse_depth.double()
+    p_below = p_all[bi]
     dyn_below = has_below & (stixels.type[bi] == DYNAMIC_OBJECT)
     pos = torch.full((N,), -1, dtype=torch.long)
     pos[dyn] = torch.arange(S)
@@ -266,7 +267,6 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     #   stands on that ground too. With a flow trusted to sub-pixel level (flow=deepflow_fb) the rows
     #   where a car meets the road (shadow, bumper) become a stixel of their own, whose flow is the
     #   road's; made static, it would otherwise hand the car above it its static depth and no contact.
-    p_all = stixels.inverse_depth.double()
     below2 = start[stixels.column.long()[bi], (stixels.v_bottom.long()[bi] + 1).clamp(max=H)]
     b2 = below2.clamp(min=0)
     sliver = (has_below & ((stixels.type[bi] == STATIC_OBJECT) | (stixels.type[bi] == DYNAMIC_OBJECT))
