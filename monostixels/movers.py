@@ -122,9 +122,10 @@ class MoverCheckParams:
             ``two_wheeler``.
         contact_sliver_rows: a stixel stacked on an object at most this many rows tall that stands on a
             ground stixel stands on that ground for the contact test (0 = off, the dataclass default; the
-            config group sets 12). With sub-pixel flow (``flow=deepflow_fb``) the rows where a car meets the
-            road become a stixel of their own with the road's flow; made static, it would hand the car above
-            it its static depth, and an epipolar mover then stood still at its motion-biased static depth.
+            config group sets 12). With sub-pixel flow (``flow=deepflow``, checked forward-backward) the
+            rows where a car meets the road become a stixel of their own with the road's flow; made static,
+            it would hand the car above it its static depth, and an epipolar mover then stood still at its
+            motion-biased static depth.
         min_pixels: fewest pixels with a valid triangulation for a decision.
         min_depth, max_depth: triangulated depths outside this range (metres) do not vote.
     """
@@ -264,7 +265,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     # - on a dynamic stixel made static: it stood on that object's (wrong) depth; the reference
     #   depth becomes that object's static depth, and no ground contact is known.
     # - on a thin object (at most ``contact_sliver_rows`` tall) that stands on a ground stixel: it
-    #   stands on that ground too. With a flow trusted to sub-pixel level (flow=deepflow_fb) the rows
+    #   stands on that ground too. With a flow trusted to sub-pixel level (flow=deepflow) the rows
     #   where a car meets the road (shadow, bumper) become a stixel of their own, whose flow is the
     #   road's; made static, it would otherwise hand the car above it its static depth and no contact.
     below2 = start[stixels.column.long()[bi], (stixels.v_bottom.long()[bi] + 1).clamp(max=H)]

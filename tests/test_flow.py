@@ -155,14 +155,16 @@ def test_fb_consistency_marks_pixels_that_leave_the_image():
 
 
 def test_shipped_deepflow_covariance_is_small_where_the_flow_is_right():
-    # The `deepflow_fb` config group checks the flow forward-backward and lowers the noise floor: its
+    # The `deepflow` config group checks the flow forward-backward and has a sub-pixel noise floor: its
     # covariance must separate good from bad flow vectors (the solver then trusts sub-pixel flow
     # where the round trip closes) — on a rendered street, against the ground-truth flow.
     from monostixels.data.synthetic import render_pair
     from monostixels.pipeline import load_config
 
-    cfg = load_config(["flow=deepflow_fb"]).flow
+    cfg = load_config(["flow=deepflow"]).flow
     assert cfg.fb_consistency and cfg.sigma_min < 1.0
+    # `deepflow_fb` (its earlier name) is the same flow input.
+    assert OmegaConf.to_container(load_config(["flow=deepflow_fb"]).flow) == OmegaConf.to_container(cfg)
     pair = render_pair(9, scale=0.5)
     res = estimate_flow(pair, cfg)
     err = (res.flow - pair.gt.flow).norm(dim=0)

@@ -292,7 +292,7 @@ def test_an_isolated_dynamic_stixel_stands_still():
 
 
 def test_mover_on_a_contact_sliver_keeps_its_ground_contact():
-    # flow=deepflow_fb trusts sub-pixel flow, and the rows where a car meets the road (shadow, bumper)
+    # flow=deepflow trusts sub-pixel flow, and the rows where a car meets the road (shadow, bumper)
     # become a stixel of their own whose flow is the road's. The same two-wheeler as above (10 m ahead,
     # riding away at 0.25 m per frame: static fit 13.3 m) stands on a 5-row sliver with the road's flow.
     v_c = int(round(20.0 + 500.0 * H_CAM / 10.0))  # 95: where the stack meets the road
