@@ -26,6 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from monostixels._checks import InputError
+from monostixels.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
 from monostixels.energy import PriorParams
 from monostixels.eval.sfm import triangulate
@@ -190,6 +191,11 @@ class Pipeline:
             t0 = time.perf_counter()
             stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check)
             sec["movers"] = time.perf_counter() - t0
+        if self.solver_cfg.top_refine_rows and semantic is not None:
+            # Moving objects' tops from cell edges to pixel rows (monostixels.boundaries).
+            stixels = refine_object_tops(stixels, semantic, self.solver_cfg.top_refine_rows,
+                                         self.solver_cfg.top_refine_depth_ratio, float(self.prior.alpha_L),
+                                         self.solver_cfg.top_refine_objects)
         if motion.degenerate and not stixels.flags.get("degenerate_motion"):
             stixels.flags["degenerate_motion"] = True
         if stixels.flags.get("degenerate_motion"):

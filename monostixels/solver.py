@@ -101,6 +101,10 @@ class SolverConfig:
     standing_hypotheses: bool
     backend: str
     sky_horizon_margin_deg: float
+    # Applied after the DP by the pipeline (monostixels.boundaries.refine_object_tops).
+    top_refine_rows: int
+    top_refine_depth_ratio: float
+    top_refine_objects: str
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
@@ -136,6 +140,12 @@ class SolverConfig:
         if not margin >= 0:
             raise InputError(f"solver.sky_horizon_margin_deg: degrees >= 0 (inf = off), got {self.sky_horizon_margin_deg!r}")
         self.sky_horizon_margin_deg = margin
+        if not (isinstance(self.top_refine_rows, int) and self.top_refine_rows >= 0):
+            raise InputError(f"solver.top_refine_rows: an integer >= 0 (0 = off), got {self.top_refine_rows!r}")
+        if not (isinstance(self.top_refine_depth_ratio, (int, float)) and 1.0 <= self.top_refine_depth_ratio < math.inf):
+            raise InputError(f"solver.top_refine_depth_ratio: a number >= 1, got {self.top_refine_depth_ratio!r}")
+        if self.top_refine_objects not in ("dynamic", "all"):
+            raise InputError(f"solver.top_refine_objects: dynamic or all, got {self.top_refine_objects!r}")
         if self.backend not in BACKENDS:
             raise InputError(f"solver.backend: one of {', '.join(BACKENDS)}, got {self.backend!r}")
 
