@@ -111,20 +111,24 @@ def test_boundaries_that_do_not_separate_near_from_far_stay():
 
 
 def test_every_stixel_keeps_at_least_one_row():
-    # Thin stixels between a near car and the sky, every boundary a candidate, and scores that pull
-    # them past each other. Stixels too thin to leave room for both of their boundaries to move keep
-    # the DP's boundaries; the rows still tile the column.
-    scores = _scores([(0, SKY_C), (36, VEHICLE), (40, SKY_C), (44, VEHICLE), (50, ROAD)])
+    # The car's class starts at row 39 in the scores, but a thin static stixel (rows 41-42, 30 m) lies
+    # between the car's DP top (43) and a house above it: the car's top may rise only to row 42, so
+    # the thin stixel keeps one row, and the rows still tile the column.
+    scores = _scores([(0, BUILDING), (39, VEHICLE), (50, ROAD)])
     world = _world([[(50, H - 1, GROUND, ROAD, 5.0), (43, 49, DYNAMIC_OBJECT, VEHICLE, 6.0),
-                     (41, 42, DYNAMIC_OBJECT, VEHICLE, 30.0), (39, 40, DYNAMIC_OBJECT, VEHICLE, 60.0), (0, 38, SKY, SKY_C, 0.0)]])
+                     (41, 42, STATIC_OBJECT, BUILDING, 30.0), (0, 40, STATIC_OBJECT, BUILDING, 60.0)]])
     out = refine_object_tops(world, scores, rows=3, depth_ratio=1.5, alpha_L=ALPHA_L)
+    assert out.v_top.tolist() == [50, 42, 41, 0] and out.v_bottom.tolist() == [H - 1, 49, 41, 40]
+    # With static tops movable too, the thin stixel's own top is a candidate as well: the two could
+    # meet inside it, so a stixel too thin to leave room for both keeps the DP's boundaries.
+    out = refine_object_tops(world, scores, rows=3, depth_ratio=1.5, alpha_L=ALPHA_L, objects="all")
     assert torch.equal(out.v_top, world.v_top) and torch.equal(out.v_bottom, world.v_bottom)
     # With room (a house 12 rows tall above the car), the car's top goes to its class boundary.
     scores = _scores([(0, SKY_C), (31, BUILDING), (44, VEHICLE), (50, ROAD)])
     world = _world([[(50, H - 1, GROUND, ROAD, 5.0), (43, 49, DYNAMIC_OBJECT, VEHICLE, 6.0),
                      (31, 42, STATIC_OBJECT, BUILDING, 30.0), (0, 30, SKY, SKY_C, 0.0)]])
-    out = refine_object_tops(world, scores, rows=3, depth_ratio=1.5, alpha_L=ALPHA_L)
-    assert out.v_top.tolist()[:2] == [50, 44]
+    out = refine_object_tops(world, scores, rows=3, depth_ratio=1.5, alpha_L=ALPHA_L, objects="all")
+    assert out.v_top.tolist() == [50, 44, 31, 0]
     assert bool((out.v_top <= out.v_bottom).all())
     assert out.v_top[:-1].tolist() == [b + 1 for b in out.v_bottom[1:].tolist()]
 
