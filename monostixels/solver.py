@@ -43,6 +43,7 @@ import torch
 
 from monostixels import _dp_cpp
 from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
+from monostixels.boundaries import REFINE_OBJECTS
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
 from monostixels.energy import (
     GRAVITY_TOLERANCE_M,
@@ -144,8 +145,8 @@ class SolverConfig:
             raise InputError(f"solver.top_refine_rows: an integer >= 0 (0 = off), got {self.top_refine_rows!r}")
         if not (isinstance(self.top_refine_depth_ratio, (int, float)) and 1.0 <= self.top_refine_depth_ratio < math.inf):
             raise InputError(f"solver.top_refine_depth_ratio: a number >= 1, got {self.top_refine_depth_ratio!r}")
-        if self.top_refine_objects not in ("dynamic", "all"):
-            raise InputError(f"solver.top_refine_objects: dynamic or all, got {self.top_refine_objects!r}")
+        if self.top_refine_objects not in REFINE_OBJECTS:
+            raise InputError(f"solver.top_refine_objects: one of {', '.join(REFINE_OBJECTS)}, got {self.top_refine_objects!r}")
         if self.backend not in BACKENDS:
             raise InputError(f"solver.backend: one of {', '.join(BACKENDS)}, got {self.backend!r}")
 
