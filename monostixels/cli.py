@@ -247,18 +247,21 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
+    from monostixels.sequence import SequenceRunner
     from monostixels.viz import depth_colormap, stixel_overlay
 
     src = _source(cfg)
     if len(src) == 0:
         raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
     pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False)  # the SfM baseline is for eval/demo only
+    runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences
     out = Path(cfg.outputs) / "run"
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     video = None
     written = 0
-    for pair in tqdm(src, total=len(src), desc="run", unit="frame"):
-        res = pipe.run(pair)
+    bar = tqdm(total=len(src), desc="run", unit="frame")
+    for step in runner.run(src, progress=bar):
+        pair, res = step.pair, step.result
         st = res.stixels
         d = out / (pair.name or f"frame_{written:06d}")
         depth = st.depth_map()
@@ -284,6 +287,7 @@ def _run(cfg: DictConfig) -> None:
         if st.flags.get("degenerate_motion"):
             logger.warning("%s: %s", pair.name, st.flags.get("reason"))
         written += 1
+    bar.close()
     if video is not None:
         video.release()
     print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png depth.png depth16.png stixels.json "

@@ -68,6 +68,8 @@ class PipelineResult:
         obtained. stixels: the result. sfm_depth: (H, W) depth of the triangulation baseline
         (metres; invalid = negative or inf), None from a pipeline made with ``sfm=False``.
         seconds: wall time of each stage (flow and semantic may overlap) and of the pair (``wall``).
+        pose: (4, 4) camera-to-world of the current frame on sequences (world = the first camera;
+        :mod:`monostixels.sequence`), else None.
     """
 
     pair: FramePair
@@ -77,6 +79,7 @@ class PipelineResult:
     stixels: StixelWorld
     sfm_depth: torch.Tensor | None
     seconds: dict[str, float] = field(default_factory=dict)
+    pose: torch.Tensor | None = None
 
     @property
     def total_seconds(self) -> float:

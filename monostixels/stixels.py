@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,8 @@ from monostixels.geometry import object_normals, pixel_rays
 __all__ = ["StixelWorld", "paint_index_map"]
 
 _TENSOR_FIELDS = ("column", "v_top", "v_bottom", "type", "cls", "inverse_depth", "motion", "cost", "tau")
+#: Fields of sequences (present when the stream set them).
+_OPTIONAL_FIELDS = ("track_id", "velocity", "ttc_s", "ttc_warning", "pose")
 
 
 def paint_index_map(column: torch.Tensor, v_top: torch.Tensor, v_bottom: torch.Tensor, column_width: int,
@@ -66,6 +69,14 @@ class StixelWorld:
         cost: (N,) energy of each stixel (data + prior terms). tau: (N, 2) ``(t̃x, t̃y)`` of dynamic stixels.
         energy: (C,) optimal energy of every column.
         flags: frame-level flags, e.g. ``{"degenerate_motion": True, "reason": ...}``.
+
+    On sequences (:mod:`monostixels.sequence`) also, else None:
+        track_id: (N,) int64 track of each object stixel (-1: ground, sky, untracked).
+        velocity: (N, 3) world velocity, m/s (world = the sequence's first camera; 0: ground, sky).
+        ttc_s: (N,) time to collision, seconds (inf: not closing; ground and sky inf).
+        ttc_warning: (N,) bool, closing within ``ttc.warn_s`` inside the camera's path.
+        pose: (4, 4) camera-to-world of the frame. pair_info: the pair solved (``current``,
+            ``previous`` frame names, ``frames_back``, ``dt_s``, ``driven_m``).
     """
 
     column_width: int
@@ -83,6 +94,12 @@ class StixelWorld:
     tau: torch.Tensor
     energy: torch.Tensor
     flags: dict[str, Any] = field(default_factory=dict)
+    track_id: torch.Tensor | None = None
+    velocity: torch.Tensor | None = None
+    ttc_s: torch.Tensor | None = None
+    ttc_warning: torch.Tensor | None = None
+    pose: torch.Tensor | None = None
+    pair_info: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ derived quantities
     def __len__(self) -> int:
@@ -181,6 +198,21 @@ class StixelWorld:
                 "tau": [float(x) for x in self.tau[i]],
                 "cost": float(self.cost[i]),
             })
+            if self.track_id is not None:
+                stixels[-1]["track_id"] = int(self.track_id[i])
+            if self.velocity is not None:
+                stixels[-1]["velocity"] = [float(x) for x in self.velocity[i]]
+            if self.ttc_s is not None:
+                # JSON has no infinity: null = not closing (as a sky stixel's depth is null).
+                ttc = float(self.ttc_s[i])
+                stixels[-1]["ttc_s"] = ttc if math.isfinite(ttc) else None
+            if self.ttc_warning is not None:
+                stixels[-1]["ttc_warning"] = bool(self.ttc_warning[i])
+        extra: dict[str, Any] = {}
+        if self.pose is not None:
+            extra["pose"] = self.pose.double().tolist()
+        if self.pair_info is not None:
+            extra["pair"] = dict(self.pair_info)
         return {
             "format": "monostixels/1",
             "column_width": self.column_width,
@@ -190,6 +222,7 @@ class StixelWorld:
             "energy": [float(e) for e in self.energy],
             "flags": self.flags,
             "compactness": self.compactness,
+            **extra,
             "stixels": stixels,
         }
 
@@ -220,6 +253,14 @@ class StixelWorld:
             tau=torch.tensor([s["tau"] for s in st], dtype=torch.float64).reshape(-1, 2),
             energy=torch.tensor(d["energy"], dtype=torch.float64),
             flags=dict(d.get("flags", {})),
+            track_id=L("track_id") if st and "track_id" in st[0] else None,
+            velocity=(torch.tensor([s["velocity"] for s in st], dtype=torch.float64).reshape(-1, 3)
+                      if st and "velocity" in st[0] else None),
+            ttc_s=(torch.tensor([math.inf if s["ttc_s"] is None else s["ttc_s"] for s in st], dtype=torch.float64)
+                   if st and "ttc_s" in st[0] else None),
+            ttc_warning=L("ttc_warning", torch.bool) if st and "ttc_warning" in st[0] else None,
+            pose=torch.tensor(d["pose"], dtype=torch.float64) if "pose" in d else None,
+            pair_info=dict(d["pair"]) if "pair" in d else None,
         )
 
     @staticmethod
@@ -237,6 +278,9 @@ class StixelWorld:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {k: getattr(self, k).detach().cpu().numpy() for k in _TENSOR_FIELDS}
+        arrays |= {k: getattr(self, k).detach().cpu().numpy() for k in _OPTIONAL_FIELDS if getattr(self, k) is not None}
+        if self.pair_info is not None:
+            arrays["pair"] = np.array(json.dumps(self.pair_info))
         np.savez(
             path, column_width=self.column_width, image_size=np.array(self.image_size),
             K=self.K.detach().cpu().numpy(), ground_normal=self.ground_normal.detach().cpu().numpy(),
@@ -251,6 +295,9 @@ class StixelWorld:
         except (OSError, ValueError) as e:
             raise InputError(f"stixels file {path}: cannot read ({e})") from e
         t = {k: torch.from_numpy(z[k]) for k in _TENSOR_FIELDS}
+        t |= {k: torch.from_numpy(z[k]) for k in _OPTIONAL_FIELDS if k in z.files}
+        if "pair" in z.files:
+            t["pair_info"] = json.loads(str(z["pair"]))
         return StixelWorld(
             column_width=int(z["column_width"]), image_size=tuple(int(x) for x in z["image_size"]),
             K=torch.from_numpy(z["K"]), ground_normal=torch.from_numpy(z["ground_normal"]),

@@ -93,7 +93,7 @@ def test_flow_valid_points_are_visible_in_previous_frame():
     vp = (v + pair.gt.flow[1].double())[valid]
     layout = sample_scene(seed, 1.0)
     R, t = pair.motion.R.double().numpy(), pair.motion.t.double().numpy()
-    geo = _geometry(layout, previous=True)
+    geo = _geometry(layout, -1)
     t_hit, pid = _cast_points(geo, -R.T @ t, R.T, pair.camera.K.numpy(), (H, W), up.float(), vp.float())
     # Depth of the point in the previous camera from the ground truth.
     X = ray[valid] * pair.gt.depth.double()[valid][:, None]

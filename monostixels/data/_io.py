@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, check_same_size
-from monostixels.data.base import FramePair
+from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.geometry import Camera, Motion, intrinsics
 
 __all__ = [
@@ -358,6 +358,13 @@ class LazySource(Sequence[FramePair]):
     Subclasses fill ``self._items`` (one record per pair) in ``__init__`` (so that a missing folder
     or calibration file fails at construction) and implement ``_load(item) -> FramePair`` (so that
     an unreadable image fails when that pair is used, naming the file).
+
+    Sequences (keyframes, tracks: :mod:`monostixels.sequence`): a source whose pairs are frames of
+    videos or drives also implements ``_sequence_key(item)`` (the clip a pair belongs to; pairs of
+    one clip come in time order), ``_back(item, back)`` (the same current frame paired with the
+    frame ``back`` of its frames earlier, or None where there is none) and, where it knows them
+    without reading images, ``_pair_dt(item)`` (seconds) and ``_pair_motion(item)`` (ground-truth
+    camera motion). Independent pairs keep the defaults (no sequence).
     """
 
     _items: list[Any]
@@ -366,19 +373,69 @@ class LazySource(Sequence[FramePair]):
         return len(self._items)
 
     def __getitem__(self, index: int) -> FramePair:  # type: ignore[override]
-        if isinstance(index, slice):
-            raise TypeError(f"{type(self).__name__} does not support slicing; use range(len(source))")
-        n = len(self._items)
-        if not -n <= index < n:
-            raise IndexError(f"{type(self).__name__}: pair index {index} out of range ({n} pairs)")
-        return self._load(self._items[index])
+        return self._load(self._item(index))
 
     def __iter__(self) -> Iterator[FramePair]:
         for item in self._items:
             yield self._load(item)
 
+    def _item(self, index: int) -> Any:
+        if isinstance(index, slice):
+            raise TypeError(f"{type(self).__name__} does not support slicing; use range(len(source))")
+        n = len(self._items)
+        if not -n <= index < n:
+            raise IndexError(f"{type(self).__name__}: pair index {index} out of range ({n} pairs)")
+        return self._items[index]
+
     def _load(self, item: Any) -> FramePair:
         raise NotImplementedError
+
+    # --- sequences (keyframes) ------------------------------------------------------------------
+    def _sequence_key(self, item: Any) -> str | None:
+        return None
+
+    def _back(self, item: Any, back: int) -> Any | None:
+        return item if back == 1 else None
+
+    def _pair_dt(self, item: Any) -> float | None:
+        return None
+
+    def _pair_motion(self, item: Any) -> Motion | None:
+        return None
+
+    def _prev_name(self, item: Any) -> str:
+        return ""
+
+    def sequence_key(self, index: int) -> str | None:
+        """The clip (drive, video, scene) pair ``index`` belongs to; None for an independent pair."""
+        return self._sequence_key(self._item(index))
+
+    def previous_frames(self, index: int, window: int) -> list[PreviousFrame]:
+        """Earlier frames pair ``index``'s current frame can be paired with, 1 to ``window`` frames back
+        (nearest first), without reading images."""
+        item = self._item(index)
+        out: list[PreviousFrame] = []
+        for back in range(1, int(window) + 1):
+            it = self._back(item, back)
+            if it is None:
+                break
+            dt = self._pair_dt(it)
+            out.append(PreviousFrame(back=back, dt=float(dt) if dt is not None else math.nan,
+                                     motion=self._pair_motion(it), name=self._prev_name(it)))
+        return out
+
+    def pair_back(self, index: int, back: int) -> FramePair:
+        """Pair ``index``'s current frame with the frame ``back`` frames earlier (``back = 1``: pair ``index``).
+
+        Raises:
+            InputError: there is no such earlier frame.
+        """
+        item = self._back(self._item(index), int(back))
+        if item is None:
+            raise InputError(f"{type(self).__name__}: pair {index} has no frame {back} frames back")
+        pair = self._load(item)
+        pair.meta["back"] = int(back)
+        return pair
 
 
 def limit_frames(items: list[Any], frames: int | None, what: str) -> list[Any]:

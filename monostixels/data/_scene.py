@@ -164,8 +164,9 @@ class SceneLayout:
 class _Builder:
     """Collects boxes and keeps simple footprint bookkeeping to avoid overlapping objects."""
 
-    def __init__(self, road: RoadLayout) -> None:
+    def __init__(self, road: RoadLayout, ahead_steps: int = 0) -> None:
         self.road = road
+        self.ahead = int(ahead_steps)
         self.rows: list[tuple] = []
         self.objects: list[dict[str, Any]] = []
         self.footprints: list[tuple[float, float, float, float]] = []  # (e0, e1, l0, l1), swept
@@ -173,15 +174,22 @@ class _Builder:
 
     def free(self, e: float, l: float, half_e: float, half_l: float, d_e: float = 0.0, d_l: float = 0.0,
              margin: float = 0.4) -> bool:
-        """Whether the footprint (current and previous position, swept) is free."""
-        e0, e1 = min(e, e - d_e) - half_e - margin, max(e, e - d_e) + half_e + margin
-        l0, l1 = min(l, l - d_l) - half_l - margin, max(l, l - d_l) + half_l + margin
+        """Whether the footprint (previous to current position, and ``ahead`` steps on; swept) is free."""
+        (e0, e1), (l0, l1) = self._sweep(e, d_e), self._sweep(l, d_l)
+        e0, e1 = e0 - half_e - margin, e1 + half_e + margin
+        l0, l1 = l0 - half_l - margin, l1 + half_l + margin
         return all(e1 < a0 or e0 > a1 or l1 < b0 or l0 > b1 for a0, a1, b0, b1 in self.footprints)
 
     def occupy(self, e: float, l: float, half_e: float, half_l: float, d_e: float = 0.0, d_l: float = 0.0) -> None:
-        e0, e1 = min(e, e - d_e) - half_e, max(e, e - d_e) + half_e
-        l0, l1 = min(l, l - d_l) - half_l, max(l, l - d_l) + half_l
-        self.footprints.append((e0, e1, l0, l1))
+        (e0, e1), (l0, l1) = self._sweep(e, d_e), self._sweep(l, d_l)
+        self.footprints.append((e0 - half_e, e1 + half_e, l0 - half_l, l1 + half_l))
+
+    def _sweep(self, x: float, d: float) -> tuple[float, float]:
+        """Range of a coordinate ``x`` moving by ``d`` per step, from one step back to ``ahead`` steps on."""
+        lo, hi = min(x, x - d), max(x, x - d)
+        if self.ahead:
+            lo, hi = min(lo, x + self.ahead * d), max(hi, x + self.ahead * d)
+        return lo, hi
 
     def box(self, e: float, l: float, y_bottom: float, size: tuple[float, float, float], yaw_rel: float,
             cls: int, style: int, inst: int = 0, delta: np.ndarray | None = None, obj: int = -1) -> None:
@@ -273,12 +281,17 @@ def _person_parts(rng: np.random.Generator) -> list[tuple[float, float, float, f
     return [(rng.uniform(0.45, 0.6), rng.uniform(1.6, 1.9), rng.uniform(0.3, 0.4), 0.0, STYLE_CLOTHES)]
 
 
-def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
+def sample_scene(seed: int, density: float = 1.0, ego_speed: float | None = None, ahead_steps: int = 0) -> SceneLayout:
     """Sample the geometry of one street scene from ``seed`` (numpy Generator stream ``[seed, 0]``).
 
     Args:
         seed: scene seed (non-negative int).
         density: multiplier of the number of objects (vehicles, persons, poles, trees).
+        ego_speed: the ego speed (m/s) instead of the sampled one (the random stream is unchanged, so the
+            scene is the same; the yaw per frame scales with the distance driven, and vehicles whose
+            speed follows the ego's, e.g. the preceding car, follow it too). None = sampled.
+        ahead_steps: movers keep their displacement for this many frames after the current one
+            (sequences): their footprints are kept free over that whole sweep. 0 = one pair.
 
     Returns:
         The layout: road, boxes (current positions and displacements), camera motion, objects.
@@ -289,6 +302,9 @@ def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
     # Ego-motion: previous camera centre behind the current one along the mean heading.
     speed = rng.uniform(*EGO_SPEED_RANGE_MPS)
     psi = rng.uniform(-MAX_EGO_YAW_RAD, MAX_EGO_YAW_RAD)
+    if ego_speed is not None:
+        psi *= float(ego_speed) / speed  # same curvature of the path
+        speed = float(ego_speed)
     s = speed * dt
     R = yaw_matrix(psi)
     c_prev = np.array([s * math.sin(psi / 2), 0.0, -s * math.cos(psi / 2)])
@@ -320,7 +336,7 @@ def sample_scene(seed: int, density: float = 1.0) -> SceneLayout:
     l_end = rng.uniform(65.0, 95.0)
     road.l_max = l_end + 20.0
 
-    b = _Builder(road)
+    b = _Builder(road, ahead_steps)
     h_raised = road.height - KERB_HEIGHT_M
 
     # Buildings along both sides, with gaps, and a row across the road that ends the view.

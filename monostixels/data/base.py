@@ -9,7 +9,7 @@ import torch
 from monostixels._checks import check_finite, check_same_size, check_shape
 from monostixels.geometry import Camera, Motion
 
-__all__ = ["GroundTruth", "FramePair"]
+__all__ = ["GroundTruth", "FramePair", "PreviousFrame"]
 
 
 @dataclass
@@ -25,6 +25,10 @@ class GroundTruth:
         instances: (H, W) int64 instance ids (0 = background / stuff).
         moving: (H, W) bool, pixels of objects that move in the world.
         bottoms: (N, 2) float32 ``(u, v)`` stixel-bottom labels (first obstacle meets ground).
+        velocity: (3, H, W) float32 world velocity of the surface seen at each pixel (m/s, relative
+            to the ground, in the *current* camera's axes); 0 on static surfaces, NaN where unknown.
+        ttc: (H, W) float32 time to contact (s): depth over the closing speed along the optical axis
+            of the point relative to the camera; inf where it does not close, NaN where unknown.
     """
 
     depth: torch.Tensor | None = None
@@ -34,6 +38,26 @@ class GroundTruth:
     instances: torch.Tensor | None = None
     moving: torch.Tensor | None = None
     bottoms: torch.Tensor | None = None
+    velocity: torch.Tensor | None = None
+    ttc: torch.Tensor | None = None
+
+
+@dataclass
+class PreviousFrame:
+    """An earlier frame of a sequence that the current frame can be paired with (keyframes).
+
+    Attributes:
+        back: how many of the source's frames (``data.step`` apart) it lies before the current one (>= 1).
+        dt: seconds between it and the current frame.
+        motion: the ground-truth camera motion from the current frame to it (``X_prev = R X_cur + t``)
+            where the source knows it without reading images, else None.
+        name: a stable identifier of that frame.
+    """
+
+    back: int
+    dt: float
+    motion: Motion | None
+    name: str
 
 
 @dataclass

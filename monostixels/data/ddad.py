@@ -51,6 +51,7 @@ from monostixels.data._io import (
     require_file,
 )
 from monostixels.data.base import FramePair, GroundTruth
+from monostixels.geometry import Motion
 
 __all__ = [
     "DDADSource",
@@ -298,6 +299,26 @@ class DDADSource(LazySource):
             sc.calib_cache[key] = by_name
         return sc.calib_cache[key]
 
+    # --- sequences (keyframes) ------------------------------------------------------------------
+    def _sequence_key(self, item: _Pair) -> str:
+        return f"ddad/{item.scene.name}/{self.camera_name}"
+
+    def _back(self, item: _Pair, back: int) -> _Pair | None:
+        i = item.scene.samples.index(item.cur) - int(back)
+        return _Pair(item.scene, item.cur, item.scene.samples[i]) if i >= 0 else None
+
+    def _pair_dt(self, item: _Pair) -> float | None:
+        a, b = _iso_seconds(item.cur.timestamp), _iso_seconds(item.prev.timestamp)
+        return a - b if a is not None and b is not None else None
+
+    def _pair_motion(self, item: _Pair) -> Motion:
+        sc = item.scene
+        return relative_motion(pose_matrix(item.cur.camera.get("pose", {}), f"ddad {sc.name} {self.camera_name} pose"),
+                               pose_matrix(item.prev.camera.get("pose", {}), f"ddad {sc.name} {self.camera_name} pose"))
+
+    def _prev_name(self, item: _Pair) -> str:
+        return f"ddad_{item.scene.name}_{self.camera_name}_{Path(item.prev.camera['filename']).stem}"
+
     # --- loading --------------------------------------------------------------------------------
     def _load(self, item: _Pair) -> FramePair:
         sc = item.scene
@@ -316,8 +337,7 @@ class DDADSource(LazySource):
         image, image_prev = read_image_pair(sc.folder / item.cur.camera["filename"], sc.folder / item.prev.camera["filename"])
         H, W = image.shape[-2:]
         T_w_cam = pose_matrix(item.cur.camera.get("pose", {}), f"ddad {sc.name} {self.camera_name} pose")
-        T_w_cam_prev = pose_matrix(item.prev.camera.get("pose", {}), f"ddad {sc.name} {self.camera_name} pose")
-        motion = relative_motion(T_w_cam, T_w_cam_prev)
+        motion = self._pair_motion(item)
 
         # Ground normal: vehicle up axis (+z) expressed in the camera frame, negated (points down).
         n_g = -T_vehicle_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])
@@ -325,7 +345,12 @@ class DDADSource(LazySource):
         meta: dict[str, Any] = {"source": "ddad", "scene": sc.name, "camera": self.camera_name,
                                 "timestamp": item.cur.timestamp, "timestamp_prev": item.prev.timestamp,
                                 "path": str(sc.folder / item.cur.camera["filename"]),
-                                "path_prev": str(sc.folder / item.prev.camera["filename"])}
+                                "path_prev": str(sc.folder / item.prev.camera["filename"]),
+                                "sequence": self._sequence_key(item), "name_prev": self._prev_name(item),
+                                "frame": sc.samples.index(item.cur), "frame_prev": sc.samples.index(item.prev)}
+        dt = self._pair_dt(item)
+        if dt is not None and dt > 0:
+            meta["dt"] = dt
         height = self.camera_height
         if item.cur.lidar is not None:
             pts_lidar, T_w_lidar, T_vehicle_lidar = self._lidar(sc, item.cur.lidar, calib, cpath)
@@ -337,12 +362,18 @@ class DDADSource(LazySource):
             depth = np.zeros((H, W), dtype=np.float32)
             depth[rows, cols] = X_cam[idx, 2]
             gt.depth = torch.from_numpy(depth)
-            moving_pts, moving_ids = self._moving_points(sc, item, pts_lidar, T_w_lidar)
+            moving_pts, moving_ids, vel_pts = self._moving_points(sc, item, pts_lidar, T_w_lidar)
             if moving_pts is not None:
                 moving = np.zeros((H, W), dtype=bool)
                 moving[rows, cols] = moving_pts[idx]
                 gt.moving = torch.from_numpy(moving)
                 meta["moving_instances"] = moving_ids
+                dt = self._pair_dt(item)
+                if vel_pts is not None and dt is not None and dt > 0:
+                    # Box displacement per second, world axes -> current camera axes; NaN off the LiDAR.
+                    vel = np.full((3, H, W), np.nan, dtype=np.float32)
+                    vel[:, rows, cols] = ((vel_pts[idx] / dt) @ T_w_cam[:3, :3]).T
+                    gt.velocity = torch.from_numpy(vel)
             if height is None:
                 pts_vehicle = pts_lidar @ T_vehicle_lidar[:3, :3].T + T_vehicle_lidar[:3, 3]
                 ground_z = estimate_ground_height(pts_vehicle)
@@ -379,30 +410,46 @@ class DDADSource(LazySource):
         return list(js.get("annotations", []))
 
     def _moving_points(self, sc: _Scene, item: _Pair, pts: np.ndarray, T_w_lidar: np.ndarray
-                       ) -> tuple[np.ndarray | None, list[int]]:
-        """Per LiDAR point: inside a box that moved more than the threshold (None without boxes)."""
+                       ) -> tuple[np.ndarray | None, list[int], np.ndarray | None]:
+        """Per LiDAR point: inside a box that moved more than the threshold, and the world displacement
+        (N, 3) metres previous -> current of the box it lies in (0 outside boxes, NaN in a box without a
+        previous pose); (None, [], None) without boxes."""
         boxes_cur = self._boxes(sc, item.cur.lidar)
         boxes_prev = self._boxes(sc, item.prev.lidar)
         if boxes_cur is None or boxes_prev is None or item.prev.lidar is None:
-            return None, []
+            return None, [], None
         T_w_lidar_prev = pose_matrix(item.prev.lidar.get("pose", {}), f"ddad {sc.name} {self.lidar_name} pose")
         prev_centre = {}
         for b in boxes_prev:
             T = T_w_lidar_prev @ pose_matrix(b["box"]["pose"], f"ddad box {b.get('instance_id')}")
             prev_centre[b["instance_id"]] = T[:3, 3]
         inside_moving = np.zeros(len(pts), dtype=bool)
+        displacement = np.zeros((len(pts), 3))
         moving_ids: list[int] = []
         for b in boxes_cur:
             iid = b["instance_id"]
             T_lidar_box = pose_matrix(b["box"]["pose"], f"ddad box {iid}")
-            if iid not in prev_centre:
-                continue  # new track: its motion is unknown, so it is not marked moving
-            disp = float(np.linalg.norm((T_w_lidar @ T_lidar_box)[:3, 3] - prev_centre[iid]))
-            if disp <= self.moving_threshold:
-                continue
-            moving_ids.append(int(iid))
             T_box_lidar = np.linalg.inv(T_lidar_box)
             Xb = pts @ T_box_lidar[:3, :3].T + T_box_lidar[:3, 3]
             half = 0.5 * np.array([b["box"]["length"], b["box"]["width"], b["box"]["height"]], dtype=np.float64)
-            inside_moving |= np.all(np.abs(Xb) <= half, axis=1)
-        return inside_moving, moving_ids
+            inside = np.all(np.abs(Xb) <= half, axis=1)
+            if iid not in prev_centre:
+                displacement[inside] = np.nan  # new track: its motion is unknown, so it is not marked moving
+                continue
+            d = (T_w_lidar @ T_lidar_box)[:3, 3] - prev_centre[iid]
+            displacement[inside] = d
+            if float(np.linalg.norm(d)) <= self.moving_threshold:
+                continue
+            moving_ids.append(int(iid))
+            inside_moving |= inside
+        return inside_moving, moving_ids, displacement
+
+
+def _iso_seconds(stamp: str) -> float | None:
+    """Seconds since the epoch of an ISO-8601 timestamp (``2463-05-15T00:38:59.203480Z``), None if unparsable."""
+    from datetime import datetime
+
+    try:
+        return datetime.fromisoformat(str(stamp).replace("Z", "+00:00")).timestamp()
+    except ValueError:
+        return None

@@ -43,7 +43,7 @@ from monostixels.data._io import (
     require_dir,
 )
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
+from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
 __all__ = ["FramesSource", "INTRINSICS_NAMES"]
 
@@ -107,6 +107,9 @@ class FramesSource(LazySource):
         pose_of: list[np.ndarray | None] = [None] * len(images)
         if poses is not None:
             pose_of = self._match_poses(Path(poses).expanduser(), images)
+        self.step = int(step)
+        self._images, self._poses = images, pose_of
+        self._index_of = {p: i for i, p in enumerate(images)}
         items = [
             _Pair(i, images[i], images[i - int(step)], pose_of[i], pose_of[i - int(step)])
             for i in range(int(step), len(images))
@@ -135,12 +138,30 @@ class FramesSource(LazySource):
             raise InputError(f"poses: no frame id of {path} matches an image name (numeric file stems) in {images[0].parent}")
         return out
 
+    # --- sequences (keyframes) ------------------------------------------------------------------
+    def _sequence_key(self, item: _Pair) -> str:
+        return f"frames/{self.root}"
+
+    def _back(self, item: _Pair, back: int) -> _Pair | None:
+        j = item.index - int(back) * self.step
+        if j < 0:
+            return None
+        return _Pair(item.index, item.path, self._images[j], item.T_w_cur, self._poses[j])
+
+    def _pair_motion(self, item: _Pair) -> Motion | None:
+        if item.T_w_cur is None or item.T_w_prev is None:
+            return None
+        return relative_motion(item.T_w_cur, item.T_w_prev)
+
+    def _prev_name(self, item: _Pair) -> str:
+        return item.path_prev.stem
+
     def _load(self, item: _Pair) -> FramePair:
         image, image_prev = read_image_pair(item.path, item.path_prev)
-        motion = None
-        if item.T_w_cur is not None and item.T_w_prev is not None:
-            motion = relative_motion(item.T_w_cur, item.T_w_prev)
+        motion = self._pair_motion(item)
         meta = {"source": "frames", "index": item.index, "path": str(item.path), "path_prev": str(item.path_prev),
-                "intrinsics": str(self.intrinsics_path)}
+                "intrinsics": str(self.intrinsics_path), "sequence": self._sequence_key(item),
+                "frame": item.index, "frame_prev": self._index_of[item.path_prev],
+                "name_prev": self._prev_name(item)}
         return FramePair(image=image, image_prev=image_prev, camera=self.camera, motion=motion, gt=GroundTruth(),
                          name=item.path.stem, meta=meta)

@@ -498,16 +498,36 @@ class KittiRawSource(LazySource):
                 raise InputError(f"poses: {path} has a frame id {i!r} that is not a number") from e
         return out
 
+    # --- sequences (keyframes) ------------------------------------------------------------------
+    def _sequence_key(self, item: _Pair) -> str:
+        return f"kitti_raw/{item.drive.date}_drive_{item.drive.drive:04d}"
+
+    def _back(self, item: _Pair, back: int) -> _Pair | None:
+        prev = item.frame - int(back) * self.step
+        return _Pair(item.drive, item.frame, prev) if prev in item.drive.images else None
+
+    def _pair_dt(self, item: _Pair) -> float:
+        d = item.drive
+        if d.times is not None and item.frame in d.times and item.frame_prev in d.times:
+            return d.times[item.frame] - d.times[item.frame_prev]
+        return (item.frame - item.frame_prev) / KITTI_RAW_FPS
+
+    def _pair_motion(self, item: _Pair) -> Motion | None:
+        d = item.drive
+        if d.poses is None or item.frame not in d.poses or item.frame_prev not in d.poses:
+            return None
+        return relative_motion(d.poses[item.frame], d.poses[item.frame_prev])
+
+    def _prev_name(self, item: _Pair) -> str:
+        return f"{item.drive.date}_drive_{item.drive.drive:04d}_{item.frame_prev:010d}"
+
     def _load(self, item: _Pair) -> FramePair:
         d = item.drive
         image, image_prev = read_image_pair(d.images[item.frame], d.images[item.frame_prev])
-        motion: Motion | None = None
-        if d.poses is not None:
-            if item.frame in d.poses and item.frame_prev in d.poses:
-                motion = relative_motion(d.poses[item.frame], d.poses[item.frame_prev])
-            else:
-                logger.warning("kitti_raw: %s lacks frame %d or %d: no ground-truth motion for this pair",
-                               d.motion_source, item.frame, item.frame_prev)
+        motion = self._pair_motion(item)
+        if motion is None and d.poses is not None:
+            logger.warning("kitti_raw: %s lacks frame %d or %d: no ground-truth motion for this pair",
+                           d.motion_source, item.frame, item.frame_prev)
         gt = GroundTruth()
         if d.depth_files is not None and item.frame in d.depth_files:
             f = d.depth_files[item.frame]
@@ -516,14 +536,11 @@ class KittiRawSource(LazySource):
                 raise InputError(f"kitti_raw: depth {f} is {depth.shape[1]}x{depth.shape[0]}, image "
                                  f"{d.images[item.frame]} is {image.shape[-1]}x{image.shape[-2]}")
             gt.depth = torch.from_numpy(depth)
-        if d.times is not None and item.frame in d.times and item.frame_prev in d.times:
-            dt = d.times[item.frame] - d.times[item.frame_prev]
-        else:
-            dt = (item.frame - item.frame_prev) / KITTI_RAW_FPS
+        dt = self._pair_dt(item)
         meta: dict = {"source": "kitti_raw", "date": d.date, "drive": d.drive, "frame": item.frame,
                       "frame_prev": item.frame_prev, "path": str(d.images[item.frame]),
-                      "path_prev": str(d.images[item.frame_prev]), "dt": dt,
-                      "sequence": f"kitti_raw/{d.date}_drive_{d.drive:04d}", "motion_source": d.motion_source}
+                      "path_prev": str(d.images[item.frame_prev]), "dt": dt, "name_prev": self._prev_name(item),
+                      "sequence": self._sequence_key(item), "motion_source": d.motion_source}
         if d.bottoms is not None and item.frame in d.bottoms:
             pts, splits = d.bottoms[item.frame]
             gt.bottoms = torch.from_numpy(pts.copy())

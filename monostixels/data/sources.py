@@ -43,13 +43,31 @@ def _frames(data: Any) -> int | None:
 
 
 def _synthetic(data: Any, camera: Any) -> Sequence[FramePair]:
-    from monostixels.data.synthetic import SyntheticSource  # written separately; imported lazily
+    from monostixels.data.synthetic import SyntheticSequenceSource, SyntheticSource  # imported lazily
 
-    return SyntheticSource(
-        int(_get(data, "frames", 1)),
+    length = _get(data, "sequence_length", 1)
+    if isinstance(length, bool) or not isinstance(length, int) or length < 1:
+        raise InputError(f"data.sequence_length: frames per synthetic clip, an integer >= 1, got {length!r}")
+    speed = _get(data, "ego_speed_mps")
+    if length == 1:
+        if speed is not None:
+            raise InputError("data.ego_speed_mps: only for synthetic sequences (data.sequence_length > 1)")
+        return SyntheticSource(
+            int(_get(data, "frames", 1)),
+            seed=int(_get(data, "seed", 0)),
+            scale=float(_get(data, "scale", 1.0)),
+            density=float(_get(data, "density", 1.0)),
+        )
+    try:
+        speed = None if speed is None else float(speed)
+    except (TypeError, ValueError):
+        raise InputError(f"data.ego_speed_mps: a speed in m/s or null, got {speed!r}") from None
+    return SyntheticSequenceSource(
+        int(_get(data, "frames", 1)), length,
         seed=int(_get(data, "seed", 0)),
         scale=float(_get(data, "scale", 1.0)),
         density=float(_get(data, "density", 1.0)),
+        ego_speed=speed,
     )
 
 

@@ -43,10 +43,11 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data._scene import (
+    FRAME_INTERVAL_S,
     BUILDING, KERB_HEIGHT_M, PERSON, POLE, ROAD, SIDEWALK, SKY, STYLE_CLOTHES, STYLE_FACADE,
     STYLE_GLASS, TERRAIN, TWO_WHEELER, VEGETATION, VEHICLE, RoadLayout, SceneLayout, sample_scene,
 )
-from monostixels.data.base import FramePair, GroundTruth
+from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion, intrinsics
 
 __all__ = [
@@ -55,6 +56,8 @@ __all__ = [
     "render_pair",
     "synthetic_camera",
     "SyntheticSource",
+    "SyntheticSequence",
+    "SyntheticSequenceSource",
 ]
 
 logger = logging.getLogger(__name__)
@@ -275,9 +278,10 @@ class _Geometry:
     layout: SceneLayout
 
 
-def _geometry(layout: SceneLayout, previous: bool) -> _Geometry:
+def _geometry(layout: SceneLayout, shift: int) -> _Geometry:
+    """The geometry ``shift`` frames after the current one (-1 = the previous frame): movers at ``c + shift Δ``."""
     bx = layout.boxes
-    centre = bx.centre - bx.delta if previous else bx.centre
+    centre = bx.centre + shift * bx.delta if shift else bx.centre
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
     local = signs[None] * bx.half[:, None, :]  # B x 8 x 3
     c, s = np.cos(bx.yaw), np.sin(bx.yaw)
@@ -647,11 +651,12 @@ def _sky(app: _Appearance, d: torch.Tensor) -> torch.Tensor:
 
 
 def _render(app: _Appearance, geo: _Geometry, t: torch.Tensor, pid: torch.Tensor, origin: np.ndarray,
-            Rwc: np.ndarray, K: np.ndarray, previous: bool) -> tuple[torch.Tensor, _Surface, torch.Tensor]:
+            Rwc: np.ndarray, K: np.ndarray, shift: int) -> tuple[torch.Tensor, _Surface, torch.Tensor]:
     """Colours (3, H, W) of a cast grid (t, pid (H, W)), the surfaces (N = H W) and the hit mask (N,).
 
-    ``previous``: the geometry is at the previous time; the texture footprint is then taken at each
-    point's current-frame position ``P + Δ`` so both frames see the same texture.
+    ``shift``: the geometry is ``shift`` frames after the current time (-1 = previous); the texture
+    footprint is then taken at each point's current-frame position ``P - shift Δ`` so every frame sees the
+    same texture.
     """
     H, W = t.shape
     x = (torch.arange(W, dtype=torch.float32) - float(K[0, 2])) / float(K[0, 0])
@@ -665,9 +670,9 @@ def _render(app: _Appearance, geo: _Geometry, t: torch.Tensor, pid: torch.Tensor
     P = o + torch.where(hit, t, 1.0)[:, None] * d
     surf = _surface(geo, P, pid)
     P_cur = P
-    if previous and len(geo.layout.boxes):
+    if shift and len(geo.layout.boxes):
         delta = torch.tensor(geo.layout.boxes.delta, dtype=torch.float32)[surf.box.clamp_min(0)]
-        P_cur = P + torch.where((surf.box >= 0)[:, None], delta, 0.0)
+        P_cur = P + torch.where((surf.box >= 0)[:, None], delta if shift == -1 else -shift * delta, 0.0)
     colour = _shade(app, geo.layout, surf, P_cur, float(K[0, 0]))
     sky = torch.nonzero(~hit).squeeze(1)
     if sky.numel():
@@ -803,18 +808,18 @@ def render_pair(seed: int, *, scale: float = 1.0, density: float = 1.0,
 
     with torch.no_grad():
         # Current frame: the world frame, camera at the origin.
-        geo_cur = _geometry(layout, previous=False)
+        geo_cur = _geometry(layout, 0)
         eye, zero = np.eye(3), np.zeros(3)
         t_cur, pid_cur = _cast_grid(geo_cur, zero, eye, K, (H, W))
-        img_cur, surf, hit = _render(app, geo_cur, t_cur, pid_cur, zero, eye, K, previous=False)
+        img_cur, surf, hit = _render(app, geo_cur, t_cur, pid_cur, zero, eye, K, 0)
 
         # Previous frame: X_prev = R X + t, so the camera centre is -R^T t and world-from-camera
         # is R^T; moving boxes sit at X - Δ.
         R, tv = layout.R, layout.t
         o_prev, Rwc_prev = -R.T @ tv, R.T
-        geo_prev = _geometry(layout, previous=True)
+        geo_prev = _geometry(layout, -1)
         t_prev, pid_prev = _cast_grid(geo_prev, o_prev, Rwc_prev, K, (H, W))
-        img_prev, surf_prev, _ = _render(app, geo_prev, t_prev, pid_prev, o_prev, Rwc_prev, K, previous=True)
+        img_prev, surf_prev, _ = _render(app, geo_prev, t_prev, pid_prev, o_prev, Rwc_prev, K, -1)
 
         # Ground-truth flow (float64): X_prev = R (X_cur - Δ) + t, projected; sky moves by R only.
         vv, uu = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
@@ -918,4 +923,227 @@ class SyntheticSource:
 
     def __iter__(self) -> Iterator[FramePair]:
         for i in range(self.frames):
+            yield self[i]
+
+
+# ----------------------------------------------------------------------------------------------
+# Sequences: one scene, consecutive frames
+# ----------------------------------------------------------------------------------------------
+def _step_pose(R: np.ndarray, t: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(origin (3,), world-from-camera rotation (3, 3)) of the camera ``step`` frames after the world frame.
+
+    The ego repeats the pair's motion every frame: ``X_{k-1} = R X_k + t``, so camera ``k`` maps into the
+    world (camera 0) by ``M^k`` with ``M(X) = R X + t``; ``k = -1`` is ``M^-1`` (the previous frame of
+    :func:`render_pair`).
+    """
+    if step < 0:
+        Rwc, o = np.eye(3), np.zeros(3)
+        for _ in range(-step):  # M^-1: X_k = R^T (X_{k-1} - t)
+            o = Rwc @ (-R.T @ t) + o
+            Rwc = Rwc @ R.T
+        return o, Rwc
+    Rwc, o = np.eye(3), np.zeros(3)
+    for _ in range(step):
+        o = Rwc @ t + o
+        Rwc = Rwc @ R
+    return o, Rwc
+
+
+@dataclass
+class _View:
+    """One rendered frame of a sequence: image, grid cast, surfaces and the camera pose."""
+
+    image: torch.Tensor     # (3, H, W)
+    t: torch.Tensor         # (H, W) ray parameter = depth (rays have z = 1)
+    pid: torch.Tensor       # (H, W) primitive ids (-1 = sky)
+    surf: _Surface
+    hit: torch.Tensor       # (N,) bool
+    origin: np.ndarray      # (3,) camera centre in the world (camera 0)
+    Rwc: np.ndarray         # (3, 3) world-from-camera rotation
+
+
+class SyntheticSequence:
+    """One street scene seen over consecutive frames: constant ego motion, movers at constant velocity.
+
+    Frame ``j`` (0-based) is rendered ``j - 1`` frames after the current frame of :func:`render_pair` of
+    the same seed, so ``pair(1, 0)`` shows the scene of ``render_pair(seed)`` (with a sequence's mover
+    footprints kept free over ``length`` frames, the scene may hold fewer movers than the single pair).
+
+    Args:
+        seed: scene seed.
+        length: frames after the first (pairs ``(j, j - 1)`` for ``j = 1..length``).
+        scale, density, appearance_seed: as :func:`render_pair`.
+        ego_speed: ego speed (m/s), None = the scene's own (8-15 m/s).
+        cache: rendered frames kept for reuse (a keyframe pair reads frames rendered before).
+    """
+
+    def __init__(self, seed: int, length: int, *, scale: float = 1.0, density: float = 1.0,
+                 ego_speed: float | None = None, appearance_seed: int | None = None, cache: int = 12) -> None:
+        self.seed = _check_int(seed, "seed", 0)
+        self.length = _check_int(length, "sequence_length", 1)
+        self.scale = _check_scale(scale)
+        density = _check_density(density)
+        if ego_speed is not None and not (isinstance(ego_speed, (int, float)) and math.isfinite(ego_speed) and ego_speed >= 0):
+            raise InputError(f"data.ego_speed_mps: a speed >= 0 m/s or null, got {ego_speed!r}")
+        self.layout = sample_scene(self.seed, density, ego_speed=ego_speed, ahead_steps=self.length - 1)
+        self.app = _sample_appearance(self.layout, self.seed if appearance_seed is None else appearance_seed,
+                                      appearance_seed is not None)
+        self.camera = synthetic_camera(self.scale)
+        self.size = (round(KITTI_IMAGE_SIZE[0] * self.scale), round(KITTI_IMAGE_SIZE[1] * self.scale))
+        self._cache: dict[int, _View] = {}
+        self._cache_size = max(2, int(cache))
+
+    def pose(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """(origin, world-from-camera rotation) of frame ``j``; the world is frame 1's camera."""
+        return _step_pose(self.layout.R, self.layout.t, j - 1)
+
+    def motion(self, j: int, k: int) -> Motion:
+        """Camera motion from frame ``j`` to frame ``k``: ``X_k = R X_j + t``."""
+        o_j, R_j = self.pose(j)
+        o_k, R_k = self.pose(k)
+        return Motion(R=torch.from_numpy(R_k.T @ R_j), t=torch.from_numpy(R_k.T @ (o_j - o_k)))
+
+    def _view(self, j: int) -> _View:
+        if j in self._cache:
+            return self._cache[j]
+        K = self.camera.K.numpy()
+        o, Rwc = self.pose(j)
+        with torch.no_grad():
+            geo = _geometry(self.layout, j - 1)
+            t, pid = _cast_grid(geo, o, Rwc, K, self.size)
+            img, surf, hit = _render(self.app, geo, t, pid, o, Rwc, K, j - 1)
+        view = _View(img, t, pid, surf, hit, o, Rwc)
+        if len(self._cache) >= self._cache_size:
+            self._cache.pop(min(self._cache))
+        self._cache[j] = view
+        return view
+
+    def pair(self, j: int, k: int) -> FramePair:
+        """Frame ``j`` (current) with frame ``k < j`` (previous) and the ground truth of frame ``j``.
+
+        Ground truth as :func:`render_pair`, for the pair ``(j, k)`` (a mover has moved ``(j - k) Δ``),
+        plus ``velocity`` (3, H, W) m/s in frame ``j``'s camera axes (0 on static surfaces, NaN on sky) and
+        ``ttc`` (H, W) seconds: depth over the closing speed along the optical axis relative to the camera
+        (inf where not closing, NaN on sky).
+        """
+        if not (0 <= k < j <= self.length):
+            raise InputError(f"synthetic sequence: need 0 <= previous < current <= {self.length}, got {k}, {j}")
+        H, W = self.size
+        N = H * W
+        K = self.camera.K.numpy()
+        cur, prev = self._view(j), self._view(k)
+        dt = FRAME_INTERVAL_S
+        with torch.no_grad():
+            vv, uu = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+            u, v = uu.reshape(-1), vv.reshape(-1)
+            ray = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones(N, dtype=torch.float64)], -1)
+            hit = cur.hit
+            depth = torch.where(hit, cur.t.reshape(-1).double(), 0.0)
+            delta = torch.zeros(N, 3, dtype=torch.float64)
+            if len(self.layout.boxes):
+                box_delta = torch.tensor(self.layout.boxes.delta, dtype=torch.float64)[cur.surf.box.clamp_min(0)]
+                delta = torch.where((cur.surf.box >= 0)[:, None], box_delta, 0.0)
+            Rj, oj = torch.from_numpy(cur.Rwc), torch.from_numpy(cur.origin)
+            Rk, ok = torch.from_numpy(prev.Rwc), torch.from_numpy(prev.origin)
+            Xw = (ray * depth[:, None]) @ Rj.T + oj - (j - k) * delta
+            Xp = torch.where(hit[:, None], (Xw - ok) @ Rk, ray @ Rj.T @ Rk)
+            zp = Xp[:, 2]
+            up = K[0, 0] * Xp[:, 0] / zp + K[0, 2]
+            vp = K[1, 1] * Xp[:, 1] / zp + K[1, 2]
+            flow = torch.stack([up - u, vp - v], 0)
+            key_cur = cur.pid.reshape(-1) * 16 + cur.surf.face
+            key_prev = (prev.pid.reshape(-1) * 16 + prev.surf.face).view(H, W)
+            valid = _flow_validity(prev.t, key_prev, key_cur, hit, up, vp, zp)
+            # Velocities in frame j's camera axes; the camera moves by one frame's step per dt.
+            vel = (delta / dt) @ Rj
+            o_before, _ = self.pose(j - 1)
+            v_cam = torch.from_numpy(cur.Rwc.T @ (cur.origin - o_before) / dt)
+            closing = -(vel[:, 2] - v_cam[2])
+            ttc = torch.where(closing > 1e-6, depth / closing.clamp_min(1e-6), torch.full_like(depth, math.inf))
+            nan = torch.full_like(depth, math.nan)
+            vel = torch.where(hit[:, None], vel, nan[:, None])
+            ttc = torch.where(hit, ttc, nan)
+        instances = torch.where(hit, cur.surf.inst, 0)
+        moving_inst = [o["instance"] for o in self.layout.objects if o["moving"]]
+        moving = torch.isin(instances, torch.tensor(moving_inst, dtype=torch.int64)) & (instances > 0)
+        gt = GroundTruth(
+            depth=depth.float().view(H, W), flow=flow.float().view(2, H, W), flow_valid=valid.view(H, W),
+            labels=cur.surf.cls.view(H, W), instances=instances.view(H, W), moving=moving.view(H, W),
+            velocity=vel.T.float().reshape(3, H, W).contiguous(), ttc=ttc.float().view(H, W),
+        )
+        meta = {"seed": self.seed, "scene_seed": self.seed, "ego_speed": self.layout.ego_speed,
+                "objects": self.layout.objects, "frame": j, "frame_prev": k, "dt": dt * (j - k)}
+        return FramePair(image=cur.image, image_prev=prev.image, camera=self.camera, motion=self.motion(j, k),
+                         gt=gt, name=f"synthetic_{self.seed:06d}_{j:03d}", meta=meta)
+
+
+class SyntheticSequenceSource:
+    """Clips of consecutive synthetic frames (``data.sequence_length > 1``): keyframes and tracks run on them.
+
+    Clip ``c`` of source seed ``s`` is :class:`SyntheticSequence` of scene seed ``s * 100_000 + c``; its
+    pairs are frames ``j = 1..length`` with frame ``j - 1`` (``pair_back`` reaches further back). Pair
+    names are ``synthetic_{s}_{c:06d}_{j:03d}``.
+
+    Args:
+        clips: number of clips (``data.frames``).
+        length: frames per clip (``data.sequence_length``; pairs per clip).
+        seed, scale, density: as :class:`SyntheticSource`.
+        ego_speed: ego speed (m/s, ``data.ego_speed_mps``); None = each scene's own.
+    """
+
+    def __init__(self, clips: int, length: int, seed: int = 0, scale: float = 1.0, density: float = 1.0,
+                 ego_speed: float | None = None) -> None:
+        self.clips = _check_int(clips, "frames", 1)
+        self.length = _check_int(length, "sequence_length", 1)
+        self.seed = _check_int(seed, "seed", 0)
+        if self.clips > SOURCE_SEED_STRIDE:
+            raise InputError(f"frames: at most {SOURCE_SEED_STRIDE} clips per source seed, got {clips}")
+        self.scale = _check_scale(scale)
+        self.density = _check_density(density)
+        self.ego_speed = None if ego_speed is None else float(ego_speed)
+        if self.ego_speed is not None and not (math.isfinite(self.ego_speed) and self.ego_speed >= 0):
+            raise InputError(f"data.ego_speed_mps: a speed >= 0 m/s or null, got {ego_speed!r}")
+        self._clip: tuple[int, SyntheticSequence] | None = None
+
+    def __len__(self) -> int:
+        return self.clips * self.length
+
+    def _locate(self, i: int) -> tuple[int, int]:
+        if isinstance(i, bool) or not isinstance(i, (int, np.integer)):
+            raise InputError(f"index: expected an integer, got {i!r}")
+        i = int(i) + (len(self) if int(i) < 0 else 0)
+        if not 0 <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} frame pairs")
+        return i // self.length, i % self.length + 1
+
+    def sequence(self, clip: int) -> SyntheticSequence:
+        """The clip's scene (the last one used is kept: its rendered frames are reused)."""
+        if self._clip is None or self._clip[0] != clip:
+            self._clip = (clip, SyntheticSequence(self.seed * SOURCE_SEED_STRIDE + clip, self.length, scale=self.scale,
+                                                  density=self.density, ego_speed=self.ego_speed))
+        return self._clip[1]
+
+    def sequence_key(self, i: int) -> str:
+        return f"synthetic/{self.seed}/{self._locate(i)[0]}"
+
+    def previous_frames(self, i: int, window: int) -> list[PreviousFrame]:
+        clip, j = self._locate(i)
+        seq = self.sequence(clip)
+        return [PreviousFrame(back=b, dt=FRAME_INTERVAL_S * b, motion=seq.motion(j, j - b),
+                              name=f"synthetic_{self.seed}_{clip:06d}_{j - b:03d}")
+                for b in range(1, min(int(window), j) + 1)]
+
+    def pair_back(self, i: int, back: int) -> FramePair:
+        clip, j = self._locate(i)
+        pair = self.sequence(clip).pair(j, j - int(back))
+        pair.name = f"synthetic_{self.seed}_{clip:06d}_{j:03d}"
+        pair.meta.update({"seed": self.seed, "clip": clip, "sequence": self.sequence_key(i), "back": int(back),
+                          "name_prev": f"synthetic_{self.seed}_{clip:06d}_{j - int(back):03d}"})
+        return pair
+
+    def __getitem__(self, i: int) -> FramePair:
+        return self.pair_back(i, 1)
+
+    def __iter__(self) -> Iterator[FramePair]:
+        for i in range(len(self)):
             yield self[i]

@@ -151,6 +151,7 @@ class VideoSource(LazySource):
         self._cap: Any = None
         self._pos = 0  # index of the next frame the capture returns
         self._cache: dict[int, torch.Tensor] = {}
+        self._keep = self.step  # decoded frames kept behind the newest (video frames)
         logger.info("video: %d frame pairs from %s (%dx%d -> %dx%d, %s fps, intrinsics %s)", len(self._items),
                     self.path, W0, H0, self.size[1], self.size[0], f"{self.fps:g}" if self.fps else "unknown",
                     self.intrinsics_source)
@@ -204,15 +205,32 @@ class VideoSource(LazySource):
             img = cv2.resize(img, (self.size[1], self.size[0]), interpolation=cv2.INTER_AREA)
         rgb = np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).transpose(2, 0, 1))
         t = torch.from_numpy(rgb).float() / _MAX_U8
-        self._cache = {k: v for k, v in self._cache.items() if k >= index - self.step} | {index: t}
+        self._cache = {k: v for k, v in self._cache.items() if k >= index - self._keep} | {index: t}
         return t
 
+    # --- sequences (keyframes) ------------------------------------------------------------------
+    def _sequence_key(self, item: _Pair) -> str:
+        return f"video/{self.path}"
+
+    def _back(self, item: _Pair, back: int) -> _Pair | None:
+        prev = item.frame - int(back) * self.step
+        return _Pair(item.frame, prev) if prev >= self.start else None
+
+    def _pair_dt(self, item: _Pair) -> float | None:
+        return (item.frame - item.frame_prev) / self.fps if self.fps else None
+
+    def _prev_name(self, item: _Pair) -> str:
+        return f"{self.path.stem}_{item.frame_prev:06d}"
+
     def _load(self, item: _Pair) -> FramePair:
+        # The oldest frame first: the capture decodes forward, and keyframes reach back several frames.
+        self._keep = max(self._keep, item.frame - item.frame_prev)
         image_prev = self._frame(item.frame_prev)
         image = self._frame(item.frame)
-        dt = self.step / self.fps if self.fps else None
+        dt = self._pair_dt(item)
         meta: dict[str, Any] = {"source": "video", "path": str(self.path), "frame": item.frame,
-                                "frame_prev": item.frame_prev, "sequence": f"video/{self.path}",
+                                "frame_prev": item.frame_prev, "sequence": self._sequence_key(item),
+                                "name_prev": self._prev_name(item),
                                 "intrinsics": self.intrinsics_source}
         if dt is not None:
             meta["dt"] = dt

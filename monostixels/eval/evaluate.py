@@ -23,7 +23,8 @@ from monostixels.eval.metrics import (
 )
 from monostixels.inputs.flow import flow_metrics
 from monostixels.inputs.motion import motion_errors
-from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
+from monostixels.eval.temporal import TemporalAccumulator
+from monostixels.sequence import SequenceRunner
 from monostixels.stixels import StixelWorld
 
 __all__ = ["evaluate", "predicted_bottoms", "moving_stixel_mask", "frame_interval", "write_report", "SPLITS", "MOTION_KEYS"]
@@ -63,11 +64,16 @@ def moving_stixel_mask(stixels: StixelWorld, dt: float, speed_mps: float) -> tor
     """Pixels (H, W) bool in stixels whose estimated world motion is faster than ``speed_mps``.
 
     Args:
-        stixels: the result of one frame (``motion`` (N, 3) metres between the two frames).
+        stixels: the result of one frame: its world ``velocity`` (N, 3) m/s where the sequence layer
+            set it (filtered by the tracks), else ``motion`` (N, 3) metres between the two frames.
         dt: seconds between the two frames.
         speed_mps: speed threshold (m/s).
     """
-    speed = stixels.motion.double().norm(dim=1) / dt
+    velocity = getattr(stixels, "velocity", None)
+    if velocity is not None:
+        speed = velocity.double().norm(dim=1)
+    else:
+        speed = stixels.motion.double().norm(dim=1) / dt
     fast = torch.cat([speed > speed_mps, torch.zeros(1, dtype=torch.bool)])  # index -1 = no stixel
     return fast[stixels.index_map()]
 
@@ -123,8 +129,11 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         cannot be estimated is scored with no estimate (every ground-truth pixel clamped as
         invalid) and listed under ``failed_frames``.
     """
-    pipe = Pipeline(cfg)
+    runner = SequenceRunner(cfg)
     lo, hi = float(cfg.eval.min_depth), float(cfg.eval.max_depth)
+    temporal = TemporalAccumulator(lo, hi)
+    sequential = hasattr(source, "sequence_key") and len(source) > 0 and source.sequence_key(0) is not None
+    last_frame: tuple[Any, str, torch.Tensor | None] | None = None  # sequence, name, pose of the last frame
     acc = {m: {s: DepthAccumulator(min_depth=lo, max_depth=hi) for s in SPLITS} for m in ("monostixels", "sfm")}
     n_stixels: list[int] = []
     n_pixels: list[int] = []
@@ -149,16 +158,15 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         total = len(source)  # type: ignore[arg-type]
     except TypeError:
         total = None
-    for pair in tqdm(source, total=total, desc=f"eval {dataset}", disable=not progress, unit="frame"):
+    bar = tqdm(total=total, desc=f"eval {dataset}", disable=not progress, unit="frame")
+    for step in runner.run(source, progress=bar):
         frames += 1
+        pair, res = step.pair, step.result
         gt = pair.gt
-        try:
-            res: PipelineResult | None = pipe.run(pair)
-        except MotionEstimationError as err:
+        if res is None:
             # Not dropped: the frame counts, with no estimate (clamped like any invalid depth).
-            logger.warning("%s; scored with invalid estimates", err)
+            logger.warning("%s; scored with invalid estimates", step.error)
             failed.append(pair.name)
-            res = None
         n_stixels.append(len(res.stixels) if res is not None else 0)
         n_pixels.append(pair.size[0] * pair.size[1])
         if gt.depth is not None:
@@ -174,8 +182,19 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
                 for m in acc:
                     acc[m][s].add(pred[m], gt.depth, mask)
         if res is None:
+            last_frame = None
             continue
         st = res.stixels
+        if sequential:
+            seq = pair.meta.get("sequence")
+            gt_motion = None
+            if last_frame is not None and last_frame[0] == seq:
+                cands = source.previous_frames(step.index, 1)
+                if cands and cands[0].name == last_frame[1]:
+                    gt_motion = cands[0].motion
+            temporal.add(st, res.pose, gt, pair.meta, gt_motion,
+                         last_frame[2] if last_frame is not None and last_frame[0] == seq else None)
+            last_frame = (seq, pair.name, res.pose)
         dt = frame_interval(pair, default_dt)
         fast = moving_stixel_mask(st, dt, speed_mps)
         mv_counts["all"][0] += int(fast.sum())
@@ -203,6 +222,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
             bottoms_gt += gt.bottoms[:, 1].tolist()
         if on_result is not None:
             on_result(res)
+    bar.close()
     if frames == 0:
         raise ValueError(f"eval: the data source {dataset!r} yielded no frame pairs")
 
@@ -233,6 +253,9 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         if mv_counts["moving"][1]:
             sm["moving_recall"] = mv_counts["moving"][0] / mv_counts["moving"][1]
         report["stixel_motion"] = sm
+    if sequential and temporal.frames:
+        report["temporal"] = {**temporal.result(), "tracking": bool(runner.track_params.enabled),
+                              "keyframes_min_distance_m": runner.keyframes.min_distance_m}
     if sem_used:
         report["semantic"] = sem_acc.result()
     if bottoms_gt:

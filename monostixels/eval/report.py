@@ -6,7 +6,7 @@ The report dict is what ``monostixels eval ... out=FILE.json`` writes::
      "methods": {"monostixels": {"overall": M, "static": M, "moving": M, "compactness": float,
                                  "seconds_per_frame": float},
                  "sfm": {"overall": M, "static": M, "moving": M, "compactness": float}},
-     # optional: "flow", "motion", "stixel_motion", "semantic", "bottoms"}
+     # optional: "flow", "motion", "stixel_motion", "temporal", "semantic", "bottoms"}
 
 Rows: compactness, then overall / static / moving x (Rel. error %, RMSE m, the four threshold
 accuracies %); columns: the SfM baseline, then Mono-Stixels (then any other method).
@@ -100,6 +100,14 @@ def _extra_sections(report: dict) -> list[tuple[str, list[str], list[list[str]]]
         if "moving_recall" in sm:
             rows.append(["of ground-truth moving pixels [%]", _num(sm.get("moving_recall"), 100.0, 2)])
         out.append(("Stixel motion", ["metric", "value"], rows))
+    tmp = report.get("temporal")
+    if tmp:
+        rows = [["tracking", "on" if tmp.get("tracking") else "off"],
+                ["velocity error, moving pixels [m/s]", _num(tmp.get("velocity_err_mps"), 1.0, 3)],
+                ["speed of static object pixels [m/s]", _num(tmp.get("static_speed_mps"), 1.0, 3)],
+                ["TTC relative error, closing < 10 s", _num(tmp.get("ttc_rel_err"), 1.0, 3)],
+                ["depth jitter frame to frame", _num(tmp.get("depth_jitter"), 1.0, 4)]]
+        out.append(("Temporal", ["metric", "value"], rows))
     sem = report.get("semantic")
     if sem:
         rows = [["mIoU", _num(sem.get("miou"), 100.0, 2)]]

@@ -1,0 +1,280 @@
+"""Video as the unit: keyframes, the stream state carried from frame to frame, tracks and time-to-collision.
+
+:class:`SequenceRunner` runs a :class:`~monostixels.pipeline.Pipeline` over a data source frame by frame.
+For a source of sequences (drives, videos, folders of frames, synthetic clips: the sources implement
+``sequence_key``, ``previous_frames`` and ``pair_back``, see :class:`monostixels.data._io.LazySource`):
+
+1. **Keyframes** (paper: "keyframes with a minimum driven distance of 0.5 m"). The current frame is
+   paired with the most recent earlier frame, at most ``keyframes.window`` frames back, whose driven
+   distance is at least ``keyframes.min_distance_m``. The distance is the ground truth's where the
+   motion comes from it (``motion=gt|file``), else the stream's speed estimate (the last pairs' ``|t|``
+   over their time) times the time between the frames. Where no frame in the window is far enough:
+   the oldest one if it lies more than ``solver.min_translation`` away (the most baseline there is),
+   else the previous frame (a standing camera: the shortest interval keeps the movers' flow small).
+   ``keyframes.min_distance_m = 0`` always pairs with the previous frame.
+2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
+   scene model), but the movers still are found and measured from the flow: their depth from the
+   ground contact, their motion from ``t̃``. Static stixels whose track was measured with a baseline
+   keep the track's depth (``flags["carried_stixels"]``).
+3. **Tracks** (:mod:`monostixels.tracking`): every object stixel gets a ``track_id``, a filtered depth
+   and a world velocity (m/s, world = the sequence's first camera); with ``temporal.enabled=false``
+   velocities come from the pair alone and no depth is filtered.
+4. **Time to collision** per object stixel (``ttc_s``), and the frame's pose (camera to world).
+
+Independent pairs (KITTI 2015, synthetic pairs) pass through with single-pair velocities and TTC.
+
+Convention: camera motion ``X_prev = R X_cur + t``; a pose is camera-to-world, ``X_w = R_wc X_c + o``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any, Iterator, Sequence
+
+import torch
+from omegaconf import DictConfig
+
+from monostixels._checks import InputError
+from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.data.base import FramePair, PreviousFrame
+from monostixels.geometry import Motion
+from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
+from monostixels.stixels import StixelWorld
+from monostixels.tracking import Tracks, TrackParams, TtcParams, critical, stixel_points, time_to_collision
+
+__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class KeyframeParams:
+    """Keyframe choice (config group ``keyframes``).
+
+    Attributes:
+        min_distance_m: the least driven distance between the two frames of a pair (metres; 0 = always
+            the previous frame). The paper's: 0.5 m.
+        window: earlier frames considered (>= 1).
+    """
+
+    min_distance_m: float = 0.5
+    window: int = 10
+
+    def __post_init__(self) -> None:
+        v = self.min_distance_m
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+            raise InputError(f"keyframes.min_distance_m: a distance >= 0 metres, got {v!r}")
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise InputError(f"keyframes.window: an integer >= 1 (earlier frames considered), got {self.window!r}")
+
+    @staticmethod
+    def from_config(cfg: Any) -> "KeyframeParams":
+        d = KeyframeParams()
+        if cfg is None:
+            return d
+        known = {"min_distance_m", "window", "name"}
+        extra = [k for k in cfg.keys() if k not in known]
+        if extra:
+            raise InputError(f"keyframes: unknown setting(s) {', '.join(map(str, extra))}; known: min_distance_m, window")
+        return KeyframeParams(min_distance_m=cfg.get("min_distance_m", d.min_distance_m), window=cfg.get("window", d.window))
+
+
+def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams, speed_mps: float | None,
+                    use_gt_motion: bool, standing_m: float) -> tuple[int, float | None]:
+    """Frames back (>= 1) of the earlier frame to pair with, and its estimated driven distance (m, None = unknown).
+
+    Args:
+        candidates: earlier frames, nearest first (``back`` 1, 2, ...).
+        params: keyframe settings.
+        speed_mps: the stream's speed estimate (m/s), None before the first pair.
+        use_gt_motion: measure the distance with the candidates' ground-truth motion where they have it.
+        standing_m: below this distance the camera counts as standing (``solver.min_translation``).
+    """
+    if not candidates:
+        raise InputError("keyframes: the current frame has no earlier frame to pair with")
+
+    def distance(c: PreviousFrame) -> float | None:
+        if use_gt_motion and c.motion is not None:
+            return c.motion.translation_norm
+        if speed_mps is not None and math.isfinite(c.dt):
+            return speed_mps * c.dt
+        return None
+
+    dist = [distance(c) for c in candidates]
+    if params.min_distance_m == 0 or dist[0] is None:
+        return candidates[0].back, dist[0]
+    for c, d in zip(candidates, dist):
+        if d is not None and d >= params.min_distance_m:
+            return c.back, d
+    known = [(c, d) for c, d in zip(candidates, dist) if d is not None]
+    c_far, d_far = known[-1]
+    if d_far > standing_m:
+        return c_far.back, d_far
+    return candidates[0].back, dist[0]
+
+
+def motion_matrix(motion: Motion) -> torch.Tensor:
+    """The (4, 4) transform from the current to the earlier camera: ``[R t; 0 1]`` (``X_prev = R X_cur + t``)."""
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = motion.R.double()
+    T[:3, 3] = motion.t.double()
+    return T
+
+
+@dataclass
+class SequenceStep:
+    """One processed frame: the source index, the pair solved, and the result (None: motion failed)."""
+
+    index: int
+    pair: FramePair
+    result: PipelineResult | None
+    error: str | None = None
+
+
+@dataclass
+class _Frame:
+    """What the stream keeps of a processed frame."""
+
+    name: str
+    time: float
+    pose: torch.Tensor           # (4, 4) camera-to-world
+
+
+class SequenceRunner:
+    """Frames of a data source through the pipeline, with keyframes, tracks and TTC (module docstring).
+
+    Args:
+        cfg: the composed config (groups keyframes, temporal, ttc beside the pipeline's).
+        pipeline: the per-pair pipeline (built from ``cfg`` when None).
+    """
+
+    def __init__(self, cfg: DictConfig, pipeline: Pipeline | None = None) -> None:
+        self.cfg = cfg
+        self.pipeline = pipeline if pipeline is not None else Pipeline(cfg)
+        self.keyframes = KeyframeParams.from_config(cfg.get("keyframes"))
+        self.track_params = TrackParams.from_config(cfg.get("temporal"))
+        self.ttc = TtcParams.from_config(cfg.get("ttc"))
+        self.use_gt_distance = str(cfg.motion.get("name", "")) in ("gt", "file")
+        self.standing_m = float(self.pipeline.solver_cfg.min_translation)
+        self.default_dt = float(cfg.eval.get("frame_interval_s", 0.1)) if "eval" in cfg else 0.1
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the stream (a new clip)."""
+        self.key: str | None = None
+        self.frames: OrderedDict[int, _Frame] = OrderedDict()  # frame number -> kept state
+        self.tracks = Tracks(self.track_params)
+        self.speed: float | None = None
+        self.count = 0
+
+    # ------------------------------------------------------------------ driving a source
+    def run(self, source: Sequence[FramePair], progress: Any = None) -> Iterator[SequenceStep]:
+        """Process every pair of ``source`` in order; yields one :class:`SequenceStep` per pair."""
+        sequential = hasattr(source, "sequence_key") and hasattr(source, "pair_back")
+        for i in range(len(source)):
+            key = source.sequence_key(i) if sequential else None
+            if key is None:
+                self.reset()
+                pair = source[i]
+                step = self._solve(i, pair, None, None)
+            else:
+                if key != self.key:
+                    self.reset()
+                    self.key = key
+                cands = source.previous_frames(i, self.keyframes.window)
+                back, driven = choose_keyframe(cands, self.keyframes, self.speed, self.use_gt_distance,
+                                               self.standing_m)
+                pair = source.pair_back(i, back) if back != 1 else source[i]
+                pair.meta.setdefault("back", back)
+                step = self._solve(i, pair, back, driven)
+            if progress is not None:
+                progress.update(1)
+            yield step
+
+    # ------------------------------------------------------------------ one frame
+    def _solve(self, index: int, pair: FramePair, back: int | None, driven: float | None) -> SequenceStep:
+        try:
+            res = self.pipeline.run(pair)
+        except MotionEstimationError as err:
+            self.reset() if back is None else None
+            return SequenceStep(index, pair, None, str(err))
+        dt = float(pair.meta.get("dt") or (self.default_dt * (back or 1)))
+        sequence = back is not None
+        if sequence and not res.motion.degenerate:
+            self.speed = res.motion.motion.translation_norm / max(dt, 1e-9)
+        elif sequence and res.motion.degenerate:
+            self.speed = 0.0
+        self._finish(res, pair, back, driven, dt, sequence)
+        return SequenceStep(index, pair, res)
+
+    def _finish(self, res: PipelineResult, pair: FramePair, back: int | None, driven: float | None, dt: float,
+                sequence: bool) -> None:
+        st = res.stixels
+        # Frames are known by the source's frame numbers (raw frame, video frame, clip frame), so that a
+        # keyframe pair finds its earlier frame whatever the source skipped.
+        frame_no = int(pair.meta.get("frame", self.count))
+        self.count += 1
+        T_prev_cur = motion_matrix(res.motion.motion)
+        prev = None
+        if sequence and "frame_prev" in pair.meta:
+            prev = self.frames.get(int(pair.meta["frame_prev"]))
+        if prev is not None:
+            pose = prev.pose @ T_prev_cur
+            time = prev.time + dt
+        else:
+            pose = torch.eye(4, dtype=torch.float64)
+            time = 0.0 if not self.frames else next(reversed(self.frames.values())).time + dt
+        tracking = sequence and self.track_params.enabled
+        if tracking:
+            out = self.tracks.update(
+                st, frame=frame_no, time=time, pose=pose, dt_pair=dt,
+                degenerate=bool(res.motion.degenerate or st.flags.get("degenerate_motion")))
+            track_id, velocity = out["track_id"], out["velocity"]
+            st = _with_filtered_depth(st, out["position"], pose)
+            if bool(out["carried"].any()):
+                st.flags["carried_stixels"] = int(out["carried"].sum())
+                st.flags["reason"] = (st.flags.get("reason", "") + "; static depths carried from the tracks of "
+                                      "earlier frames with a baseline").lstrip("; ")
+        else:
+            N = len(st)
+            track_id = torch.full((N,), -1, dtype=torch.long)
+            dyn = st.type == DYNAMIC_OBJECT
+            velocity = torch.where(dyn[:, None], st.motion.double() @ pose[:3, :3].T / max(dt, 1e-9),
+                                   torch.zeros(N, 3, dtype=torch.float64))
+        # Time to collision from the (filtered) position and velocity relative to the camera, current axes.
+        X_cam, _, _ = stixel_points(st)
+        R_wc = pose[:3, :3]
+        v_cam = (res.motion.motion.R.double().T @ res.motion.motion.t.double()) / max(dt, 1e-9)
+        v_rel = velocity @ R_wc - v_cam[None]
+        obj = (st.type == STATIC_OBJECT) | (st.type == DYNAMIC_OBJECT)
+        ttc = torch.where(obj, time_to_collision(torch.nan_to_num(X_cam, nan=-1.0), v_rel),
+                          torch.full((len(st),), math.inf, dtype=torch.float64))
+        warn = obj & critical(torch.nan_to_num(X_cam, nan=-1.0), v_rel, ttc, self.ttc)
+        st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
+        st.ttc_warning = warn
+        st.pose = pose
+        st.pair_info = {"current": pair.name, "previous": pair.meta.get("name_prev", ""),
+                        "frames_back": int(back) if back is not None else 1, "dt_s": dt,
+                        "driven_m": res.motion.motion.translation_norm,
+                        "keyframe_distance_m": driven}
+        res.stixels = st
+        res.pose = pose
+        if sequence:
+            self.frames[frame_no] = _Frame(pair.name, time, pose)
+            while len(self.frames) > self.keyframes.window + 1:
+                self.frames.popitem(last=False)
+
+
+def _with_filtered_depth(st: StixelWorld, position: torch.Tensor, pose: torch.Tensor) -> StixelWorld:
+    """The stixels with each tracked object's inverse depth from its filtered world position (N, 3)."""
+    ok = torch.isfinite(position).all(1)
+    if not bool(ok.any()):
+        return st
+    X_c = (position - pose[:3, 3]) @ pose[:3, :3]  # world -> current camera
+    n = st.normals()
+    d = (X_c * n).sum(-1)
+    p = torch.where(ok & (d > 1e-3), 1.0 / d.clamp_min(1e-3), st.inverse_depth.double())
+    return dataclasses.replace(st, inverse_depth=p.to(st.inverse_depth.dtype), flags=dict(st.flags))

@@ -1,0 +1,387 @@
+"""Stixel tracks: association through the flow, a Kalman filter per track, velocities and time-to-collision.
+
+A track follows one object stixel (static or dynamic) from frame to frame, after the stixel literature
+(Pfeiffer & Franke 2011). Its state is the stixel's position and velocity on the ground plane of the
+world (the first camera of the sequence, SPEC section 2: x right, y down, z forward):
+``x = (X, Z, V_X, V_Z)`` metres and m/s, with a constant-velocity model driven by white acceleration.
+
+Per frame, for the pair (current ``t``, earlier ``k``):
+
+1. **Association through the flow.** Pixels down the centre of every object stixel of frame ``t``
+   are mapped into frame ``k`` by the flow (``x_k = x + f``); the stixel of frame ``k`` they land in
+   votes for its track. The track with most votes, at least ``min_vote_share`` of the landed pixels,
+   whose prediction lies within the chi-square gate of the measurement, continues in this stixel. A
+   track claimed by several stixels (a split) continues in the one with most votes; the others start
+   tracks of their own from its state.
+2. **Measurement.** Position: the stixel's plane at its column centre and middle row, in the world
+   (along-ray standard deviation ``depth_std_rel`` of the distance, across the ray half a column).
+   Velocity: a dynamic stixel's metric motion ``Δ`` over the pair's interval (standard deviation
+   ``velocity_std_mps + velocity_std_rel |v|``); a static stixel is a measurement of zero velocity
+   (``static_velocity_std_mps``): the solver found the static plane to explain its flow.
+3. **Output.** The filtered position gives the stixel's depth (the plane through it, same normal);
+   the filtered velocity its world velocity; with the camera's own velocity, the time to collision.
+
+Time to collision (paper: ``t̃`` "represent the time to contact in the longitudinal and lateral
+direction"): with the stixel at ``X`` and the relative velocity ``v_rel = v - v_cam`` in the current
+camera's axes, ``ttc = Z / -v_rel,z`` where ``v_rel,z < 0`` (closing), else ``inf``. A stixel is
+*critical* when ``ttc < warn_s`` and its lateral position at contact, ``X + v_rel,x ttc``, lies within
+``corridor_m`` of the camera's path.
+
+Everything is vectorised over stixels and tracks (no Python loop over either).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import torch
+
+from monostixels._checks import InputError
+from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.geometry import object_normals, pixel_rays
+from monostixels.stixels import StixelWorld
+
+__all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical"]
+
+#: Chi-square quantile of 2 degrees of freedom at 99.9 %: the association gate on the position.
+_CHI2_2DOF_999 = 13.82
+
+
+@dataclass
+class TrackParams:
+    """Settings of the stixel tracks (config group ``temporal``).
+
+    Attributes:
+        enabled: track (False: every frame on its own; velocities and TTC from the pair alone).
+        accel_std_mps2: white-acceleration noise of the constant-velocity model (m/s^2).
+        depth_std_rel: along-ray standard deviation of a stixel's distance, relative (mono-stixels on
+            real streets: ~9 % mean relative error).
+        depth_std_min_m: its floor (metres).
+        velocity_std_mps, velocity_std_rel: standard deviation of a dynamic stixel's velocity from one pair.
+        static_velocity_std_mps: standard deviation of the zero velocity a static stixel stands for.
+        min_vote_share: share of a stixel's landed pixels that must vote for a track to continue it.
+        max_age_frames: a track not seen for more frames than this is dropped.
+        samples: pixels sampled down each stixel's centre for the association.
+    """
+
+    enabled: bool = True
+    accel_std_mps2: float = 2.0
+    depth_std_rel: float = 0.08
+    depth_std_min_m: float = 0.2
+    velocity_std_mps: float = 0.5
+    velocity_std_rel: float = 0.2
+    static_velocity_std_mps: float = 0.3
+    min_vote_share: float = 0.5
+    max_age_frames: int = 5
+    samples: int = 8
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "enabled":
+                if not isinstance(v, bool):
+                    raise InputError(f"temporal.enabled: true or false, got {v!r}")
+                continue
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
+                raise InputError(f"temporal.{f.name}: a finite number, got {v!r}")
+        for k in ("accel_std_mps2", "depth_std_rel", "depth_std_min_m", "velocity_std_mps", "static_velocity_std_mps"):
+            if getattr(self, k) <= 0:
+                raise InputError(f"temporal.{k}: must be > 0, got {getattr(self, k)}")
+        if self.velocity_std_rel < 0:
+            raise InputError(f"temporal.velocity_std_rel: must be >= 0, got {self.velocity_std_rel}")
+        if not 0 < self.min_vote_share <= 1:
+            raise InputError(f"temporal.min_vote_share: in (0, 1], got {self.min_vote_share}")
+        if not (isinstance(self.max_age_frames, int) and self.max_age_frames >= 1):
+            raise InputError(f"temporal.max_age_frames: an integer >= 1, got {self.max_age_frames!r}")
+        if not (isinstance(self.samples, int) and self.samples >= 1):
+            raise InputError(f"temporal.samples: an integer >= 1, got {self.samples!r}")
+
+    @staticmethod
+    def from_config(cfg: Any) -> "TrackParams":
+        return _from_config(TrackParams, cfg, "temporal")
+
+
+@dataclass
+class TtcParams:
+    """Time-to-collision warnings (config group ``ttc``).
+
+    Attributes:
+        warn_s: a stixel closing in less than this (seconds) within the corridor is critical.
+        corridor_m: half width of the camera's path (metres) a critical stixel's contact lies in.
+    """
+
+    warn_s: float = 2.0
+    corridor_m: float = 1.5
+
+    def __post_init__(self) -> None:
+        for k in ("warn_s", "corridor_m"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0):
+                raise InputError(f"ttc.{k}: a number > 0, got {v!r}")
+
+    @staticmethod
+    def from_config(cfg: Any) -> "TtcParams":
+        return _from_config(TtcParams, cfg, "ttc")
+
+
+def _from_config(cls: type, cfg: Any, group: str) -> Any:
+    d = cls()
+    if cfg is None:
+        return d
+    kw = {}
+    for f in fields(cls):
+        v = cfg.get(f.name, None) if hasattr(cfg, "get") else getattr(cfg, f.name, None)
+        kw[f.name] = getattr(d, f.name) if v is None else v
+    known = {f.name for f in fields(cls)} | {"name"}
+    extra = [k for k in (cfg.keys() if hasattr(cfg, "keys") else []) if k not in known]
+    if extra:
+        raise InputError(f"{group}: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known - {'name'}))}")
+    return cls(**kw)
+
+
+def stixel_points(world: StixelWorld) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A point of every stixel: its plane at the column centre and middle row, in camera coordinates.
+
+    Returns:
+        X (N, 3) metres (sky: NaN), the column centre ``u`` (N,) and the row ``v`` (N,) pixels.
+    """
+    K = world.K.double()
+    W = world.image_size[1]
+    u0 = world.column.double() * world.column_width
+    u = (u0 + torch.clamp(u0 + world.column_width, max=W) - 1) / 2
+    v = (world.v_top + world.v_bottom).double() / 2
+    ray = pixel_rays(K, u, v)
+    n = world.normals()
+    p = world.inverse_depth.double()
+    X = ray / (p * (ray * n).sum(-1))[:, None]
+    return torch.where((p > 0)[:, None], X, torch.full_like(X, math.nan)), u, v
+
+
+def time_to_collision(X: torch.Tensor, v_rel: torch.Tensor) -> torch.Tensor:
+    """Longitudinal time to collision (N,) seconds: ``Z / -v_rel,z`` where closing, else inf.
+
+    Args:
+        X: (N, 3) positions in the current camera (metres). v_rel: (N, 3) velocities relative to the
+            camera, same axes (m/s).
+    """
+    closing = -v_rel[:, 2]
+    ok = (closing > 1e-6) & (X[:, 2] > 0)
+    return torch.where(ok, X[:, 2] / closing.clamp_min(1e-6), torch.full_like(closing, math.inf))
+
+
+def critical(X: torch.Tensor, v_rel: torch.Tensor, ttc: torch.Tensor, params: TtcParams) -> torch.Tensor:
+    """(N,) bool: closing within ``warn_s`` with the contact inside the corridor ``|X + v_rel,x ttc| < corridor_m``."""
+    lateral = X[:, 0] + v_rel[:, 0] * torch.where(torch.isfinite(ttc), ttc, torch.zeros_like(ttc))
+    return (ttc < params.warn_s) & (lateral.abs() < params.corridor_m)
+
+
+class Tracks:
+    """The tracks of one sequence (see the module docstring).
+
+    Args:
+        params: track settings.
+    """
+
+    def __init__(self, params: TrackParams) -> None:
+        self.params = params
+        self.x = torch.zeros(0, 4, dtype=torch.float64)      # (T, 4) X, Z, V_X, V_Z (world, m and m/s)
+        self.P = torch.zeros(0, 4, 4, dtype=torch.float64)   # (T, 4, 4)
+        self.ids = torch.zeros(0, dtype=torch.long)          # (T,)
+        self.time = torch.zeros(0, dtype=torch.float64)      # (T,) seconds of the last update
+        self.last_frame = torch.zeros(0, dtype=torch.long)   # (T,) frame number of the last update
+        self.measured = torch.zeros(0, dtype=torch.bool)     # (T,) position measured with a baseline
+        self.y = torch.zeros(0, dtype=torch.float64)         # (T,) world height of the tracked point (m)
+        self.next_id = 0
+
+    # ------------------------------------------------------------------ model
+    def _predict(self, rows: torch.Tensor, time: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """State (n, 4) and covariance (n, 4, 4) of tracks ``rows`` predicted to ``time`` (seconds)."""
+        dt = (time - self.time[rows]).clamp_min(0.0)
+        n = rows.numel()
+        F = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+        F[:, 0, 2] = dt
+        F[:, 1, 3] = dt
+        q = self.params.accel_std_mps2 ** 2
+        Q = torch.zeros(n, 4, 4, dtype=torch.float64)
+        for a, b in ((0, 2), (1, 3)):
+            Q[:, a, a] = q * dt**4 / 4
+            Q[:, a, b] = Q[:, b, a] = q * dt**3 / 2
+            Q[:, b, b] = q * dt**2
+        x = (F @ self.x[rows, :, None])[..., 0]
+        P = F @ self.P[rows] @ F.transpose(1, 2) + Q
+        return x, P
+
+    def _measurement(self, pos: torch.Tensor, vel: torch.Tensor, dyn: torch.Tensor, cam: torch.Tensor,
+                     lateral_std: torch.Tensor) -> torch.Tensor:
+        """Covariance (n, 4, 4) of a measurement of a stixel at ``pos`` (n, 2) moving at ``vel`` (n, 2) (world x, z)."""
+        prm = self.params
+        rel = pos - cam[None]
+        dist = rel.norm(dim=1).clamp_min(1e-6)
+        along = torch.clamp(prm.depth_std_rel * dist, min=prm.depth_std_min_m)
+        d = rel / dist[:, None]
+        e = torch.stack([-d[:, 1], d[:, 0]], 1)
+        Rp = along[:, None, None] ** 2 * d[:, :, None] * d[:, None, :] + lateral_std[:, None, None] ** 2 * e[:, :, None] * e[:, None, :]
+        sv = torch.where(dyn, prm.velocity_std_mps + prm.velocity_std_rel * vel.norm(dim=1),
+                         torch.full_like(dist, prm.static_velocity_std_mps))
+        R = torch.zeros(pos.shape[0], 4, 4, dtype=torch.float64)
+        R[:, :2, :2] = Rp
+        R[:, 2, 2] = R[:, 3, 3] = sv**2
+        return R
+
+    # ------------------------------------------------------------------ one frame
+    def update(self, world: StixelWorld, *, frame: int, time: float, pose: torch.Tensor, dt_pair: float,
+               degenerate: bool) -> dict[str, torch.Tensor]:
+        """Associate, filter and report the tracks of one frame.
+
+        Args:
+            world: the frame's stixels (``motion`` (N, 3): ``Δ`` of dynamic stixels over the pair, current axes).
+            frame: the frame's number in its sequence. time: its time (seconds).
+            pose: (4, 4) camera-to-world of the frame.
+            dt_pair: seconds between the pair's frames.
+            degenerate: the pair had no baseline: static depths are the scene model's, not a measurement.
+
+        Returns:
+            ``track_id`` (N,) int64 (-1: ground, sky), ``position`` (N, 3) filtered world position (NaN where
+            untracked), ``velocity`` (N, 3) world m/s, ``carried`` (N,) bool: a static stixel of a frame
+            without baseline whose depth comes from its track.
+        """
+        prm = self.params
+        N = len(world)
+        dtype = torch.float64
+        Rwc, o = pose[:3, :3].to(dtype), pose[:3, 3].to(dtype)
+        X_cam, u, v = stixel_points(world)
+        X_w = X_cam @ Rwc.T + o
+        obj = ((world.type == STATIC_OBJECT) | (world.type == DYNAMIC_OBJECT)) & torch.isfinite(X_w).all(1)
+        dyn = world.type == DYNAMIC_OBJECT
+        vel_meas = torch.where(dyn[:, None], world.motion.to(dtype) @ Rwc.T / max(dt_pair, 1e-6),
+                               torch.zeros(N, 3, dtype=dtype))
+        fx = float(world.K[0, 0])
+        lateral_std = X_cam[:, 2].abs() * (world.column_width / fx) / 2 + 0.05
+
+        # --- association: the tracks' predicted points, seen from this camera
+        parent = torch.full((N,), -1, dtype=torch.long)  # row of the track a stixel continues
+        if self.ids.numel() and bool(obj.any()):
+            parent = self._associate(world, obj, time, Rwc, o, X_w, lateral_std, dyn, vel_meas, degenerate)
+        keeps_id = parent >= 0
+        rows_all = torch.nonzero(obj).squeeze(1)
+        out_id = torch.full((N,), -1, dtype=torch.long)
+        out_pos = torch.full((N, 3), math.nan, dtype=dtype)
+        out_vel = torch.zeros(N, 3, dtype=dtype)
+        carried = torch.zeros(N, dtype=torch.bool)
+        if rows_all.numel() == 0:
+            self._drop_old(frame)
+            return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried}
+
+        n = rows_all.numel()
+        pos = X_w[rows_all][:, [0, 2]]
+        z = torch.cat([pos, vel_meas[rows_all][:, [0, 2]]], 1)
+        c = parent[rows_all]
+        keeps = keeps_id[rows_all]
+        has = c >= 0
+        x_pred = z.clone()  # a new track starts at its measurement
+        P_pred = torch.zeros(n, 4, 4, dtype=dtype)
+        prior_measured = torch.zeros(n, dtype=torch.bool)
+        if bool(has.any()):
+            x_pred[has], P_pred[has] = self._predict(c[has], time)
+            prior_measured[has] = self.measured[c[has]]
+        # Noise scaled by the prediction, not by the measurement: a measurement-scaled noise would give
+        # the too-far and too-fast readings less weight and bias the filter low.
+        Rm = self._measurement(x_pred[:, :2], x_pred[:, 2:], dyn[rows_all], o[[0, 2]], lateral_std[rows_all])
+        P_pred[~has] = Rm[~has]
+        keeps &= has
+        # Without a baseline a static stixel's depth is the scene model's: where its track was measured
+        # with a baseline before, the track's prediction stands (carried into the output).
+        hold = has & prior_measured & ~dyn[rows_all] if degenerate else torch.zeros_like(has)
+        x_new, P_new = x_pred.clone(), P_pred.clone()
+        upd = has & ~hold
+        if bool(upd.any()):
+            Kg = P_pred[upd] @ torch.linalg.inv(P_pred[upd] + Rm[upd])
+            x_new[upd] = x_pred[upd] + (Kg @ (z[upd] - x_pred[upd])[:, :, None])[..., 0]
+            P_new[upd] = (torch.eye(4, dtype=dtype) - Kg) @ P_pred[upd]
+        carried[rows_all[hold]] = True
+
+        ids = torch.empty(n, dtype=torch.long)
+        ids[keeps] = self.ids[c[keeps]]
+        n_new = int((~keeps).sum())
+        ids[~keeps] = torch.arange(self.next_id, self.next_id + n_new)
+        self.next_id += n_new
+        measured_now = prior_measured | dyn[rows_all] | (not degenerate)
+
+        # Replace the continued tracks, append the new ones (splits included), drop the stale.
+        keep = torch.ones(self.ids.numel(), dtype=torch.bool)
+        keep[c[keeps]] = False
+        self.x = torch.cat([self.x[keep], x_new])
+        self.P = torch.cat([self.P[keep], P_new])
+        self.ids = torch.cat([self.ids[keep], ids])
+        self.time = torch.cat([self.time[keep], torch.full((n,), float(time), dtype=dtype)])
+        self.last_frame = torch.cat([self.last_frame[keep], torch.full((n,), int(frame), dtype=torch.long)])
+        self.measured = torch.cat([self.measured[keep], measured_now])
+        self.y = torch.cat([self.y[keep], X_w[rows_all][:, 1]])
+        self._drop_old(frame)
+
+        out_id[rows_all] = ids
+        y = X_w[rows_all][:, 1]
+        out_pos[rows_all] = torch.stack([x_new[:, 0], y, x_new[:, 1]], 1)
+        out_vel[rows_all] = torch.stack([x_new[:, 2], torch.zeros_like(y), x_new[:, 3]], 1)
+        return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried}
+
+    def _drop_old(self, frame: int) -> None:
+        keep = (frame - self.last_frame) <= self.params.max_age_frames
+        if not bool(keep.all()):
+            for k in ("x", "P", "ids", "time", "last_frame", "measured", "y"):
+                setattr(self, k, getattr(self, k)[keep])
+
+    def _associate(self, world: StixelWorld, obj: torch.Tensor, time: float, Rwc: torch.Tensor, o: torch.Tensor,
+                   X_w: torch.Tensor, lateral_std: torch.Tensor, dyn: torch.Tensor, vel_meas: torch.Tensor,
+                   degenerate: bool) -> torch.Tensor:
+        """Row (N,) of the track each stixel continues (-1: none).
+
+        Every track's point, predicted to ``time`` (its own velocity) and projected into this camera
+        (the pose chain of the camera motion), lands in a stixel: that stixel continues the track if
+        it is an object and the prediction passes the chi-square gate on the position. Several tracks
+        landing in one stixel: the nearest (Mahalanobis) continues there. Without a baseline
+        (``degenerate``) a static stixel's depth is the scene model's and is not gated.
+        """
+        H, W = world.image_size
+        xp, Pp = self._predict(torch.arange(self.ids.numel()), time)
+        Xw = torch.stack([xp[:, 0], self.y, xp[:, 1]], 1)
+        Xc = (Xw - o) @ Rwc
+        K = world.K.double()
+        z = Xc[:, 2]
+        front = z > 0.1
+        zs = torch.where(front, z, torch.ones_like(z))
+        u = (K[0, 0] * Xc[:, 0] / zs + K[0, 2]).round()
+        v = (K[1, 1] * Xc[:, 1] / zs + K[1, 2]).round()
+        inside = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        index = world.index_map()
+        s_of = torch.full((self.ids.numel(),), -1, dtype=torch.long)
+        s_of[inside] = index[v[inside].long(), u[inside].long()]
+        cand = torch.nonzero((s_of >= 0)).squeeze(1)
+        parent = torch.full((len(world),), -1, dtype=torch.long)
+        if cand.numel() == 0:
+            return parent
+        sc = s_of[cand]
+        ok = obj[sc]
+        cand, sc = cand[ok], sc[ok]
+        if cand.numel() == 0:
+            return parent
+        pos = X_w[sc][:, [0, 2]]
+        Rm = self._measurement(xp[cand, :2], xp[cand, 2:], dyn[sc], o[[0, 2]], lateral_std[sc])
+        S = Pp[cand, :2, :2] + Rm[:, :2, :2]
+        r = pos - xp[cand, :2]
+        d2 = (r[:, None, :] @ torch.linalg.solve(S, r[:, :, None]))[:, 0, 0]
+        gate = d2 < _CHI2_2DOF_999
+        if degenerate:
+            gate |= ~dyn[sc]
+        cand, sc, d2 = cand[gate], sc[gate], d2[gate]
+        if cand.numel() == 0:
+            return parent
+        # One track per stixel: the smallest d2 (ties: the older track, lower row).
+        best = torch.full((len(world),), math.inf, dtype=torch.float64).scatter_reduce(0, sc, d2, reduce="amin")
+        win = d2 == best[sc]
+        first = torch.full((len(world),), self.ids.numel(), dtype=torch.long).scatter_reduce(
+            0, sc[win], cand[win], reduce="amin")
+        hit = first < self.ids.numel()
+        parent[hit] = first[hit]
+        return parent
