@@ -82,7 +82,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.eval.sfm import DEFAULT_MIN_PARALLAX_RAD
+from monostixels.sfm import DEFAULT_MIN_PARALLAX_RAD
 from monostixels.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
 from monostixels.stixels import StixelWorld
 
@@ -179,7 +179,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     All dynamic stixels are checked at once: their pixels are gathered into flat arrays with a
     stixel index, and the per-stixel medians are segment medians of the sorted values (the lower
     median, as ``torch.median``). Only those pixels are triangulated when ``point_depth`` is not
-    given (the midpoint method of :func:`monostixels.eval.sfm.triangulate`).
+    given (the midpoint method of :func:`monostixels.sfm.triangulate`).
 
     Args:
         stixels: the solver's result.
@@ -351,7 +351,7 @@ def _segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch
 
 def _midpoint_depth(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                     fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
-    """Depth (N,) of pixels (u, v) with flow (fu, fv), as :func:`monostixels.eval.sfm.triangulate` gives it
+    """Depth (N,) of pixels (u, v) with flow (fu, fv), as :func:`monostixels.sfm.triangulate` gives it
     (midpoint method, float64; ``+inf`` without parallax, negative behind a camera), for these pixels only."""
     d0 = pixel_rays(K, u, v)  # N x 3, current ray (z = 1)
     d1 = pixel_rays(K, u + fu, v + fv) @ R  # previous ray in current coordinates (R^T r')
