@@ -38,9 +38,9 @@ _DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
 #: accuracy on KITTI and the synthetic benchmark: README "Pipeline speed").
 _RUN_DEFAULTS = ("flow=deepflow_fast", "semantic=fcn8s", "motion=mono")
 _COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS}
-#: Shipped model of a default semantic option, and what a command falls back to where the file is
-#: missing (a non-editable install does not carry models/): ground truth on the synthetic scene,
-#: no semantics on a user's frames.
+#: Shipped model of a default semantic option (installed with the package, editable or not), and
+#: what a command falls back to where the file is missing (a checkout without its models): ground
+#: truth on the synthetic scene, no semantics on a user's frames.
 _DEFAULT_MODELS = {"semantic=fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "semantic=fcn8s": "models/fcn8s_real.onnx"}
 _MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none"}
 
