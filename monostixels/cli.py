@@ -135,8 +135,9 @@ def _demo(cfg: DictConfig) -> float:
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
     from monostixels.pipeline import Pipeline
+    from monostixels.bev import bev_image
     from monostixels.viz import (depth_colormap, flow_colormap, image_to_uint8, paper_figure, semantic_colormap,
-                                 stixel_overlay)
+                                 stixel_depth_overlay, stixel_overlay)
 
     out = Path(cfg.outputs) / "demo"
     pair = SyntheticSource(1, seed=int(cfg.data.seed), scale=float(cfg.data.scale), density=float(cfg.data.density))[0]
@@ -157,6 +158,8 @@ def _demo(cfg: DictConfig) -> float:
         "flow.png": flow_colormap(res.flow.flow),
         "stixels_overlay.png": stixel_overlay(img, st, mode="type"),
         "stixels_semantic.png": stixel_overlay(img, st, mode="class", alpha=0.7),
+        "stixels_depth.png": stixel_depth_overlay(img, st, min_depth=lo, max_depth=hi),
+        "bev.png": bev_image(st, min_depth=lo, max_depth=hi),
         "depth_stixels.png": depth_colormap(depth, min_depth=lo, max_depth=hi),
         "depth_sfm.png": depth_colormap(res.sfm_depth, min_depth=lo, max_depth=hi),
     }
@@ -245,9 +248,10 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels._checks import InputError
 
+    from monostixels.bev import bev_image
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
-    from monostixels.viz import depth_colormap, stixel_overlay
+    from monostixels.viz import depth_colormap, side_by_side, stixel_depth_overlay
 
     src = _source(cfg)
     if len(src) == 0:
@@ -255,16 +259,19 @@ def _run(cfg: DictConfig) -> None:
     pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False)  # the SfM baseline is for eval/demo only
     out = Path(cfg.outputs) / "run"
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
-    video = None
+    videos: dict[str, Any] = {}
     written = 0
     for pair in tqdm(src, total=len(src), desc="run", unit="frame"):
         res = pipe.run(pair)
         st = res.stixels
         d = out / (pair.name or f"frame_{written:06d}")
         depth = st.depth_map()
-        overlay = stixel_overlay(pair.image, st, mode="type")
+        overlay = stixel_depth_overlay(pair.image, st, min_depth=lo, max_depth=hi)
+        bev = bev_image(st, min_depth=lo, max_depth=hi)
         dcol = depth_colormap(depth, min_depth=lo, max_depth=hi)
         write_image(d / "overlay.png", overlay)
+        write_image(d / "bev.png", bev)
+        write_image(d / "figure.png", side_by_side(overlay, bev))
         write_image(d / "depth.png", dcol)
         finite = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
         write_depth_png16(d / "depth16.png", finite)
@@ -273,21 +280,22 @@ def _run(cfg: DictConfig) -> None:
         pts, cols = depth_to_points(finite, pair.camera.K, pair.image, max_depth=hi)
         write_ply(d / "points.ply", pts, cols)
         if len(src) > 1 or str(cfg.data.name) == "video":
-            frame = cv2.cvtColor(np.concatenate([overlay, dcol], axis=0), cv2.COLOR_RGB2BGR)
-            if video is None:
-                out.mkdir(parents=True, exist_ok=True)
-                video = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), _video_fps(src),
-                                        (frame.shape[1], frame.shape[0]))
-                if not video.isOpened():
-                    raise InputError(f"run: OpenCV cannot write the video {out / 'video.mp4'} (no mp4v encoder)")
-            video.write(frame)
+            # video.mp4: the overlay above the depth map; bev.mp4: the bird's-eye view.
+            for name, rgb in (("video.mp4", np.concatenate([overlay, dcol], axis=0)), ("bev.mp4", bev)):
+                if name not in videos:
+                    out.mkdir(parents=True, exist_ok=True)
+                    videos[name] = cv2.VideoWriter(str(out / name), cv2.VideoWriter_fourcc(*"mp4v"), _video_fps(src),
+                                                   (rgb.shape[1], rgb.shape[0]))
+                    if not videos[name].isOpened():
+                        raise InputError(f"run: OpenCV cannot write the video {out / name} (no mp4v encoder)")
+                videos[name].write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if st.flags.get("degenerate_motion"):
             logger.warning("%s: %s", pair.name, st.flags.get("reason"))
         written += 1
-    if video is not None:
-        video.release()
-    print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png depth.png depth16.png stixels.json "
-          f"stixels.npz points.ply" + (f"; video {out / 'video.mp4'}" if video is not None else ""))
+    for v in videos.values():
+        v.release()
+    print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png bev.png figure.png depth.png depth16.png "
+          f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else ""))
 
 
 if __name__ == "__main__":
