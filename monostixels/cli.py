@@ -30,12 +30,12 @@ COMMANDS = {
 }
 
 #: Inputs of `monostixels demo` unless given on the command line: the best the package has for its
-#: synthetic scene (DeepFlow guided by DIS matches: EPE 1.3 px, DIS alone 1.4 px; README "Inputs";
-#: the semantic net of our renders).
+#: synthetic scene (DeepFlow guided by DIS matches, the most accurate flow there; the semantic net
+#: of our renders).
 _DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
 #: Inputs of `monostixels run` unless given: what a user's own frames allow (no ground truth; our
-#: real-image semantic net; DeepFlow's variational stage at half size, 2.7x faster at the same
-#: accuracy on KITTI and the synthetic benchmark: README "Pipeline speed").
+#: real-image semantic net; DeepFlow's variational stage at half size: a few times faster at nearly
+#: the same accuracy, docs/results.md "Speed").
 _RUN_DEFAULTS = ("flow=deepflow_fast", "semantic=fcn8s", "motion=mono")
 _COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS}
 #: Shipped model of a default semantic option (installed with the package, editable or not), and

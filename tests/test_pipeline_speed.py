@@ -1,4 +1,4 @@
-"""The faster paths of issue 13 against their plain definitions: the vectorised mover check
+"""The faster paths of the pipeline against their plain definitions: the vectorised mover check
 (monostixels.movers) and the flow at a reduced resolution (``flow.scale``, monostixels.inputs.flow)."""
 from __future__ import annotations
 

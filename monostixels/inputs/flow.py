@@ -27,7 +27,7 @@ the full-size flow with one variational refinement at full resolution (OpenCV's
 downscaled stage gives away. The covariance is computed on the grid of the last stage: the
 full-size image after a refinement or at ``scale = 1``, else the downscaled image (its
 ``window_sigma`` in pixels of that grid, ``sigma``/``sigma_min``/``sigma_max`` in full-size
-pixels), mapped to full-size pixels^2. Measured choices: README "Pipeline speed".
+pixels), mapped to full-size pixels^2. Measured choices: docs/experiments.md, "Pipeline speed".
 """
 from __future__ import annotations
 

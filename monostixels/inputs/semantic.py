@@ -91,7 +91,7 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) ->
         threads: ONNX Runtime intra-op threads of the network (0 = its default, one per physical
             core). The scores do not depend on it. The pipeline passes 1 when the semantics run
             beside the flow: a pool of spinning ORT threads there takes the cores DeepFlow's strips
-            need (README "Pipeline speed").
+            need.
 
     Returns:
         (10, H, W) float32 scores summing to 1 per pixel, classes in ``CLASS_NAMES`` order; or
@@ -376,7 +376,7 @@ class OnnxSegmenter:
         if out.ndim == 4 and self.mapping is not None and out.shape[1] != len(self.mapping):
             hint = ""
             if out.shape[1] == len(self.mapping) + 1:
-                # E.g. a Cityscapes model with a 20th "background" channel (README, semantic=cityscapes19).
+                # E.g. a Cityscapes model with a 20th "background" channel (semantic=cityscapes19).
                 hint = (f"; to drop the model's last channel, append -1 to the mapping "
                         f"(semantic.mapping=[{','.join(map(str, self.mapping))},-1])")
             raise InputError(
