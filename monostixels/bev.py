@@ -20,8 +20,8 @@ from monostixels._checks import InputError
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.geometry import ground_basis, object_normals, pixel_rays
 from monostixels.stixels import StixelWorld
-from monostixels.viz import (COLORMAP_MAX_DEPTH_M, COLORMAP_MIN_DEPTH_M, MOTION_ARROW_FRAMES, _draw_arrow, depth_colormap,
-                             draw_notes, frame_notes, mover_groups)
+from monostixels.viz import (_ARROW_MIN_COLUMNS, COLORMAP_MAX_DEPTH_M, COLORMAP_MIN_DEPTH_M, MOTION_ARROW_FRAMES, _draw_arrow,
+                             depth_colormap, draw_notes, frame_notes, mover_groups)
 
 __all__ = ["BevView", "stixel_footprints", "free_space", "bev_image"]
 
@@ -234,6 +234,8 @@ def bev_image(
             raise InputError(f"motion: expected ({len(world)}, 3), got {tuple(mot.shape)}")
         on_road = (mot @ B).numpy()
         for g in groups:
+            if world.column[g].unique().numel() < _ARROW_MIN_COLUMNS:
+                continue
             centre = np.nanmean(foot[g].reshape(-1, 2), axis=0)
             if not np.isfinite(centre).all():
                 continue

@@ -63,11 +63,13 @@ _BORDER_SHADE = 0.5
 _OVERLAY_MODES = ("type", "class", "depth")
 #: Outline and arrow colour of moving objects (RGB): white reads on every colour of the jet map.
 _MOVER_RGB = (255, 255, 255)
-#: Motion arrows show a mover's displacement over this many frames (10 = 1 s at KITTI's 10 Hz):
+#: Motion arrows show a mover's displacement over this many frames (5 = 0.5 s at KITTI's 10 Hz):
 #: one frame's motion is a few pixels.
-MOTION_ARROW_FRAMES = 10.0
+MOTION_ARROW_FRAMES = 5.0
+#: Fewest columns of a moving object that gets an arrow (a one-column sliver gets its outline only).
+_ARROW_MIN_COLUMNS = 2
 #: Longest motion arrow in an image, as a fraction of its width.
-_ARROW_MAX_FRACTION = 0.1
+_ARROW_MAX_FRACTION = 0.08
 #: Depth labels offered on the legend's scale (metres); those outside the colour-map range are dropped.
 _LEGEND_TICKS_M = (1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 40.0, 80.0, 150.0, 300.0)
 #: Reference width (px) at which text is drawn at scale 1 (KITTI's 1242 px).
@@ -448,10 +450,14 @@ def _draw_arrow(rgb: np.ndarray, a: np.ndarray, b: np.ndarray, thickness: int) -
 
 def _mover_arrows(rgb: np.ndarray, stixels: Any, groups: list[np.ndarray], motion: np.ndarray, frames: float,
                   thickness: int) -> None:
-    """One arrow per moving object: its bottom-centre point moved by ``frames`` x its mean motion, projected."""
+    """One arrow per moving object of at least two columns: its bottom-centre point moved by ``frames`` x
+    its mean motion, projected."""
     K = _to_numpy(stixels.K, "stixels.K").astype(np.float64)
     pts = _stixel_bottom_points(stixels)
+    col = _to_numpy(stixels.column, "stixels.column").reshape(-1)
     for g in groups:
+        if np.unique(col[g]).size < _ARROW_MIN_COLUMNS:
+            continue
         base, delta = pts[g].mean(0), motion[g].mean(0)
         if not (np.isfinite(base).all() and np.isfinite(delta).all()) or base[2] <= 0:
             continue

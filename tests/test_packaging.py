@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -24,11 +25,19 @@ def _shipped_model_paths() -> set[str]:
     return found
 
 
+#: Not part of a source tree: local environments, build and run outputs.
+_NOT_SOURCE = (".venv", ".git", "build", "*.egg-info", "outputs", "runs", "multirun", "__pycache__", ".pytest_cache")
+
+
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
+    # Built from a copy of the source tree, as from a fresh clone: setuptools builds in the tree
+    # (build/), and a stale build/ of the checkout would put files in the wheel that no longer exist.
+    src = tmp_path_factory.mktemp("src") / "monostixels"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(*_NOT_SOURCE))
     out = tmp_path_factory.mktemp("wheel")
     subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(out),
-                    str(REPO)], check=True, capture_output=True, timeout=600)
+                    str(src)], check=True, capture_output=True, timeout=600)
     (whl,) = out.glob("monostixels-*.whl")
     return whl
 
@@ -57,6 +66,13 @@ def test_wheel_holds_the_default_models_and_every_config(wheel: Path) -> None:
     configs = {str(f.relative_to(REPO)) for f in (REPO / "conf").rglob("*.yaml")}
     assert configs and all(f"monostixels/{c}" in names for c in configs)
     assert "monostixels/models/MODEL_CARD.md" in names
+    # Nothing but the source: every module of the wheel is a file of the checkout.
+    roots = {"conf": REPO / "conf", "models": REPO / "models"}
+    for n in names:
+        if n.startswith("monostixels/") and n.endswith(".py"):
+            rel = Path(n).relative_to("monostixels")
+            src = roots[rel.parts[0]].joinpath(*rel.parts[1:]) if rel.parts[0] in roots else REPO / "monostixels" / rel
+            assert src.is_file(), n
 
 
 def test_config_found_in_non_editable_install(installed: Path, tmp_path: Path) -> None:

@@ -137,7 +137,13 @@ def test_movers_are_grouped_outlined_and_get_a_motion_arrow():
     diff = (stixel_depth_overlay(big, moved, legend=False) != stixel_depth_overlay(big, still, legend=False)).any(-1)
     base_u = 2 * 156 + 155.5  # bottom centre of the group (columns 2-3)
     cols = np.flatnonzero(diff.any(0))
-    assert cols.min() > base_u - 12 and cols.max() > base_u + 60
+    assert cols.min() > base_u - 12 and cols.max() > base_u + 30
+    # A one-column mover gets its outline, no arrow.
+    sliver = motion.clone()
+    sliver[3 * 5 + 1] = torch.tensor([0.3, 0.0, 0.0])
+    lone = _world(types, sliver)
+    lone.image_size, lone.column_width = (H, 1242), 156
+    assert (stixel_depth_overlay(big, lone, legend=False) == stixel_depth_overlay(big, moved, legend=False)).all()
     with pytest.raises(InputError, match="moving"):
         mover_groups(world, np.zeros(3, bool))
 
