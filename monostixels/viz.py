@@ -221,6 +221,16 @@ def _stixel_index_map(stixels: Any, H: int, W: int) -> np.ndarray:
     return paint_index_map(*arrays, int(stixels.column_width), (H, W)).numpy()
 
 
+def _image_and_index_map(image: torch.Tensor | np.ndarray, stixels: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The image as (H, W, 3) uint8 and the (H, W) index of the stixel covering each pixel (-1: none)."""
+    img = image_to_uint8(image)
+    H, W = img.shape[:2]
+    size = tuple(int(s) for s in stixels.image_size)
+    if size != (H, W):
+        raise InputError(f"stixels.image_size {size} differs from the image size {(H, W)} (H, W)")
+    return img, _stixel_index_map(stixels, H, W)
+
+
 def stixel_overlay(
     image: torch.Tensor | np.ndarray,
     stixels: Any,
@@ -255,12 +265,8 @@ def stixel_overlay(
         raise InputError(f"mode: expected one of {_OVERLAY_MODES}, got {mode!r}")
     if not 0.0 <= alpha <= 1.0:
         raise InputError(f"alpha: expected a value in [0, 1], got {alpha}")
-    img = image_to_uint8(image)
+    img, idx = _image_and_index_map(image, stixels)
     H, W = img.shape[:2]
-    size = tuple(int(s) for s in stixels.image_size)
-    if size != (H, W):
-        raise InputError(f"stixels.image_size {size} differs from the image size {(H, W)} (H, W)")
-    idx = _stixel_index_map(stixels, H, W)
     n = int(np.asarray(_to_numpy(stixels.column, "stixels.column")).size)
     if mode == "type":
         key = _to_numpy(stixels.type, "stixels.type").astype(np.int64).reshape(-1)
@@ -515,12 +521,8 @@ def stixel_depth_overlay(
     for name, a in (("alpha", alpha), ("ground_alpha", ground_alpha)):
         if not 0.0 <= a <= 1.0:
             raise InputError(f"{name}: expected a value in [0, 1], got {a}")
-    img = image_to_uint8(image)
+    img, idx = _image_and_index_map(image, stixels)
     H, W = img.shape[:2]
-    size = tuple(int(s) for s in stixels.image_size)
-    if size != (H, W):
-        raise InputError(f"stixels.image_size {size} differs from the image size {(H, W)} (H, W)")
-    idx = _stixel_index_map(stixels, H, W)
     typ = _to_numpy(stixels.type, "stixels.type").astype(np.int64).reshape(-1)
     n = typ.size
     depth = _to_numpy(stixels.depth, "stixels.depth").astype(np.float64).reshape(-1)
