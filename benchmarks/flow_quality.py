@@ -1,4 +1,4 @@
-"""Flow quality of the backends on the built-in synthetic benchmark (README table).
+"""Flow quality of the backends on the built-in synthetic benchmark (table in docs/results.md).
 
 EPE (mean end-point error, px) and Fl-all (KITTI outlier rule: error > 3 px and > 5 % of the
 true flow) over pixels with valid ground-truth flow, and seconds per frame of the flow

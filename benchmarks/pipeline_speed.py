@@ -14,7 +14,7 @@ Usage::
     python benchmarks/pipeline_speed.py --set flow=dis --json p_dis.json        # any config override
     python benchmarks/pipeline_speed.py --set semantic=fcn8s --frames 4 --roots ../shared/data/kitti_raw
 
-Measured numbers are in README.md ("Pipeline speed").
+Measured numbers: docs/results.md ("Speed") and docs/benchmarks.md.
 """
 from __future__ import annotations
 

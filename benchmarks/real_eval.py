@@ -111,7 +111,7 @@ def ground_from_motion() -> None:
 
 
 def summary(report: dict) -> dict[str, Any]:
-    """The numbers the issue asks for: rel per split for both methods, bottoms, motion, compactness."""
+    """The headline numbers: rel per split for both methods, bottoms, motion, compactness."""
     out: dict[str, Any] = {"frames": report["frames"]}
     for m in ("monostixels", "sfm"):
         for s in ("overall", "static", "moving"):

@@ -10,10 +10,10 @@ Usage::
 
     python benchmarks/solver_speed.py                        # r in {1, 2, 3, 5}, 1 and 2 threads
     python benchmarks/solver_speed.py --rows 2 3 --json s.json
-    python benchmarks/solver_speed.py --backend eager        # the eager torch DP (before issue 13)
+    python benchmarks/solver_speed.py --backend eager        # the eager torch DP (no C++ kernel)
     python benchmarks/solver_speed.py --stride 8             # solver.hypothesis_stride
 
-Measured numbers are in README.md ("Solver speed").
+Measured numbers: docs/results.md ("Speed") and docs/benchmarks.md.
 """
 from __future__ import annotations
 

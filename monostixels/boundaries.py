@@ -4,8 +4,8 @@ The DP places stixel boundaries on cell edges (``solver.cell_rows`` rows). Where
 meets the background above it (sky, or a farther object), the cell that straddles the boundary
 holds both; DeepFlow smooths its flow across the motion boundary, and the cell often goes to the
 background. Its object pixels then get the background's depth (a car 6 m away read as a house
-80 m away: a relative error of ~10 per pixel), and these few pixels carry a large share of the
-movers' depth error (synthetic seeds 5-8: 0.7-0.8 % of the moving pixels carry 18-35 % of it).
+80 m away: a relative error of ~10 per pixel), so these few pixels carry a large share of the
+movers' depth error (docs/experiments.md, "Tops of movers").
 
 After the DP (and the mover check), each such boundary moves to the row, within ``rows`` rows of
 the DP's, that minimises the semantic term of the two stixels over those rows at pixel-row

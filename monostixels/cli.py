@@ -30,17 +30,17 @@ COMMANDS = {
 }
 
 #: Inputs of `monostixels demo` unless given on the command line: the best the package has for its
-#: synthetic scene (DeepFlow guided by DIS matches: EPE 1.3 px, DIS alone 1.4 px; README "Inputs";
-#: the semantic net of our renders).
+#: synthetic scene (DeepFlow guided by DIS matches, the most accurate flow there; the semantic net
+#: of our renders).
 _DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
 #: Inputs of `monostixels run` unless given: what a user's own frames allow (no ground truth; our
-#: real-image semantic net; DeepFlow's variational stage at half size, 2.7x faster at the same
-#: accuracy on KITTI and the synthetic benchmark: README "Pipeline speed").
+#: real-image semantic net; DeepFlow's variational stage at half size: a few times faster at nearly
+#: the same accuracy, docs/results.md "Speed").
 _RUN_DEFAULTS = ("flow=deepflow_fast", "semantic=fcn8s", "motion=mono")
 _COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS}
-#: Shipped model of a default semantic option, and what a command falls back to where the file is
-#: missing (a non-editable install does not carry models/): ground truth on the synthetic scene,
-#: no semantics on a user's frames.
+#: Shipped model of a default semantic option (installed with the package, editable or not), and
+#: what a command falls back to where the file is missing (a checkout without its models): ground
+#: truth on the synthetic scene, no semantics on a user's frames.
 _DEFAULT_MODELS = {"semantic=fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "semantic=fcn8s": "models/fcn8s_real.onnx"}
 _MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none"}
 
@@ -135,8 +135,9 @@ def _demo(cfg: DictConfig) -> float:
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
     from monostixels.pipeline import Pipeline
+    from monostixels.bev import bev_image
     from monostixels.viz import (depth_colormap, flow_colormap, image_to_uint8, paper_figure, semantic_colormap,
-                                 stixel_overlay)
+                                 stixel_depth_overlay, stixel_overlay)
 
     out = Path(cfg.outputs) / "demo"
     pair = SyntheticSource(1, seed=int(cfg.data.seed), scale=float(cfg.data.scale), density=float(cfg.data.density))[0]
@@ -157,6 +158,8 @@ def _demo(cfg: DictConfig) -> float:
         "flow.png": flow_colormap(res.flow.flow),
         "stixels_overlay.png": stixel_overlay(img, st, mode="type"),
         "stixels_semantic.png": stixel_overlay(img, st, mode="class", alpha=0.7),
+        "stixels_depth.png": stixel_depth_overlay(img, st, min_depth=lo, max_depth=hi),
+        "bev.png": bev_image(st, min_depth=lo, max_depth=hi),
         "depth_stixels.png": depth_colormap(depth, min_depth=lo, max_depth=hi),
         "depth_sfm.png": depth_colormap(res.sfm_depth, min_depth=lo, max_depth=hi),
     }
@@ -245,10 +248,11 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels._checks import InputError
 
+    from monostixels.bev import bev_image
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
-    from monostixels.viz import depth_colormap, stixel_overlay
+    from monostixels.viz import depth_colormap, side_by_side, stixel_depth_overlay
 
     src = _source(cfg)
     if len(src) == 0:
@@ -257,7 +261,7 @@ def _run(cfg: DictConfig) -> None:
     runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences
     out = Path(cfg.outputs) / "run"
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
-    video = None
+    videos: dict[str, Any] = {}
     written = 0
     bar = tqdm(total=len(src), desc="run", unit="frame")
     for step in runner.run(src, progress=bar):
@@ -265,9 +269,12 @@ def _run(cfg: DictConfig) -> None:
         st = res.stixels
         d = out / (pair.name or f"frame_{written:06d}")
         depth = st.depth_map()
-        overlay = stixel_overlay(pair.image, st, mode="type")
+        overlay = stixel_depth_overlay(pair.image, st, min_depth=lo, max_depth=hi)
+        bev = bev_image(st, min_depth=lo, max_depth=hi)
         dcol = depth_colormap(depth, min_depth=lo, max_depth=hi)
         write_image(d / "overlay.png", overlay)
+        write_image(d / "bev.png", bev)
+        write_image(d / "figure.png", side_by_side(overlay, bev))
         write_image(d / "depth.png", dcol)
         finite = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
         write_depth_png16(d / "depth16.png", finite)
@@ -276,22 +283,23 @@ def _run(cfg: DictConfig) -> None:
         pts, cols = depth_to_points(finite, pair.camera.K, pair.image, max_depth=hi)
         write_ply(d / "points.ply", pts, cols)
         if len(src) > 1 or str(cfg.data.name) == "video":
-            frame = cv2.cvtColor(np.concatenate([overlay, dcol], axis=0), cv2.COLOR_RGB2BGR)
-            if video is None:
-                out.mkdir(parents=True, exist_ok=True)
-                video = cv2.VideoWriter(str(out / "video.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), _video_fps(src),
-                                        (frame.shape[1], frame.shape[0]))
-                if not video.isOpened():
-                    raise InputError(f"run: OpenCV cannot write the video {out / 'video.mp4'} (no mp4v encoder)")
-            video.write(frame)
+            # video.mp4: the overlay above the depth map; bev.mp4: the bird's-eye view.
+            for name, rgb in (("video.mp4", np.concatenate([overlay, dcol], axis=0)), ("bev.mp4", bev)):
+                if name not in videos:
+                    out.mkdir(parents=True, exist_ok=True)
+                    videos[name] = cv2.VideoWriter(str(out / name), cv2.VideoWriter_fourcc(*"mp4v"), _video_fps(src),
+                                                   (rgb.shape[1], rgb.shape[0]))
+                    if not videos[name].isOpened():
+                        raise InputError(f"run: OpenCV cannot write the video {out / name} (no mp4v encoder)")
+                videos[name].write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if st.flags.get("degenerate_motion"):
             logger.warning("%s: %s", pair.name, st.flags.get("reason"))
         written += 1
     bar.close()
-    if video is not None:
-        video.release()
-    print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png depth.png depth16.png stixels.json "
-          f"stixels.npz points.ply" + (f"; video {out / 'video.mp4'}" if video is not None else ""))
+    for v in videos.values():
+        v.release()
+    print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png bev.png figure.png depth.png depth16.png "
+          f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else ""))
 
 
 if __name__ == "__main__":

@@ -1,71 +1,33 @@
-"""Post-solve check of dynamic stixels: is the motion detectable, or does an object standing still explain the flow?
+"""Post-solve check of dynamic stixels: does an object standing still explain the flow?
 
-Why: on a real street where nothing moves but the ego vehicle (KITTI raw drive 0023), 10-14 % of
-the image lay in dynamic stixels with a world motion above 1 m/s (trees, hedges, parked cars, the
-near road). A dynamic stixel has 2 degrees of freedom against 1 of a static one, so it wins
-wherever real flow errors are spatially correlated (DeepFlow over foliage and at large
-displacements: 1.1-1.6 px off the epipolar lines there, 0.2-0.5 px elsewhere) — and its depth is
-not in its flow (paper): it comes from the scene model (standing on the ground at its bottom row,
-or the object below), so a depth error of 11 % on a static object already reads as 1 m/s at
-10 Hz (``Δ ≈ t (1 - d_model / d_true)``).
+Why: a dynamic stixel has 2 degrees of freedom against 1 of a static one, so it wins wherever flow
+errors are spatially correlated (foliage, large displacements), and its depth is not in its flow
+but in the scene model (its ground contact, or the object below). A static object whose model
+depth is 11 % off already reads as 1 m/s at 10 Hz (``Δ ≈ t (1 - d_model / d_true)``), so a
+street where nothing moves fills with false movers. The check is model selection with a minimum
+detectable motion, per dynamic stixel, decided bottom-up along each column:
 
-The check, per dynamic stixel (model selection with a minimum detectable motion):
+1. Static fit: the plane distance ``d_s`` = median of its pixels' triangulated points along the
+   stixel's normal (as MLESAC over the segment's flow vectors) and that plane's median flow
+   residual ``e_s`` (pixels).
+2. It stays dynamic if the static plane does not explain the flow (``e_s > max_static_residual_px``:
+   crossing or turning movers) unless the solver's dynamic plane does not either (``e_d >
+   max_dynamic_residual_ratio * e_s``: slanted walls, object edges); or if the scene model's depth
+   disagrees with ``d_s`` (``|d_model / d_s - 1| > min_depth_discrepancy``: oncoming and preceding
+   cars, whose flow is epipolar but whose ground contact is elsewhere); or, standing on the road, if
+   a static object at ``d_s`` would meet the road more than ``max_contact_gap_px`` rows from the
+   model's contact (a mover along its epipolar lines has ``d_s ≈ d t / (t - Δ)``, its contact is
+   right). "On the road": on a ground stixel, on a sliver of at most ``contact_sliver_rows`` rows
+   that is, or on a dynamic stack that is and stays dynamic. A stixel on one made static is compared
+   with that one's static depth (``follow_below``; with ``allow_behind_still`` any depth behind it).
+3. Classes in ``keep_classes`` (pedestrians, riders: too slow to tell from standing) stay dynamic.
+4. With ``isolated_stand_still``, a stixel still dynamic without a dynamic neighbour in an adjacent
+   column at overlapping rows stands still too: a moving object is wider than one column.
+5. Otherwise it stands still: a static object stixel at depth ``d_s`` with zero motion, its class
+   kept (a parked car is still a vehicle; the type says how it behaves in this frame pair).
 
-1. The best *static* explanation of its flow: the plane distance ``d_s`` (1 DOF) as the median of
-   its pixels' triangulated points along the stixel's normal (the same robust fit as MLESAC over
-   the segment's flow vectors), and the flow residual of that static plane, ``e_s`` (median over
-   its pixels, pixels).
-2. The stixel stays dynamic if the static plane does not explain the flow (``e_s >
-   max_static_residual_px``: a crossing or turning mover, whose flow leaves the epipolar lines),
-   unless the solver's own dynamic plane does not explain it markedly better either (its median
-   residual ``e_d > max_dynamic_residual_ratio * e_s``: a slanted wall or car flank, or a stixel that
-   straddles a near object's edge and the background behind it, which neither plane fits; a moving
-   object's dynamic plane fits its flow to flow noise: synthetic crossing movers e_d / e_s 0.09 median,
-   such static stixels on drive 0023 0.4),
-   or if the scene model's depth disagrees with the static depth by more than the scene model can
-   resolve (``|d_model / d_s - 1| > min_depth_discrepancy``: an oncoming or preceding car, whose
-   flow *is* epipolar but whose ground contact places it elsewhere — the case mono-stixels exist for),
-   or, for a stixel standing on the road, if a static object at ``d_s`` would meet the road more than
-   ``max_contact_gap_px`` rows from where the scene model's plane does. A mover along its epipolar
-   lines has a static depth biased by its own motion (``d_s ≈ d t / (t - Δ)``: a two-wheeler riding
-   away at a third of the ego speed reads 30-40 % farther) while its ground contact is right; a
-   relative window that lets real false movers through (their model depth 10-30 % off, most of them
-   far away or not on the road) also let those through. In rows, the contact is as accurate as the
-   stixel's bottom: near objects resolve small relative differences, far ones do not. "Standing on the
-   road": directly on a ground stixel (the road's height is that stixel's), on an object at most
-   ``contact_sliver_rows`` tall that stands on one (the shadow or bumper rows under a car, a stixel of
-   their own when the flow is trusted to sub-pixel level), or on a stack of dynamic stixels that does
-   and stays dynamic (the structural prior gave the stack its contact's depth).
-   A stixel stacked on a dynamic stixel that the check made static is compared with that stixel's
-   static depth (the prior's depth for it was the object below), with no ground contact; columns are
-   therefore decided bottom-up. With ``allow_behind_still`` (off by default) such a stixel may lie any
-   distance *behind* that object (the background above a parked car, which the prior had stacked on
-   it); only one nearer than the object by more than the window stays dynamic. On drive 0023 it
-   helps (pairs 1-3: moving share 2.5 -> 1.8 %, rel 0.098 -> 0.096; held-out pairs 4-6 1.8 -> 1.3 %,
-   0.104 -> 0.103), on the renders it hurts (seed 6 moving rel 0.107 -> 0.110: the flow of a car's
-   upper part, or of a car driving away, is explained by a static plane 2-7x farther away).
-3. A stixel of a class in ``keep_classes`` (the config's default: ``person``, ``two_wheeler``) keeps the
-   solver's dynamic label whatever 1-2 say. Pedestrians walk at 1-2 m/s (0.1-0.2 m per frame at
-   10 Hz): their static explanation errs by less than the check's tolerances (a walker at 19 m
-   read 24 m in a synthetic scene: 28 % and 8 rows at the contact), so the check cannot tell them
-   from a standing one and the class's prior odds decide. For a driver-assistance consumer a
-   standing pedestrian shown walking is also the cheaper error. On the LiDAR drive (no
-   pedestrians) the rule changes nothing; on the synthetic tuning seeds 5-6 it gives back the
-   movers' depth error the check had cost (moving rel 0.0925 -> 0.0890, 0.1079 -> 0.1065).
-4. With ``isolated_stand_still``, after 1-3, a stixel that is still dynamic but has no dynamic stixel
-   in an adjacent column at overlapping rows stands still too (one pass over the decided columns):
-   a moving object is wider than one 5 px column (a car 80 m away is 3 columns, a pedestrian 50 m away
-   1-2 and pedestrians are kept anyway), while the false movers left on drive 0023 were largely
-   single-column slivers at car edges and on walls. Pairs 1-3 moving share 2.5 -> 2.1 %; synthetic
-   seeds 5 / 6 moving rel 0.0890 / 0.1066 -> 0.0890 / 0.1067 (requiring a neighbour on both sides
-   instead: 1.4 % but 0.102 / 0.123).
-5. Otherwise the object stands still: it becomes a static object stixel at the static depth
-   ``d_s`` with zero motion, and keeps its class (a parked car is still a vehicle: the class says
-   what it is, the type how it behaves in this frame pair; `run`'s overlays then stop showing
-   parked cars and trees as moving objects).
-
-Pixels without a valid triangulation (near the focus of expansion, where flow carries no depth)
-do not vote; a stixel with too few valid pixels keeps the solver's labels.
+Pixels without a valid triangulation (near the focus of expansion) do not vote; a stixel with too
+few valid pixels keeps the solver's labels. How the thresholds were chosen: docs/experiments.md.
 
 Convention: camera motion ``X_prev = R X_cur + t``, flow ``x_prev = x + f`` (SPEC section 2); an
 object stixel lies on ``p n^T X = 1``.
@@ -82,7 +44,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.eval.sfm import DEFAULT_MIN_PARALLAX_RAD
+from monostixels.sfm import DEFAULT_MIN_PARALLAX_RAD
 from monostixels.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
 from monostixels.stixels import StixelWorld
 
@@ -97,37 +59,32 @@ class MoverCheckParams:
 
     Attributes:
         enabled: apply the check.
-        max_static_residual_px: a static plane that explains the stixel's flow to within this
-            median residual (pixels) is an explanation (DeepFlow off the epipolar lines on KITTI raw:
-            0.2-0.5 px median, 1-2 px over foliage). Chosen on drive 0023 pairs 1-3 only.
+        max_static_residual_px: median flow residual (pixels) up to which a static plane explains
+            the stixel's flow (DeepFlow is a few tenths of a pixel off the epipolar lines on most
+            pixels, 1-2 px over foliage).
         min_depth_discrepancy: relative difference between the scene model's depth and the static
             fit's depth above which the stixel is a mover along the epipolar lines.
-        max_contact_gap_px: for a stixel standing on the road (on a ground stixel, or on a stack of
-            dynamic stixels that does): the most rows between where its static plane and where the
-            scene model's plane meet that road. Chosen on synthetic seeds 5-6 and drive 0023 pairs 1-3.
-        follow_below: a stixel stacked on a dynamic stixel that the check makes static is compared with
-            that stixel's static depth instead of the solver's depth.
-        allow_behind_still: a stixel stacked on an object that the check made static passes the depth
-            test at any static depth behind that object (one-sided window); off by default.
-        isolated_stand_still: after the tests above, a dynamic stixel with no dynamic stixel in an
-            adjacent column at overlapping rows stands still (at its static depth, where a static fit
-            exists); one pass, kept classes excepted. Off in the dataclass, on in the config group.
-        max_dynamic_residual_ratio: a stixel whose static residual exceeds ``max_static_residual_px`` is
-            still explained by a static object unless the solver's dynamic plane leaves a median residual
-            of at most this fraction of the static one (``inf`` = off, the dataclass default; the config
-            group sets 0.3, chosen on drive 0023 pairs 1-3 and synthetic seeds 5-6).
+        max_contact_gap_px: for a stixel standing on the road, the most rows between where its
+            static plane and where the scene model's plane meet that road.
+        follow_below: compare a stixel stacked on one the check makes static with that one's static
+            depth instead of the solver's depth.
+        allow_behind_still: such a stacked stixel passes the depth test at any static depth behind
+            the object below (one-sided window).
+        isolated_stand_still: a stixel still dynamic with no dynamic stixel in an adjacent column
+            at overlapping rows stands still (one pass, kept classes excepted).
+        max_dynamic_residual_ratio: a stixel the static plane leaves unexplained still stands still
+            unless the solver's dynamic plane leaves at most this fraction of the static residual
+            (``inf`` = off).
         keep_classes: class names (:data:`monostixels.classes.CLASS_NAMES`) whose dynamic stixels
-            the check never makes static (slow movers whose motion it cannot detect); empty = the
-            purely geometric check (the dataclass default). The config group sets ``person`` and
-            ``two_wheeler``.
-        contact_sliver_rows: a stixel stacked on an object at most this many rows tall that stands on a
-            ground stixel stands on that ground for the contact test (0 = off, the dataclass default; the
-            config group sets 12). With sub-pixel flow (``flow=deepflow``, checked forward-backward) the
-            rows where a car meets the road become a stixel of their own with the road's flow; made static,
-            it would hand the car above it its static depth, and an epipolar mover then stood still at its
-            motion-biased static depth.
+            are never made static; empty = the purely geometric check.
+        contact_sliver_rows: a stixel on an object at most this many rows tall that stands on a
+            ground stixel stands on that ground for the contact test (0 = off).
         min_pixels: fewest pixels with a valid triangulation for a decision.
         min_depth, max_depth: triangulated depths outside this range (metres) do not vote.
+
+    The dataclass defaults are the purely geometric check; the config group ``movers`` sets the
+    shipped rules (``keep_classes``, ``max_dynamic_residual_ratio``, ``isolated_stand_still``,
+    ``contact_sliver_rows``).
     """
 
     enabled: bool = True
@@ -179,7 +136,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     All dynamic stixels are checked at once: their pixels are gathered into flat arrays with a
     stixel index, and the per-stixel medians are segment medians of the sorted values (the lower
     median, as ``torch.median``). Only those pixels are triangulated when ``point_depth`` is not
-    given (the midpoint method of :func:`monostixels.eval.sfm.triangulate`).
+    given (the midpoint method of :func:`monostixels.sfm.triangulate`).
 
     Args:
         stixels: the solver's result.
@@ -351,7 +308,7 @@ def _segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch
 
 def _midpoint_depth(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                     fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
-    """Depth (N,) of pixels (u, v) with flow (fu, fv), as :func:`monostixels.eval.sfm.triangulate` gives it
+    """Depth (N,) of pixels (u, v) with flow (fu, fv), as :func:`monostixels.sfm.triangulate` gives it
     (midpoint method, float64; ``+inf`` without parallax, negative behind a camera), for these pixels only."""
     d0 = pixel_rays(K, u, v)  # N x 3, current ray (z = 1)
     d1 = pixel_rays(K, u + fu, v + fv) @ R  # previous ray in current coordinates (R^T r')

@@ -29,7 +29,7 @@ from monostixels._checks import InputError
 from monostixels.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
 from monostixels.energy import PriorParams
-from monostixels.eval.sfm import triangulate
+from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, estimate_flow
 from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion

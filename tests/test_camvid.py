@@ -235,7 +235,7 @@ def test_cityscapes_model_with_background_channel() -> None:
     assert scores.shape == (NUM_CLASSES, 370, 1226)
     torch.testing.assert_close(scores.sum(0), torch.ones(370, 1226), atol=1e-4, rtol=0)
     pred = scores.argmax(0)
-    # KITTI frame 1110 (docs/real_kitti_overlay.png): sky above the street's vanishing point,
+    # KITTI frame 1110: sky above the street's vanishing point,
     # trees at the top left, road at the bottom centre.
     assert float((pred[:30, 560:620] == IDS["sky"]).float().mean()) > 0.8
     assert float((pred[:80, 150:350] == IDS["vegetation"]).float().mean()) > 0.8

@@ -37,7 +37,8 @@ def test_demo_writes_pictures_and_stixels(tmp_path):
     """`monostixels demo` with its default inputs (the best the package has), at a small scale."""
     p = _cli(["demo", "data.scale=0.5"], tmp_path)
     out = tmp_path / "outputs" / "demo"
-    for name in ("figure.png", "stixels_overlay.png", "depth_stixels.png", "depth_sfm.png", "flow.png", "input.png"):
+    for name in ("figure.png", "stixels_overlay.png", "stixels_depth.png", "bev.png", "depth_stixels.png", "depth_sfm.png",
+                 "flow.png", "input.png"):
         img = cv2.imread(str(out / name))
         assert img is not None and img.size > 0, name
     st = StixelWorld.load_json(out / "stixels.json")
@@ -89,10 +90,13 @@ def test_run_on_a_folder_of_frames(tmp_path):
     dirs = sorted(d for d in out.iterdir() if d.is_dir())
     assert len(dirs) == 2
     for d in dirs:
-        for name in ("overlay.png", "depth.png", "depth16.png", "stixels.json", "stixels.npz", "points.ply"):
+        for name in ("overlay.png", "bev.png", "figure.png", "depth.png", "depth16.png", "stixels.json", "stixels.npz",
+                     "points.ply"):
             assert (d / name).is_file(), (d, name)
         assert cv2.imread(str(d / "depth16.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
-    assert (out / "video.mp4").stat().st_size > 0
+        overlay, bev, fig = (cv2.imread(str(d / n)) for n in ("overlay.png", "bev.png", "figure.png"))
+        assert overlay.shape[:2] == pair0.size and fig.shape[0] == overlay.shape[0] and fig.shape[1] > overlay.shape[1]
+    assert (out / "video.mp4").stat().st_size > 0 and (out / "bev.mp4").stat().st_size > 0
     assert "2 frame pair(s)" in p.stdout
 
 
@@ -127,6 +131,9 @@ def test_run_on_the_kitti2015_pair(tmp_path):
     st = StixelWorld.load_json(frame / "stixels.json")
     assert st.image_size == (375, 1242) and len(st) >= st.num_columns
     assert (frame / "points.ply").stat().st_size > 0
+    # The depth-coloured stixel overlay, the bird's-eye view and both side by side.
+    overlay, bev, fig = (cv2.imread(str(frame / n)) for n in ("overlay.png", "bev.png", "figure.png"))
+    assert overlay.shape[:2] == (375, 1242) and bev.shape[0] > 0 and fig.shape[0] == 375
     assert "1 frame pair(s)" in p.stdout
 
 

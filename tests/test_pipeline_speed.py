@@ -1,4 +1,4 @@
-"""The faster paths of issue 13 against their plain definitions: the vectorised mover check
+"""The faster paths of the pipeline against their plain definitions: the vectorised mover check
 (monostixels.movers) and the flow at a reduced resolution (``flow.scale``, monostixels.inputs.flow)."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 from monostixels._checks import InputError
 from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data.base import FramePair
-from monostixels.eval.sfm import triangulate
+from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion, apply_homography, homography, intrinsics, pixel_rays
 from monostixels.inputs.flow import compute_flow, estimate_flow, flow_metrics
 from monostixels.movers import MoverCheckParams, _segment_lower_median, check_movers

@@ -1,4 +1,4 @@
-"""Real-image evaluation (issue 6): data source -> pipeline -> `evaluate` report on the shared samples.
+"""Real-image evaluation: data source -> pipeline -> `evaluate` report on the shared samples.
 
 These run the same code as ``monostixels eval`` on one frame pair each, with the fast DIS flow
 (``flow=dis``) and ``semantic=none``. They skip with a clear reason when ../shared/data is absent

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.eval.sfm import triangulate, triangulate_depth
+from monostixels.sfm import triangulate, triangulate_depth
 from monostixels.geometry import Motion, intrinsics, rotation_yaw
 
 H, W = 18, 27  # H != W

@@ -1,4 +1,4 @@
-"""Issue 7: the Optuna prior sweep end to end, and the learned-prior loss (train/priors.py)."""
+"""The Optuna prior sweep end to end, and the learned-prior loss (train/priors.py)."""
 from __future__ import annotations
 
 import importlib.util

@@ -1,4 +1,4 @@
-"""Learn the stixel priors by gradient descent through the soft-min DP (issue 7).
+"""Learn the stixel priors by gradient descent through the soft-min DP.
 
 Loss (a structured-perceptron / max-margin style loss, LeCun et al. 2006 "energy-based learning"):
 for every column of every training frame,
@@ -66,7 +66,7 @@ logger = logging.getLogger(__name__)
 CONFIG_NAME = "train_priors"
 #: Header of the written yaml file.
 _YAML_HEADER = (
-    "# Learned stixel priors (issue 7): gradient descent through the soft-min DP, written by\n"
+    "# Learned stixel priors: gradient descent through the soft-min DP, written by\n"
     "# `python -m train.priors` (train/priors.py; settings in conf/train_priors.yaml).\n"
     "# Keys and units as in conf/prior/default.yaml. Use: monostixels eval prior=learned\n"
 )
@@ -291,7 +291,7 @@ def main(cfg: DictConfig) -> None:
         src = Path(hydra.utils.to_absolute_path(str(cfg.from_sweep)))
         res = yaml.safe_load(src.read_text())
         out = Path(hydra.utils.to_absolute_path(str(cfg.out)))
-        header = ("Swept stixel priors (issue 7): best trial of `monostixels eval --multirun +sweep=priors`\n"
+        header = ("Swept stixel priors: best trial of `monostixels eval --multirun +sweep=priors`\n"
                   f"(conf/sweep/priors.yaml), objective overall rel {res['best_value']:.4f} on the tuning frames;\n"
                   "keys not swept are those of conf/prior/default.yaml.")
         write_prior_yaml(priors_from_sweep(src), out, header="\n".join(f"# {ln}" for ln in header.splitlines()))

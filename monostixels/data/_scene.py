@@ -37,7 +37,7 @@ __all__ = [
 
 #: Time between the previous and the current frame (seconds; KITTI records at 10 Hz).
 FRAME_INTERVAL_S = 0.1
-#: Height of the kerb / sidewalk above the road (metres; typical urban kerb, issue text).
+#: Height of the kerb / sidewalk above the road (metres; typical urban kerb).
 KERB_HEIGHT_M = 0.15
 #: Width of a driving lane (metres; typical urban lane).
 LANE_WIDTH_M = 3.5

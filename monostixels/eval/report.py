@@ -165,7 +165,7 @@ def format_table(report: dict) -> str:
 
 
 def markdown_table(report: dict) -> str:
-    """The report as Markdown tables (for the README), same content as :func:`format_table`."""
+    """The report as Markdown tables (for docs), same content as :func:`format_table`."""
     header, rows = _main_rows(report)
     lines = [f"**{_title(report)}**", ""]
     lines.append("| Split | Metric | " + " | ".join(header) + " |")

@@ -27,7 +27,7 @@ the full-size flow with one variational refinement at full resolution (OpenCV's
 downscaled stage gives away. The covariance is computed on the grid of the last stage: the
 full-size image after a refinement or at ``scale = 1``, else the downscaled image (its
 ``window_sigma`` in pixels of that grid, ``sigma``/``sigma_min``/``sigma_max`` in full-size
-pixels), mapped to full-size pixels^2. Measured choices: README "Pipeline speed".
+pixels), mapped to full-size pixels^2. Measured choices: docs/experiments.md, "Pipeline speed".
 """
 from __future__ import annotations
 
@@ -47,6 +47,7 @@ import torch
 import torch.nn.functional as F
 
 from monostixels._checks import InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape
+from monostixels._paths import find_file
 from monostixels.data.base import FramePair
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 
@@ -75,8 +76,6 @@ _DIS_PRESETS = {
     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
-#: Repository root (conf/, models/ live here in a source checkout).
-_REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
@@ -186,13 +185,10 @@ def _upsample_cov(cov: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 
 def resolve_path(path: str | Path) -> Path:
-    """A file path from the config: as given if it exists (absolute or relative to the working
-    directory), else relative to the repository root (where ``models/`` lives)."""
-    p = Path(path).expanduser()
-    if p.is_absolute() or p.exists():
-        return p
-    alt = _REPO_ROOT / p
-    return alt if alt.exists() else p
+    """A file path from the config (:func:`monostixels._paths.find_file`: absolute, relative to the
+    working directory, a shipped model ``models/...``, the repository root); as given if none exists."""
+    found = find_file(path)
+    return found if found is not None else Path(path).expanduser()
 
 
 def _gray_u8(image: torch.Tensor) -> np.ndarray:

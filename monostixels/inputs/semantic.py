@@ -17,10 +17,9 @@ by ``mean``/``std``; padded bottom/right to a multiple of ``pad_to`` with the me
 network's output logits are cropped to the unpadded region, upsampled bilinearly to (H, W), and
 turned into probabilities by a softmax over the model's channels.
 
-Model paths: an absolute path is used as it is; a relative path is tried against the current
-directory first, then against the repository root (the folder that holds the ``monostixels``
-package, which is the checkout in an editable install: ``pip install -e .``). A non-editable
-install does not carry ``models/``; give an absolute path there.
+Model paths (:mod:`monostixels._paths`): an absolute path is used as it is; a relative one is
+tried against the working directory, then ``models/...`` against the shipped models (installed
+with the package, editable or not), then against the repository root.
 """
 from __future__ import annotations
 
@@ -35,6 +34,7 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
 from monostixels._checks import InputError, check_finite, check_shape
+from monostixels._paths import REPO_ROOT, find_file, path_candidates
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair
 
@@ -56,8 +56,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: The folder that holds the ``monostixels`` package: the repository root in an editable install.
-REPO_ROOT = Path(__file__).resolve().parents[2]
 #: Stride the shipped FCN-8s needs its input padded to (five 2x2 pools).
 FCN8S_PAD_TO = 32
 
@@ -93,7 +91,7 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) ->
         threads: ONNX Runtime intra-op threads of the network (0 = its default, one per physical
             core). The scores do not depend on it. The pipeline passes 1 when the semantics run
             beside the flow: a pool of spinning ORT threads there takes the cores DeepFlow's strips
-            need (README "Pipeline speed").
+            need.
 
     Returns:
         (10, H, W) float32 scores summing to 1 per pixel, classes in ``CLASS_NAMES`` order; or
@@ -171,7 +169,8 @@ def gt_scores(labels: torch.Tensor, *, confidence: float = 0.9, name: str = "lab
 
 
 def resolve_model_path(path: str | Path, what: str = "semantic.model") -> Path:
-    """Find a model file: absolute as is; relative to the current directory, else to the repo root.
+    """Find a model file: absolute as is; relative to the working directory, the shipped models
+    (``models/...``) or the repository root (:func:`monostixels._paths.path_candidates`).
 
     Args:
         path: the configured path.
@@ -182,12 +181,11 @@ def resolve_model_path(path: str | Path, what: str = "semantic.model") -> Path:
     """
     if path is None or str(path) in ("", "???"):
         raise InputError(f"{what}: a model path is required (e.g. {what}=/path/to/model.onnx)")
-    p = Path(str(path)).expanduser()
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p, REPO_ROOT / p]
-    for c in candidates:
-        if c.is_file():
-            return c.resolve()
-    raise InputError(f"{what}: model file {path} not found (looked in {', '.join(map(str, candidates))})")
+    found = find_file(path)
+    if found is None:
+        looked = ", ".join(map(str, path_candidates(path)))
+        raise InputError(f"{what}: model file {path} not found (looked in {looked})")
+    return found
 
 
 def map_scores(probs: torch.Tensor, mapping: Sequence[int] | None, *, model: str = "model") -> torch.Tensor:
@@ -378,7 +376,7 @@ class OnnxSegmenter:
         if out.ndim == 4 and self.mapping is not None and out.shape[1] != len(self.mapping):
             hint = ""
             if out.shape[1] == len(self.mapping) + 1:
-                # E.g. a Cityscapes model with a 20th "background" channel (README, semantic=cityscapes19).
+                # E.g. a Cityscapes model with a 20th "background" channel (semantic=cityscapes19).
                 hint = (f"; to drop the model's last channel, append -1 to the mapping "
                         f"(semantic.mapping=[{','.join(map(str, self.mapping))},-1])")
             raise InputError(

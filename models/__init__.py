@@ -1,0 +1,1 @@
+"""The shipped network weights (see MODEL_CARD.md), installed with the package as ``monostixels.models``."""

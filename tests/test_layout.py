@@ -1,0 +1,53 @@
+"""The package's layout keeps data flowing one way: the product path never imports ``monostixels.eval``."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "monostixels"
+#: Modules that may import the evaluation: the evaluation itself and the command line (`monostixels eval`).
+_MAY_IMPORT_EVAL = ("eval/", "cli.py")
+
+
+def _imported_modules(path: Path, root: Path = PACKAGE.parent) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in ``path`` (a module under ``root``), relative ones resolved."""
+    package = list(path.relative_to(root).parts[:-1])  # the module's package (an __init__'s own)
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package[: len(package) - node.level + 1] if node.level else []
+            mod = ".".join(base + ([node.module] if node.module else []))
+            # `from monostixels import eval` imports the sub-package too.
+            found += [(node.lineno, f"{mod}.{a.name}") for a in node.names] + [(node.lineno, mod)]
+    return found
+
+
+def _product_modules() -> list[Path]:
+    files = sorted(PACKAGE.rglob("*.py"))
+    return [f for f in files if not str(f.relative_to(PACKAGE)).startswith(_MAY_IMPORT_EVAL)]
+
+
+def test_the_scan_sees_every_kind_of_import(tmp_path):
+    # The scanner itself: absolute, from-, relative and sub-package imports of eval are all caught.
+    pkg = tmp_path / "monostixels" / "inputs"
+    pkg.mkdir(parents=True)
+    src = pkg / "x.py"
+    src.write_text("import monostixels.eval.metrics\nfrom ..eval import metrics\nfrom monostixels import eval\n"
+                   "from monostixels.sfm import triangulate\n")
+    mods = [m for _, m in _imported_modules(src, tmp_path)]
+    assert "monostixels.eval.metrics" in mods and "monostixels.eval" in mods
+    assert sum(m == "monostixels.eval" or m.startswith("monostixels.eval.") for m in mods) >= 3
+
+
+@pytest.mark.parametrize("path", _product_modules(), ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_product_path_does_not_import_eval(path: Path):
+    bad = [(line, m) for line, m in _imported_modules(path) if m == "monostixels.eval" or m.startswith("monostixels.eval.")]
+    assert not bad, f"{path.relative_to(PACKAGE.parent)} imports the evaluation: {bad}"
+
+
+def test_the_sfm_baseline_lives_beside_the_solver():
+    assert (PACKAGE / "sfm.py").is_file() and not (PACKAGE / "eval" / "sfm.py").exists()
