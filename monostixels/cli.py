@@ -6,6 +6,7 @@ Usage::
     monostixels eval data=synthetic data.frames=20 flow=gt semantic=gt motion=gt out=o.json
     monostixels run data=frames data.root=my_frames    # stixels of a user's own images
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90   # a dashcam video
+    monostixels run data=video data.path=clip.mp4 data.hfov_deg=90 output.rerun=true  # + a 3D recording
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """
 from __future__ import annotations
@@ -48,7 +49,7 @@ _MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none"}
 def _usage() -> str:
     lines = ["usage: monostixels COMMAND [key=value ...] [hydra flags]", "", "commands:"]
     lines += [f"  {k:<5} {v}" for k, v in COMMANDS.items()]
-    lines += ["", "Config groups: camera prior solver data flow semantic motion eval (see conf/).",
+    lines += ["", "Config groups: camera prior solver data flow semantic motion eval output (see conf/).",
               "Show the composed config: monostixels eval --cfg job"]
     return "\n".join(lines)
 
@@ -247,6 +248,7 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
+    from monostixels.viewer import open_recorder
     from monostixels.viz import depth_colormap, stixel_overlay
 
     src = _source(cfg)
@@ -257,8 +259,10 @@ def _run(cfg: DictConfig) -> None:
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     video = None
     written = 0
+    recorder = open_recorder(cfg, out, src)  # output.rerun=true: a 3D recording, else a no-op
     for pair in tqdm(src, total=len(src), desc="run", unit="frame"):
         res = pipe.run(pair)
+        recorder.log_frame(written, pair, res)
         st = res.stixels
         d = out / (pair.name or f"frame_{written:06d}")
         depth = st.depth_map()
@@ -286,8 +290,10 @@ def _run(cfg: DictConfig) -> None:
         written += 1
     if video is not None:
         video.release()
+    recording = recorder.close()
     print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png depth.png depth16.png stixels.json "
-          f"stixels.npz points.ply" + (f"; video {out / 'video.mp4'}" if video is not None else ""))
+          f"stixels.npz points.ply" + (f"; video {out / 'video.mp4'}" if video is not None else "")
+          + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else ""))
 
 
 if __name__ == "__main__":
