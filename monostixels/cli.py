@@ -1,4 +1,4 @@
-"""The ``monostixels`` command: ``demo``, ``eval`` and ``run``, configured through Hydra.
+"""The ``monostixels`` command: ``demo``, ``eval``, ``run`` and ``batch``, configured through Hydra.
 
 Usage::
 
@@ -7,6 +7,7 @@ Usage::
     monostixels run data=frames data.root=my_frames    # stixels of a user's own images
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90   # a dashcam video
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90 output.rerun=true  # + a 3D recording
+    monostixels batch batch.inputs='clips/*.mp4' batch.output=fleet data.hfov_deg=90  # many clips on Ray
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """
 from __future__ import annotations
@@ -28,6 +29,7 @@ COMMANDS = {
     "demo": "run the full pipeline on the built-in synthetic scene and write pictures under outputs/demo",
     "eval": "evaluate on a data source (data=...), print the paper's table, write out=FILE.json",
     "run": "stixels, pictures, depth, point clouds (and a video) for a data source, under outputs/run",
+    "batch": "many clips (batch.inputs=DIR_OR_GLOB) in parallel on Ray into batch.output/stixels.parquet",
 }
 
 #: Inputs of `monostixels demo` unless given on the command line: the best the package has for its
@@ -38,18 +40,20 @@ _DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
 #: real-image semantic net; DeepFlow's variational stage at half size, 2.7x faster at the same
 #: accuracy on KITTI and the synthetic benchmark: README "Pipeline speed").
 _RUN_DEFAULTS = ("flow=deepflow_fast", "semantic=fcn8s", "motion=mono")
-_COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS}
+#: `monostixels batch`: run's inputs; data=video so that data.hfov_deg & co. can be given for every clip.
+_BATCH_DEFAULTS = (*_RUN_DEFAULTS, "data=video")
+_COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS, "batch": _BATCH_DEFAULTS}
 #: Shipped model of a default semantic option, and what a command falls back to where the file is
 #: missing (a non-editable install does not carry models/): ground truth on the synthetic scene,
 #: no semantics on a user's frames.
 _DEFAULT_MODELS = {"semantic=fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "semantic=fcn8s": "models/fcn8s_real.onnx"}
-_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none"}
+_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none", "batch": "semantic=none"}
 
 
 def _usage() -> str:
     lines = ["usage: monostixels COMMAND [key=value ...] [hydra flags]", "", "commands:"]
     lines += [f"  {k:<5} {v}" for k, v in COMMANDS.items()]
-    lines += ["", "Config groups: camera prior solver data flow semantic motion eval output (see conf/).",
+    lines += ["", "Config groups: camera prior solver data flow semantic motion eval output batch (see conf/).",
               "Show the composed config: monostixels eval --cfg job"]
     return "\n".join(lines)
 
@@ -100,6 +104,10 @@ def _run_command(cfg: DictConfig) -> Any:
             return _demo(cfg)
         if cfg.command == "eval":
             return _eval(cfg)
+        if cfg.command == "batch":
+            from monostixels.batch import run_batch
+
+            return run_batch(cfg)
         return _run(cfg)
     except InputError as e:
         # A user's bad input: one clear line, no traceback.
