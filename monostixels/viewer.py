@@ -45,6 +45,13 @@ _DEPTH_UNITS_PER_M = 256.0
 _UINT16_MAX = 65535
 #: Colour of the velocity arrows (RGB), apart from every class colour.
 _ARROW_RGB = (255, 200, 0)
+#: Default 3D eye, world frame (y down), metres: left of, above and behind the first camera,
+#: looking at the road 15 m ahead.
+_EYE_OFFSET_M = (-4.0, -9.0, -14.0)
+_EYE_TARGET_M = (0.0, 0.0, 15.0)
+#: Drawn size of the camera: its axes and the distance of its image plane (metres).
+_AXIS_LENGTH_M = 0.8
+_IMAGE_PLANE_M = 1.5
 
 
 def require_rerun() -> Any:
@@ -86,7 +93,7 @@ class RerunRecorder(RecordingHook):
         InputError: rerun-sdk is not installed; a bad ``colors``, ``point_stride`` or ``jpeg_quality``.
     """
 
-    def __init__(self, path: str | Path, *, fps: float | None = None, colors: str = "class", point_stride: int = 2,
+    def __init__(self, path: str | Path, *, fps: float | None = None, colors: str = "class", point_stride: int = 4,
                  jpeg_quality: int | None = 85, min_depth: float = 2.0, max_depth: float = 80.0) -> None:
         rr = require_rerun()
         if colors not in ("class", "depth"):
@@ -111,21 +118,30 @@ class RerunRecorder(RecordingHook):
         self._rec.set_log_time_enabled(False)
         self._rec.set_log_tick_enabled(False)
         self._rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        self._rec.log("world/camera", rr.TransformAxes3D(_AXIS_LENGTH_M), static=True)
         self._send_blueprint()
 
     def _send_blueprint(self) -> None:
-        """Default layout: the 3D world beside the camera image and the depth image."""
+        """Default layout: the 3D world (seen from above and behind the camera, following it) beside
+        the camera image and the depth image; side panels folded away, the timeline kept."""
         try:
             import rerun.blueprint as rrb
         except ImportError:  # the recording is complete without a layout
             return
-        self._rec.send_blueprint(rrb.Blueprint(rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="3D"),
-            rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="image",
-                                           contents=["world/camera/image/rgb"]),
-                         rrb.Spatial2DView(origin="world/camera/image", name="depth",
-                                           contents=["world/camera/image/depth"])),
-            column_shares=[3, 2])))
+        eye = rrb.EyeControls3D(position=_EYE_OFFSET_M, look_target=_EYE_TARGET_M, eye_up=(0.0, -1.0, 0.0),
+                                )
+        self._rec.send_blueprint(rrb.Blueprint(
+            rrb.Horizontal(
+                # Not the depth image: the viewer would draw it as a second point cloud, in false colours.
+                rrb.Spatial3DView(origin="world", name="3D", eye_controls=eye,
+                                  contents=["+ /world/**", "- /world/camera/image/depth"]),
+                rrb.Vertical(rrb.Spatial2DView(origin="world/camera/image", name="image",
+                                               contents=["world/camera/image/rgb"]),
+                             rrb.Spatial2DView(origin="world/camera/image", name="depth",
+                                               contents=["world/camera/image/depth"])),
+                column_shares=[3, 2]),
+            rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+            rrb.TimePanel(state="collapsed")))
 
     # ------------------------------------------------------------------ per frame
     def _box_colors(self, world: Any, index: np.ndarray) -> np.ndarray:
@@ -183,7 +199,8 @@ class RerunRecorder(RecordingHook):
         K = pair.camera.K.double().numpy()
         rec.log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         rec.log("world/camera/image", rr.Pinhole(image_from_camera=K, resolution=[W, H],
-                                                 camera_xyz=rr.ViewCoordinates.RDF))
+                                                 camera_xyz=rr.ViewCoordinates.RDF,
+                                                 image_plane_distance=_IMAGE_PLANE_M))
         image = rr.Image(image_to_uint8(pair.image))
         rec.log("world/camera/image/rgb", image.compress(self.jpeg_quality) if self.jpeg_quality else image)
         depth = world.depth_map()
@@ -249,6 +266,6 @@ def open_recorder(cfg: Any, out: Path, src: Any) -> RecordingHook:
     quality = output.get("rerun_jpeg_quality", 85)
     return RerunRecorder(out / RECORDING_NAME, fps=getattr(src, "fps", None),
                          colors=str(output.get("rerun_colors", "class")),
-                         point_stride=int(output.get("rerun_point_stride", 2)),
+                         point_stride=int(output.get("rerun_point_stride", 4)),
                          jpeg_quality=None if quality is None else int(quality),
                          min_depth=float(cfg.eval.colormap_min_depth), max_depth=float(cfg.eval.colormap_max_depth))

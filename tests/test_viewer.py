@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -83,6 +84,18 @@ def test_run_writes_a_rerun_recording(tmp_path):
         assert len(data["/world/movers"]["Arrows3D:vectors"].get(i) or []) == len(dyn)
         movers += len(dyn)
     assert movers > 0
+    # The docs' example of reading the recording back gives the same boxes per frame.
+    from tests.test_batch import doc_python_blocks
+
+    (block,) = doc_python_blocks("RrdReader")
+    ns: dict = {}
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        exec(compile(block, "docs/batch_and_viewer.md", "exec"), ns)  # noqa: S102 — our own documentation's code
+    finally:
+        os.chdir(cwd)
+    assert ns["boxes_per_frame"] == {i: len(data["/world/stixels"]["Boxes3D:centers"][i]) for i in range(3)}
     # The camera went forward, back, forward: frames 0 and 2 are at the same place, frame 1 near the start.
     t = [np.array(data["/world/camera"]["Transform3D:translation"][i][0]) for i in range(3)]
     assert np.linalg.norm(t[0]) > 0.3 and np.linalg.norm(t[1]) < 0.3 * np.linalg.norm(t[0])
