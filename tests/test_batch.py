@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import tempfile
@@ -18,6 +19,12 @@ from tests._clips import FAST, FPS, cli, write_frames_clip, write_video_clip
 
 #: Columns compared with stixels.json, in its names.
 _JSON_KEYS = ("column", "v_top", "v_bottom", "type", "class", "inverse_depth", "depth")
+DOC = Path(__file__).resolve().parents[1] / "docs" / "batch_and_viewer.md"
+
+
+def doc_python_blocks(needle: str) -> list[str]:
+    """The ```python blocks of docs/batch_and_viewer.md that contain ``needle``."""
+    return [b for b in re.findall(r"```python\n(.*?)```", DOC.read_text(), flags=re.S) if needle in b]
 
 
 @pytest.fixture
@@ -123,6 +130,8 @@ def test_batch_on_ray_equals_run_and_resumes(tmp_path, ray_tmp):
     ground = (np.array(t["type"]) == "ground") & np.array([y is not None for y in t["y"]])
     assert abs(np.median(np.array(t["y"], dtype=object)[ground].astype(float)) - 1.65) < 0.15
 
+    _check_doc_queries(tmp_path, t)
+
     # A second run: nothing new to do; nothing rewritten; the failure still reported.
     mtimes = {f: f.stat().st_mtime_ns for f in (out / "stixels.parquet").rglob("*.parquet")}
     p2 = cli(args, tmp_path, env=env, check=False)
@@ -132,6 +141,44 @@ def test_batch_on_ray_equals_run_and_resumes(tmp_path, ray_tmp):
     # Other settings into the same folder: refused, not mixed into the dataset.
     p3 = cli([*args, "prior.beta_mc=3.0"], tmp_path, env=env, check=False)
     assert p3.returncode == 1 and "other settings" in p3.stderr
+
+
+def _check_doc_queries(cwd: Path, t: dict[str, list]) -> None:
+    """The docs' DuckDB and pyarrow examples, run on the dataset in ``cwd/fleet``, against numpy."""
+    blocks = doc_python_blocks("fleet/stixels.parquet")
+    assert len(blocks) == 2
+    ns: dict = {}
+    old = os.getcwd()
+    os.chdir(cwd)
+    try:
+        for b in blocks:
+            exec(compile(b, str(DOC), "exec"), ns)  # noqa: S102 — our own documentation's code
+    finally:
+        os.chdir(old)
+    typ, depth = np.array(t["type"]), np.array(t["depth"], dtype=object)
+    key = list(zip(t["clip"], t["frame"]))
+    want: dict[tuple, float] = {}
+    for k, ty, d in zip(key, typ, depth):
+        if ty in ("static_object", "dynamic_object") and d is not None:
+            want[k] = min(want.get(k, math.inf), d)
+    assert [(c, f) for c, f, _, _ in ns["nearest"]] == sorted(want)
+    assert all(m == want[(c, f)] for c, f, m, _ in ns["nearest"])
+    pa_rows = ns["nearest_pa"].to_pydict()
+    assert dict(zip(zip(pa_rows["clip"], pa_rows["frame"]), pa_rows["depth_min"])) == want
+    # Movers faster than 5 m/s: |motion| / dt, where the interval is known (the video clip).
+    speed = [math.hypot(x, y, z) / dt if dt else None
+             for x, y, z, dt in zip(t["motion_x"], t["motion_y"], t["motion_z"], t["dt"])]
+    fast = sorted((c, f, col) for c, f, col, ty, v in zip(t["clip"], t["frame"], t["column"], typ, speed)
+                  if ty == "dynamic_object" and v is not None and v > 5)
+    assert len(fast) > 0 and sorted((c, f, col) for c, f, col, *_ in ns["fast"]) == fast
+
+
+def test_docs_list_every_column():
+    from monostixels.batch import SCHEMA_FIELDS
+
+    table = DOC.read_text().split("**Columns**", 1)[1].split("###", 1)[0]
+    for name, _, _ in SCHEMA_FIELDS:
+        assert f"`{name}`" in table, name
 
 
 def test_discover_clips_and_their_data_config(tmp_path):
