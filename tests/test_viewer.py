@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections import defaultdict
 from pathlib import Path
@@ -118,3 +119,53 @@ def test_rerun_missing_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_rerun)
     with pytest.raises(InputError, match=r'pip install -e "\.\[viewer\]"'):
         require_rerun()
+
+
+def test_sequence_fields_reach_the_recording_and_the_rows(tmp_path):
+    """Where the sequence layer adds track ids, velocities, TTCs and a pose, the boxes carry the labels,
+    the arrows the velocities, and the dataset rows all three, at the pose's world positions."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from monostixels.batch import frame_rows
+    from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+    from monostixels.geometry import Camera
+    from monostixels.scene3d import reference_points
+    from monostixels.viewer import RerunRecorder
+    from tests.test_scene3d import _world
+
+    st = _world()
+    n = len(st)
+    st.track_id = torch.arange(n) + 10
+    st.velocity = torch.zeros(n, 3, dtype=torch.float64)
+    dyn = st.type == DYNAMIC_OBJECT
+    st.velocity[dyn] = torch.tensor([1.0, 0.0, -7.0], dtype=torch.float64)
+    st.ttc_s = torch.full((n,), float("inf"), dtype=torch.float64)
+    st.ttc_s[dyn] = 2.5
+    pose = np.eye(4)
+    pose[:3, 3] = [2.0, 0.0, 30.0]
+    H, W = st.image_size
+    pair = SimpleNamespace(image=torch.rand(3, H, W), camera=Camera(K=st.K), name="seq_000007",
+                           meta={"source": "video", "frame": 7, "dt": 0.1}, size=(H, W))
+    res = SimpleNamespace(stixels=st, pose=pose, motion=SimpleNamespace(motion=None))
+
+    rows = frame_rows(0, pair, res, pose, fps=10.0)
+    assert rows["track_id"] == list(range(10, 10 + n))
+    assert rows["ttc_s"][int(np.nonzero(dyn.numpy())[0][0])] == 2.5 and math.isinf(rows["ttc_s"][0])
+    assert rows["velocity_z"][int(np.nonzero(dyn.numpy())[0][0])] == -7.0
+    assert rows["timestamp"][0] == pytest.approx(0.7)
+    X = reference_points(st)
+    ok = ~np.isnan(X[:, 0])
+    assert np.allclose(np.array(rows["z"], dtype=float)[ok], X[ok, 2] + 30.0)
+
+    rec = RerunRecorder(tmp_path / "seq.rrd", fps=10.0)
+    rec.log_frame(0, pair, res)
+    rec.close()
+    data, _ = _read_rrd(tmp_path / "seq.rrd")
+    assert np.allclose(data["/world/camera"]["Transform3D:translation"][0][0], [2.0, 0.0, 30.0])
+    objects = np.nonzero(np.isin(st.type.numpy(), (STATIC_OBJECT, DYNAMIC_OBJECT)))[0]
+    labels = data["/world/stixels"]["Boxes3D:labels"][0]
+    assert labels == [f"#{10 + i}" + (" TTC 2.5 s" if st.type[i] == DYNAMIC_OBJECT else "") for i in objects]
+    vectors = np.array(data["/world/movers"]["Arrows3D:vectors"][0])
+    assert vectors.shape == (int(dyn.sum()), 3) and np.allclose(vectors, [1.0, 0.0, -7.0])
