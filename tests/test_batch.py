@@ -216,3 +216,26 @@ def test_discover_clips_and_their_data_config(tmp_path):
     assert "hfov_deg" not in drive and "resize" not in drive
     with pytest.raises(InputError, match="data=synthetic"):
         clip_data_config({"name": "synthetic"}, clips[0])
+
+
+def test_batch_without_its_extra_names_it(monkeypatch):
+    import builtins
+
+    from monostixels.batch import run_batch
+    from monostixels.pipeline import load_config
+
+    real = builtins.__import__
+
+    def no_ray(name, *args, **kwargs):
+        if name == "ray" or name.startswith("ray."):
+            raise ImportError("No module named 'ray'")
+        return real(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    with pytest.raises(InputError, match=r'pip install -e "\.\[batch\]"'):
+        run_batch(load_config(["batch.inputs=nowhere"]))
+
+
+def test_batch_needs_inputs(tmp_path):
+    p = cli(["batch", *FAST], tmp_path, check=False)
+    assert p.returncode == 1 and "batch.inputs: not set" in p.stderr and "Traceback" not in p.stderr
