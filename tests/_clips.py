@@ -1,4 +1,5 @@
-"""Tiny clips for the `run` / `batch` end-to-end tests: rendered frames as a video or an image folder.
+"""Tiny clips for the `run` / `batch` end-to-end tests (rendered frames as a video or an image
+folder), the CLI call they use, and a way to hide an optional extra.
 
 A clip is 4 frames of a rendered pair at a quarter of KITTI's size (94 x 310): previous, current,
 previous, current. So its 3 frame pairs all have real camera motion (forward, back, forward) and
@@ -64,3 +65,17 @@ def cli(args: list[str], cwd: Path, env: dict[str, str] | None = None, check: bo
     if check and p.returncode != 0:
         raise AssertionError(f"monostixels {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
     return p
+
+
+def hide_module(monkeypatch, name: str) -> None:
+    """Make ``import NAME`` (and its submodules) fail, as where its optional extra is not installed."""
+    import builtins
+
+    real = builtins.__import__
+
+    def fake(module, *args, **kwargs):
+        if module == name or module.startswith(name + "."):
+            raise ImportError(f"No module named {name!r}")
+        return real(module, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", fake)

@@ -15,7 +15,7 @@ import pytest
 
 from monostixels._checks import InputError
 from monostixels.batch import Clip, clip_data_config, discover_clips
-from tests._clips import FAST, FPS, cli, write_frames_clip, write_video_clip
+from tests._clips import FAST, FPS, cli, hide_module, write_frames_clip, write_video_clip
 
 #: Columns compared with stixels.json, in its names.
 _JSON_KEYS = ("column", "v_top", "v_bottom", "type", "class", "inverse_depth", "depth")
@@ -219,19 +219,10 @@ def test_discover_clips_and_their_data_config(tmp_path):
 
 
 def test_batch_without_its_extra_names_it(monkeypatch):
-    import builtins
-
     from monostixels.batch import run_batch
     from monostixels.pipeline import load_config
 
-    real = builtins.__import__
-
-    def no_ray(name, *args, **kwargs):
-        if name == "ray" or name.startswith("ray."):
-            raise ImportError("No module named 'ray'")
-        return real(name, *args, **kwargs)
-
-    monkeypatch.setattr(builtins, "__import__", no_ray)
+    hide_module(monkeypatch, "ray")
     with pytest.raises(InputError, match=r'pip install -e "\.\[batch\]"'):
         run_batch(load_config(["batch.inputs=nowhere"]))
 

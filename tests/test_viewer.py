@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests._clips import FAST, FPS, cli, write_video_clip
+from tests._clips import FAST, FPS, cli, hide_module, write_video_clip
 
 rr = pytest.importorskip("rerun", reason='the viewer extra (pip install -e ".[viewer]")')
 
@@ -102,21 +102,12 @@ def test_run_writes_a_rerun_recording(tmp_path):
     assert np.linalg.norm(t[0]) > 0.3 and np.linalg.norm(t[1]) < 0.3 * np.linalg.norm(t[0])
 
 
-def test_rerun_missing_names_the_extra(tmp_path, monkeypatch):
+def test_rerun_missing_names_the_extra(monkeypatch):
     """Without rerun-sdk, output.rerun=true fails at once with the install command of the extra."""
-    import builtins
-
     from monostixels._checks import InputError
     from monostixels.viewer import require_rerun
 
-    real = builtins.__import__
-
-    def no_rerun(name, *args, **kwargs):
-        if name == "rerun" or name.startswith("rerun."):
-            raise ImportError("No module named 'rerun'")
-        return real(name, *args, **kwargs)
-
-    monkeypatch.setattr(builtins, "__import__", no_rerun)
+    hide_module(monkeypatch, "rerun")
     with pytest.raises(InputError, match=r'pip install -e "\.\[viewer\]"'):
         require_rerun()
 
