@@ -1,4 +1,4 @@
-"""The ``monostixels`` command: ``demo``, ``eval`` and ``run``, configured through Hydra.
+"""The ``monostixels`` command: ``demo``, ``eval``, ``run`` and ``batch``, configured through Hydra.
 
 Usage::
 
@@ -6,6 +6,8 @@ Usage::
     monostixels eval data=synthetic data.frames=20 flow=gt semantic=gt motion=gt out=o.json
     monostixels run data=frames data.root=my_frames    # stixels of a user's own images
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90   # a dashcam video
+    monostixels run data=video data.path=clip.mp4 data.hfov_deg=90 output.rerun=true  # + a 3D recording
+    monostixels batch batch.inputs='clips/*.mp4' batch.output=fleet data.hfov_deg=90  # many clips on Ray
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """
 from __future__ import annotations
@@ -27,6 +29,7 @@ COMMANDS = {
     "demo": "run the full pipeline on the built-in synthetic scene and write pictures under outputs/demo",
     "eval": "evaluate on a data source (data=...), print the paper's table, write out=FILE.json",
     "run": "stixels, pictures, depth, point clouds (and a video) for a data source, under outputs/run",
+    "batch": "many clips (batch.inputs=DIR_OR_GLOB) in parallel on Ray into batch.output/stixels.parquet",
 }
 
 #: Inputs of `monostixels demo` unless given on the command line: the best the package has for its
@@ -37,18 +40,20 @@ _DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
 #: real-image semantic net; DeepFlow's variational stage at half size: a few times faster at nearly
 #: the same accuracy, docs/results.md "Speed").
 _RUN_DEFAULTS = ("flow=deepflow_fast", "semantic=fcn8s", "motion=mono")
-_COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS}
+#: `monostixels batch`: run's inputs; data=video so that data.hfov_deg & co. can be given for every clip.
+_BATCH_DEFAULTS = (*_RUN_DEFAULTS, "data=video")
+_COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS, "batch": _BATCH_DEFAULTS}
 #: Shipped model of a default semantic option (installed with the package, editable or not), and
 #: what a command falls back to where the file is missing (a checkout without its models): ground
 #: truth on the synthetic scene, no semantics on a user's frames.
 _DEFAULT_MODELS = {"semantic=fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "semantic=fcn8s": "models/fcn8s_real.onnx"}
-_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none"}
+_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none", "batch": "semantic=none"}
 
 
 def _usage() -> str:
     lines = ["usage: monostixels COMMAND [key=value ...] [hydra flags]", "", "commands:"]
     lines += [f"  {k:<5} {v}" for k, v in COMMANDS.items()]
-    lines += ["", "Config groups: camera prior solver data flow semantic motion eval (see conf/).",
+    lines += ["", "Config groups: camera prior solver data flow semantic motion eval output batch (see conf/).",
               "Show the composed config: monostixels eval --cfg job"]
     return "\n".join(lines)
 
@@ -99,6 +104,10 @@ def _run_command(cfg: DictConfig) -> Any:
             return _demo(cfg)
         if cfg.command == "eval":
             return _eval(cfg)
+        if cfg.command == "batch":
+            from monostixels.batch import run_batch
+
+            return run_batch(cfg)
         return _run(cfg)
     except InputError as e:
         # A user's bad input: one clear line, no traceback.
@@ -252,6 +261,7 @@ def _run(cfg: DictConfig) -> None:
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
+    from monostixels.viewer import open_recorder
     from monostixels.viz import depth_colormap, side_by_side, stixel_depth_overlay
 
     src = _source(cfg)
@@ -263,9 +273,11 @@ def _run(cfg: DictConfig) -> None:
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     videos: dict[str, Any] = {}
     written = 0
+    recorder = open_recorder(cfg, out, src)  # output.rerun=true: a 3D recording, else a no-op
     bar = tqdm(total=len(src), desc="run", unit="frame")
     for step in runner.run(src, progress=bar):
         pair, res = step.pair, step.result
+        recorder.log_frame(written, pair, res)
         st = res.stixels
         d = out / (pair.name or f"frame_{written:06d}")
         depth = st.depth_map()
@@ -298,8 +310,10 @@ def _run(cfg: DictConfig) -> None:
     bar.close()
     for v in videos.values():
         v.release()
+    recording = recorder.close()
     print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png bev.png figure.png depth.png depth16.png "
-          f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else ""))
+          f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else "")
+          + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else ""))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,448 @@
+"""`monostixels batch`: many clips in parallel on Ray, into one Parquet dataset.
+
+``monostixels batch batch.inputs=DIR_OR_GLOB batch.output=DIR`` runs every clip (a video file, or a
+folder of images with its intrinsics file) as one Ray task and writes (SPEC section 4):
+
+- ``DIR/stixels.parquet/clip=<name>/part-0.parquet``: a Parquet dataset partitioned by clip
+  (hive layout), one row per stixel per frame, columns :data:`SCHEMA`;
+- ``DIR/summary.json``: per clip its input, frames, status (``ok`` | ``failed``), error and seconds.
+
+A clip that fails (unreadable, too short, no intrinsics...) is recorded with its reason while the
+others go on. A second run into the same ``DIR`` skips the clips already there (and those that
+failed, unless ``batch.retry_failed=true``). Ray: a local instance with ``batch.num_cpus``
+workers, or a running cluster at ``batch.address``. Needs the optional extra
+``pip install -e ".[batch]"`` (ray, pyarrow).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass
+from glob import glob
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from monostixels._checks import InputError
+from monostixels.classes import CLASS_NAMES, TYPE_NAMES
+from monostixels.data._io import IMAGE_EXTENSIONS
+from monostixels.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
+
+__all__ = ["Clip", "SCHEMA_FIELDS", "discover_clips", "clip_data_config", "process_clip", "read_summary",
+           "run_batch"]
+
+logger = logging.getLogger(__name__)
+
+SUMMARY_NAME = "summary.json"
+DATASET_NAME = "stixels.parquet"
+SUMMARY_FORMAT = "monostixels-batch/1"
+#: Intrinsics files beside a video ``clip.mp4`` that the batch uses for it: ``clip.intrinsics.yaml`` ...
+_SIDECAR_SUFFIXES = (".intrinsics.yaml", ".intrinsics.yml", ".intrinsics.json", ".intrinsics.txt")
+
+#: Columns of the dataset (besides the partition column ``clip``): name, Arrow type, meaning.
+#: Temporal columns (track_id, velocity_*, ttc_s) are null where the pipeline does not provide them.
+SCHEMA_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("frame", "int32", "index of the frame pair in the clip, 0-based (run's `frame` timeline)"),
+    ("frame_name", "string", "the pair's name (run's per-frame folder)"),
+    ("timestamp", "float64", "seconds of the current frame into the video; null where unknown"),
+    ("dt", "float64", "seconds between the pair's two frames; null where unknown"),
+    ("column", "int32", "stixel column (width solver.column_width pixels)"),
+    ("v_top", "int32", "top pixel row (inclusive, v down)"),
+    ("v_bottom", "int32", "bottom pixel row (inclusive)"),
+    ("type", "string", "ground | static_object | dynamic_object | sky"),
+    ("class", "string", "one of the 10 classes (SPEC section 2)"),
+    ("inverse_depth", "float64", "plane label p, 1/metres"),
+    ("depth", "float64", "depth z of the stixel's reference pixel, metres; null for sky (= stixels.json)"),
+    ("x", "float64", "world position of that pixel on the stixel's plane, metres (world = first camera, "
+                     "x right, y down, z forward); null for sky"),
+    ("y", "float64", ""),
+    ("z", "float64", ""),
+    ("motion_x", "float64", "motion Δ of a dynamic stixel between the pair's frames, current camera "
+                            "frame, metres (0 otherwise; = stixels.json `motion`)"),
+    ("motion_y", "float64", ""),
+    ("motion_z", "float64", ""),
+    ("track_id", "int64", "track of the stixel (sequence layer); null where absent"),
+    ("velocity_x", "float64", "world velocity, m/s (sequence layer); null where absent"),
+    ("velocity_y", "float64", ""),
+    ("velocity_z", "float64", ""),
+    ("ttc_s", "float64", "time to collision, s, inf when not closing (sequence layer); null where absent"),
+    ("degenerate_motion", "bool", "the frame's camera motion was degenerate: depths from the scene model"),
+)
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One input clip: a name (its partition), its path and its kind (``video`` | ``frames``)."""
+
+    name: str
+    path: str
+    kind: str
+
+
+# ------------------------------------------------------------------------------------------------ inputs
+def _has_images(folder: Path) -> bool:
+    return any(p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS for p in folder.iterdir())
+
+
+def _clip_names(paths: Sequence[Path]) -> list[str]:
+    """Unique partition names of resolved clip paths: the file stems (folder names), or where two
+    collide the paths relative to their common folder (``car1/front.mp4`` -> ``car1_front``, and
+    ``a.mp4`` beside ``a.avi`` -> ``a.mp4``, ``a.avi``); characters outside ``[A-Za-z0-9._-]`` -> ``_``."""
+    def clean(s: str) -> str:
+        return re.sub(r"[^A-Za-z0-9._-]", "_", s).strip("._") or "clip"
+
+    def unique(names: list[str]) -> bool:
+        return len(set(names)) == len(names)
+
+    names = [clean(p.stem if p.is_file() else p.name) for p in paths]
+    if unique(names):
+        return names
+    base = Path(os.path.commonpath([str(p.parent) for p in paths]))
+    rel = [p.relative_to(base) for p in paths]
+    names = [clean(str(r.with_suffix("") if p.is_file() else r)) for r, p in zip(rel, paths)]
+    return names if unique(names) else [clean(str(r)) for r in rel]
+
+
+def discover_clips(inputs: str | Sequence[str], video_extensions: Sequence[str] = (".mp4",),
+                   exclude: str | Path | None = None) -> list[Clip]:
+    """The clips of ``batch.inputs``, sorted by path.
+
+    Args:
+        inputs: a folder, a glob, or a list of them. A folder that holds images is one clip (a
+            folder of frames); any other folder's clips are its video files and its sub-folders that
+            hold images. Each match of a glob is a video file or a folder of images.
+        video_extensions: file suffixes taken as videos (case-insensitive).
+        exclude: a folder never taken as a clip (the batch output).
+
+    Raises:
+        InputError: ``inputs`` unset, or nothing matches / no clip found (the message names it).
+    """
+    if inputs is None or (isinstance(inputs, str) and not inputs.strip()):
+        raise InputError("batch.inputs: not set: give a folder of clips or a glob, e.g. batch.inputs='clips/*.mp4'")
+    specs = [inputs] if isinstance(inputs, str) else [str(s) for s in inputs]
+    exts = {e.lower() if e.startswith(".") else f".{e.lower()}" for e in video_extensions}
+    skip = Path(exclude).resolve() if exclude is not None else None
+    found: dict[Path, str] = {}
+    for spec in specs:
+        root = Path(spec).expanduser()
+        from_glob = not root.is_dir()
+        if not from_glob:
+            candidates = [root] if _has_images(root) else sorted(root.iterdir())
+        else:
+            candidates = [Path(p) for p in sorted(glob(str(root), recursive=True))]
+            if not candidates:
+                raise InputError(f"batch.inputs: {spec!r} is neither a folder nor a glob that matches anything")
+        for p in candidates:
+            if skip is not None and p.resolve() == skip:
+                continue
+            if p.is_file() and p.suffix.lower() in exts:
+                found[p.resolve()] = "video"
+            elif p.is_dir() and _has_images(p):
+                found[p.resolve()] = "frames"
+            elif from_glob and not p.name.endswith(_SIDECAR_SUFFIXES):
+                # In a folder, other files (notes, intrinsics) are expected; a glob asked for this one.
+                logger.warning("batch.inputs: %s is neither a video (%s) nor a folder of images: skipped",
+                               p, ", ".join(sorted(exts)))
+    if not found:
+        raise InputError(f"batch.inputs: no clips in {', '.join(specs)} (video files {', '.join(sorted(exts))} "
+                         f"or folders of images)")
+    paths = sorted(found)
+    return [Clip(n, str(p), found[p]) for n, p in zip(_clip_names(paths), paths)]
+
+
+def _packaged_data_group(name: str) -> dict[str, Any]:
+    """The packaged ``conf/data/NAME.yaml`` as a dict."""
+    from importlib.resources import files
+
+    from omegaconf import OmegaConf
+
+    text = (files("monostixels.conf") / "data" / f"{name}.yaml").read_text()
+    return OmegaConf.to_container(OmegaConf.create(text), resolve=True)
+
+
+def clip_data_config(data: Any, clip: Clip) -> dict[str, Any]:
+    """The ``data`` group of one clip: the packaged ``video`` or ``frames`` group, with the user's
+    ``data.*`` options that it knows (step, frames, resize, hfov_deg, camera_height...) and the clip's path.
+
+    Intrinsics: a folder of frames uses its own file, else ``data.intrinsics``; a video uses
+    ``<stem>.intrinsics.{yaml,yml,json,txt}`` beside it, else ``data.intrinsics``, else ``data.hfov_deg``.
+    """
+    from omegaconf import OmegaConf
+
+    user = OmegaConf.to_container(data, resolve=True) if OmegaConf.is_config(data) else dict(data or {})
+    if user.get("name") not in (None, "video", "frames"):
+        raise InputError(f"batch: clips are videos or folders of frames; data={user.get('name')} cannot be "
+                         f"applied to them (leave data unset, or data=video / data=frames)")
+    out = _packaged_data_group(clip.kind)
+    for k, v in user.items():
+        if k in out and k not in ("name", "path", "root", "poses"):
+            out[k] = v
+    p = Path(clip.path)
+    if clip.kind == "video":
+        out["path"] = clip.path
+        sidecar = [p.with_name(p.stem + s) for s in _SIDECAR_SUFFIXES if p.with_name(p.stem + s).is_file()]
+        if sidecar:
+            out["intrinsics"] = str(sidecar[0])
+    else:
+        from monostixels.data.frames import INTRINSICS_NAMES
+
+        out["root"] = clip.path
+        if any((p / n).is_file() for n in INTRINSICS_NAMES):
+            out["intrinsics"] = None  # the folder's own file
+        out["poses"] = None
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ rows
+def frame_rows(index: int, pair: Any, res: Any, pose: np.ndarray, fps: float | None) -> dict[str, list]:
+    """Columns (:data:`SCHEMA_FIELDS`) of one frame's stixels, one entry per stixel.
+
+    Args:
+        index: the pair's index in the clip. pair: the FramePair. res: its PipelineResult.
+        pose: (4, 4) camera-to-world of the pair's current frame (world = the clip's first camera).
+        fps: the video's frame rate, or None.
+    """
+    world = res.stixels
+    n = len(world)
+    depth = world.depth.double().numpy()
+    X = to_world(pose, reference_points(world))
+    motion = world.motion.double().numpy().reshape(-1, 3)
+    track, vel, ttc = (optional_field(world, k) for k in ("track_id", "velocity", "ttc_s"))
+    vel = None if vel is None else np.asarray(vel, dtype=np.float64).reshape(-1, 3)
+    meta = getattr(pair, "meta", {}) or {}
+    dt = meta.get("dt")
+
+    def finite(a: np.ndarray) -> list[float | None]:
+        return [float(v) if math.isfinite(v) else None for v in a]
+
+    return {
+        "frame": [int(index)] * n,
+        "frame_name": [str(pair.name)] * n,
+        "timestamp": [frame_time(pair, fps)] * n,
+        "dt": [None if dt is None else float(dt)] * n,
+        "column": world.column.tolist(),
+        "v_top": world.v_top.tolist(),
+        "v_bottom": world.v_bottom.tolist(),
+        "type": [TYPE_NAMES[int(t)] for t in world.type],
+        "class": [CLASS_NAMES[int(c)] for c in world.cls],
+        "inverse_depth": world.inverse_depth.double().tolist(),
+        "depth": finite(depth),  # sky: inf -> null, as stixels.json writes it
+        "x": finite(X[:, 0]), "y": finite(X[:, 1]), "z": finite(X[:, 2]),
+        "motion_x": motion[:, 0].tolist(), "motion_y": motion[:, 1].tolist(), "motion_z": motion[:, 2].tolist(),
+        "track_id": [None] * n if track is None else [None if int(t) < 0 else int(t) for t in track],
+        "velocity_x": [None] * n if vel is None else vel[:, 0].tolist(),
+        "velocity_y": [None] * n if vel is None else vel[:, 1].tolist(),
+        "velocity_z": [None] * n if vel is None else vel[:, 2].tolist(),
+        "ttc_s": [None] * n if ttc is None else [float(v) for v in np.asarray(ttc, dtype=np.float64)],
+        "degenerate_motion": [bool(world.flags.get("degenerate_motion", False))] * n,
+    }
+
+
+def arrow_schema() -> Any:
+    """The Arrow schema of a clip's file (:data:`SCHEMA_FIELDS`, all nullable)."""
+    import pyarrow as pa
+
+    types = {"int32": pa.int32(), "int64": pa.int64(), "float64": pa.float64(), "string": pa.string(),
+             "bool": pa.bool_()}
+    return pa.schema([pa.field(name, types[t]) for name, t, _ in SCHEMA_FIELDS])
+
+
+# ------------------------------------------------------------------------------------------------ one clip
+def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dict[str, Any], Any]:
+    """Run the pipeline on every frame pair of one clip (the body of a Ray task).
+
+    Args:
+        cfg: the composed config as a plain dict. clip: the clip. threads: torch / OpenCV threads.
+
+    Returns:
+        ``(summary, table)``: the clip's summary entry, and its rows as a ``pyarrow.Table`` (None
+        where it failed). Never raises for a bad clip: the error goes into the summary.
+    """
+    import cv2
+    import pyarrow as pa
+    import torch
+    from omegaconf import OmegaConf
+
+    from monostixels.data.sources import make_source
+    from monostixels.pipeline import Pipeline
+
+    logging.getLogger("monostixels").setLevel(str(cfg.get("log_level", "INFO")))
+    torch.set_num_threads(max(1, int(threads)))
+    cv2.setNumThreads(max(1, int(threads)))
+    start = time.perf_counter()
+    entry: dict[str, Any] = {"input": clip.path, "kind": clip.kind, "frames": 0, "rows": 0, "status": "failed",
+                             "error": None, "seconds": 0.0}
+    frames = 0
+    try:
+        conf = OmegaConf.create(cfg)
+        conf.data = clip_data_config(conf.data, clip)
+        src = make_source(conf)
+        if len(src) == 0:
+            raise InputError(f"{clip.path}: no frame pairs")
+        pipe = Pipeline(conf, allow_motion_failure=True, sfm=False)
+        poses = PoseChain()
+        fps = getattr(src, "fps", None)
+        columns: dict[str, list] = {name: [] for name, _, _ in SCHEMA_FIELDS}
+        for i, pair in enumerate(src):
+            res = pipe.run(pair)
+            rows = frame_rows(i, pair, res, poses.update(pair, res), fps)
+            for k, v in rows.items():
+                columns[k].extend(v)
+            frames += 1
+        table = pa.Table.from_pydict(columns, schema=arrow_schema())
+        entry.update(frames=frames, rows=table.num_rows, status="ok")
+        return entry, table
+    except InputError as e:
+        entry["error"] = str(e)
+    except Exception as e:  # noqa: BLE001 — one clip's failure must not stop the batch; its reason is kept
+        logger.exception("batch: clip %s failed", clip.name)
+        entry["error"] = f"{type(e).__name__}: {e}"
+    finally:
+        entry["seconds"] = round(time.perf_counter() - start, 3)
+    entry["frames"] = frames
+    return entry, None
+
+
+# ------------------------------------------------------------------------------------------------ the batch
+def read_summary(output: str | Path) -> dict[str, Any]:
+    """``DIR/summary.json`` as a dict, or an empty summary where there is none yet."""
+    path = Path(output) / SUMMARY_NAME
+    if not path.is_file():
+        return {"format": SUMMARY_FORMAT, "settings": None, "clips": {}}
+    try:
+        s = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(f"batch.output: cannot read {path} ({e}); remove it to start over") from e
+    if s.get("format") != SUMMARY_FORMAT:
+        raise InputError(f"batch.output: {path} is not a batch summary (format {s.get('format')!r})")
+    return s
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    os.replace(tmp, path)  # a crash never leaves half a summary
+
+
+def _settings(cfg: dict[str, Any]) -> str:
+    """Fingerprint of everything that changes a clip's stixels (not where or how it is scheduled)."""
+    keep = {k: v for k, v in cfg.items() if k not in ("batch", "command", "outputs", "out", "log_level", "output")}
+    data = dict(keep.get("data") or {})
+    for k in ("name", "path", "root"):  # set per clip
+        data.pop(k, None)
+    keep["data"] = data
+    return hashlib.sha256(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _partition(output: Path, name: str) -> Path:
+    return output / DATASET_NAME / f"clip={name}"
+
+
+def _write_partition(output: Path, name: str, table: Any) -> Path:
+    """Write one clip's rows as ``stixels.parquet/clip=NAME/part-0.parquet`` (atomically)."""
+    import pyarrow.parquet as pq
+
+    d = _partition(output, name)
+    d.mkdir(parents=True, exist_ok=True)
+    for old in d.glob("*.parquet"):
+        old.unlink()
+    tmp = d / "part-0.parquet.tmp"
+    pq.write_table(table, tmp)
+    os.replace(tmp, d / "part-0.parquet")
+    return d / "part-0.parquet"
+
+
+def _done(entry: dict[str, Any] | None, clip: Clip, output: Path, retry_failed: bool) -> bool:
+    """Whether an earlier run finished ``clip`` (same input; its file is there, or it failed)."""
+    if entry is None or entry.get("input") != clip.path:
+        return False
+    if entry.get("status") == "ok":
+        return (_partition(output, clip.name) / "part-0.parquet").is_file()
+    return entry.get("status") == "failed" and not retry_failed
+
+
+def run_batch(cfg: Any) -> int:
+    """``monostixels batch``: every clip of ``batch.inputs`` on Ray into ``batch.output``.
+
+    Returns:
+        0 when every clip is ok. Where a clip failed (in this run or, not retried, an earlier one),
+        exits with status 1 after writing everything else and listing the failures on stderr.
+
+    Raises:
+        InputError: ray / pyarrow missing, no clips, or a ``batch.output`` written with other settings.
+    """
+    from omegaconf import OmegaConf
+    from tqdm import tqdm
+
+    try:
+        import pyarrow  # noqa: F401
+        import ray
+    except ImportError as e:
+        raise InputError(f'monostixels batch needs ray and pyarrow, the optional "batch" extra: '
+                         f'pip install -e ".[batch]" ({e})') from e
+    b = cfg.batch
+    output = Path(str(b.output)).expanduser()
+    clips = discover_clips(b.inputs, list(b.video_extensions), exclude=output)
+    cfg_dict = OmegaConf.to_container(cfg, resolve=True)
+    summary = read_summary(output)
+    settings = _settings(cfg_dict)
+    if summary["clips"] and summary.get("settings") not in (None, settings):
+        raise InputError(f"batch.output: {output} holds clips made with other settings (flow, semantic, motion, "
+                         f"prior, solver or data options); choose another batch.output or remove {output}")
+    summary["settings"] = settings
+    todo = [c for c in clips if not _done(summary["clips"].get(c.name), c, output, bool(b.retry_failed))]
+    skipped = len(clips) - len(todo)
+    output.mkdir(parents=True, exist_ok=True)
+    logger.info("batch: %d clip(s), %d already done, %d to run -> %s", len(clips), skipped, len(todo), output)
+    threads = max(1, int(b.cpus_per_clip))
+    if todo:
+        started = not ray.is_initialized()
+        if started:
+            num_cpus = None if b.num_cpus is None else int(b.num_cpus)
+            ray.init(address=None if b.address is None else str(b.address),
+                     num_cpus=num_cpus if b.address is None else None,
+                     include_dashboard=False, logging_level=logging.WARNING)
+        try:
+            task = ray.remote(num_cpus=threads, max_retries=0)(process_clip)
+            futures = {task.remote(cfg_dict, c, threads): c for c in todo}
+            pending = list(futures)
+            with tqdm(total=len(todo), desc="batch", unit="clip") as bar:
+                while pending:
+                    done, pending = ray.wait(pending, num_returns=1)
+                    for f in done:
+                        clip = futures[f]
+                        try:
+                            entry, table = ray.get(f)
+                        except Exception as e:  # noqa: BLE001 — a worker that died: the clip failed
+                            entry = {"input": clip.path, "kind": clip.kind, "frames": 0, "rows": 0,
+                                     "status": "failed", "error": f"{type(e).__name__}: {e}", "seconds": None}
+                            table = None
+                        if table is not None:
+                            _write_partition(output, clip.name, table)
+                        summary["clips"][clip.name] = entry
+                        _write_json(output / SUMMARY_NAME, summary)
+                        bar.set_postfix_str(f"{clip.name} {entry['status']}")
+                        bar.update(1)
+        finally:
+            if started:
+                ray.shutdown()
+    else:
+        _write_json(output / SUMMARY_NAME, summary)
+    entries = {c.name: summary["clips"][c.name] for c in clips if c.name in summary["clips"]}
+    failed = {k: e for k, e in entries.items() if e["status"] != "ok"}
+    rows = sum(int(e.get("rows") or 0) for e in entries.values() if e["status"] == "ok")
+    print(f"batch: {len(clips)} clip(s): {len(entries) - len(failed)} ok, {len(failed)} failed, "
+          f"{len(todo)} run now, {skipped} done before -> {output / DATASET_NAME} ({rows} rows), "
+          f"{output / SUMMARY_NAME}")
+    for k, e in failed.items():
+        print(f"  failed: {k} ({e['input']}): {e['error']}", file=sys.stderr)
+    if failed:
+        sys.exit(1)
+    return 0
