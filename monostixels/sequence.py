@@ -221,6 +221,11 @@ class SequenceRunner:
         prev = None
         if sequence and "frame_prev" in pair.meta:
             prev = self.frames.get(int(pair.meta["frame_prev"]))
+        if prev is None and sequence and "frame_prev" in pair.meta and not self.frames:
+            # The sequence's first pair: its earlier frame is the world (a later keyframe pair may pair
+            # with that frame too, and must see it at the same pose).
+            prev = _Frame(str(pair.meta.get("name_prev", "")), 0.0, torch.eye(4, dtype=torch.float64))
+            self.frames[int(pair.meta["frame_prev"])] = prev
         if prev is not None:
             pose = prev.pose @ T_prev_cur
             time = prev.time + dt

@@ -44,8 +44,8 @@ from monostixels.stixels import StixelWorld
 
 __all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical"]
 
-#: Chi-square quantile of 2 degrees of freedom at 99.9 %: the association gate on the position.
-_CHI2_2DOF_999 = 13.82
+#: Chi-square quantile of 4 degrees of freedom at 99.9 %: the association gate on position and velocity.
+_CHI2_4DOF_999 = 18.47
 
 
 @dataclass
@@ -60,9 +60,10 @@ class TrackParams:
         depth_std_min_m: its floor (metres).
         velocity_std_mps, velocity_std_rel: standard deviation of a dynamic stixel's velocity from one pair.
         static_velocity_std_mps: standard deviation of the zero velocity a static stixel stands for.
-        min_vote_share: share of a stixel's landed pixels that must vote for a track to continue it.
         max_age_frames: a track not seen for more frames than this is dropped.
-        samples: pixels sampled down each stixel's centre for the association.
+        group_depth_ratio: dynamic stixels of one object (adjacent columns, overlapping rows, depths
+            within this relative difference) share the median of their motions as the velocity
+            measurement; 0 = every stixel on its own.
     """
 
     enabled: bool = True
@@ -72,9 +73,8 @@ class TrackParams:
     velocity_std_mps: float = 0.5
     velocity_std_rel: float = 0.2
     static_velocity_std_mps: float = 0.3
-    min_vote_share: float = 0.5
     max_age_frames: int = 5
-    samples: int = 8
+    group_depth_ratio: float = 0.25
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -90,12 +90,10 @@ class TrackParams:
                 raise InputError(f"temporal.{k}: must be > 0, got {getattr(self, k)}")
         if self.velocity_std_rel < 0:
             raise InputError(f"temporal.velocity_std_rel: must be >= 0, got {self.velocity_std_rel}")
-        if not 0 < self.min_vote_share <= 1:
-            raise InputError(f"temporal.min_vote_share: in (0, 1], got {self.min_vote_share}")
         if not (isinstance(self.max_age_frames, int) and self.max_age_frames >= 1):
             raise InputError(f"temporal.max_age_frames: an integer >= 1, got {self.max_age_frames!r}")
-        if not (isinstance(self.samples, int) and self.samples >= 1):
-            raise InputError(f"temporal.samples: an integer >= 1, got {self.samples!r}")
+        if self.group_depth_ratio < 0:
+            raise InputError(f"temporal.group_depth_ratio: must be >= 0 (0 = off), got {self.group_depth_ratio}")
 
     @staticmethod
     def from_config(cfg: Any) -> "TrackParams":
@@ -138,6 +136,57 @@ def _from_config(cls: type, cfg: Any, group: str) -> Any:
     if extra:
         raise InputError(f"{group}: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known - {'name'}))}")
     return cls(**kw)
+
+
+def object_groups(world: StixelWorld, depth_ratio: float) -> torch.Tensor:
+    """Objects (N,) int64: the label of the group of each dynamic stixel (-1 for the others).
+
+    A group is a connected set of dynamic stixels in adjacent columns whose rows overlap and whose
+    depths differ by at most ``depth_ratio`` (relative): the stixels of one mover, not a car and the
+    car behind it.
+    """
+    N = len(world)
+    label = torch.full((N,), -1, dtype=torch.long)
+    dyn = torch.nonzero(world.type == DYNAMIC_OBJECT).squeeze(1)
+    if dyn.numel() == 0:
+        return label
+    col, top, bot = world.column[dyn], world.v_top[dyn], world.v_bottom[dyn]
+    d = world.depth.double()[dyn]
+    a, b = torch.meshgrid(torch.arange(dyn.numel()), torch.arange(dyn.numel()), indexing="ij")
+    edge = ((col[b] == col[a] + 1) & (top[b] <= bot[a]) & (top[a] <= bot[b])
+            & ((d[a] / d[b] - 1).abs() <= depth_ratio) & ((d[b] / d[a] - 1).abs() <= depth_ratio))
+    ea, eb = a[edge], b[edge]
+    lab = torch.arange(dyn.numel())
+    while ea.numel():  # min-label propagation until every edge joins equal labels
+        m = torch.minimum(lab[ea], lab[eb])
+        new = lab.scatter_reduce(0, ea, m, reduce="amin").scatter_reduce(0, eb, m, reduce="amin")
+        new = new[new]  # pointer jumping
+        if torch.equal(new, lab):
+            break
+        lab = new
+    label[dyn] = lab
+    return label
+
+
+def _group_median(values: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
+    """Per row of ``values`` (N, k) the component-wise median over the rows of its group (label >= 0)."""
+    out = values.clone()
+    rows = torch.nonzero(label >= 0).squeeze(1)
+    if rows.numel() == 0:
+        return out
+    lab = label[rows]
+    order = torch.argsort(lab, stable=True)
+    lab_s, rows_s = lab[order], rows[order]
+    uniq, counts = torch.unique_consecutive(lab_s, return_counts=True)
+    starts = torch.cumsum(counts, 0) - counts
+    for k in range(values.shape[1]):
+        # Sort by (group, value): the lower median of each group sits at start + (count - 1) // 2.
+        v = values[rows_s, k]
+        key = torch.argsort(v, stable=True)
+        key = key[torch.argsort(lab_s[key], stable=True)]
+        med = v[key][starts + (counts - 1) // 2]
+        out[rows_s, k] = torch.repeat_interleave(med, counts)
+    return out
 
 
 def stixel_points(world: StixelWorld) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -256,6 +305,10 @@ class Tracks:
         dyn = world.type == DYNAMIC_OBJECT
         vel_meas = torch.where(dyn[:, None], world.motion.to(dtype) @ Rwc.T / max(dt_pair, 1e-6),
                                torch.zeros(N, 3, dtype=dtype))
+        if prm.group_depth_ratio > 0:
+            # One mover's stixels share its motion: the median over the object is the measurement of each
+            # (one stixel's motion is one column's flow; synthetic clips: error 0.74 -> 0.46 m/s per stixel).
+            vel_meas = _group_median(vel_meas, object_groups(world, prm.group_depth_ratio))
         fx = float(world.K[0, 0])
         lateral_std = X_cam[:, 2].abs() * (world.column_width / fx) / 2 + 0.05
 
@@ -368,10 +421,11 @@ class Tracks:
             return parent
         pos = X_w[sc][:, [0, 2]]
         Rm = self._measurement(xp[cand, :2], xp[cand, 2:], dyn[sc], o[[0, 2]], lateral_std[sc])
-        S = Pp[cand, :2, :2] + Rm[:, :2, :2]
-        r = pos - xp[cand, :2]
+        # Gate on position and velocity: a mover's stixel does not continue the track of the wall behind it.
+        S = Pp[cand] + Rm
+        r = torch.cat([pos, vel_meas[sc][:, [0, 2]]], 1) - xp[cand]
         d2 = (r[:, None, :] @ torch.linalg.solve(S, r[:, :, None]))[:, 0, 0]
-        gate = d2 < _CHI2_2DOF_999
+        gate = d2 < _CHI2_4DOF_999
         if degenerate:
             gate |= ~dyn[sc]
         cand, sc, d2 = cand[gate], sc[gate], d2[gate]

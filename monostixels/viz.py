@@ -63,6 +63,8 @@ _BORDER_SHADE = 0.5
 _OVERLAY_MODES = ("type", "class", "depth")
 #: Outline and arrow colour of moving objects (RGB): white reads on every colour of the jet map.
 _MOVER_RGB = (255, 255, 255)
+#: Outline and label of stixels closing within the time-to-collision warning (RGB).
+_TTC_RGB = (255, 30, 30)
 #: Motion arrows show a mover's displacement over this many frames (5 = 0.5 s at KITTI's 10 Hz):
 #: one frame's motion is a few pixels.
 MOTION_ARROW_FRAMES = 5.0
@@ -336,16 +338,19 @@ def frame_notes(stixels: Any) -> list[str]:
     """What a reader must know about a frame before trusting its depths, as short lines.
 
     A frame flagged ``degenerate_motion`` (the camera barely translates, SPEC section 7) has its
-    depths from the scene model only: ground at the camera height, objects standing on it.
+    depths from the scene model: ground at the camera height, objects standing on it; on sequences
+    static objects seen before with a baseline keep their tracks' depths (``carried_stixels``).
     """
     flags = getattr(stixels, "flags", None) or {}
     if not flags.get("degenerate_motion"):
         return []
     reason = str(flags.get("reason", ""))
+    carried = int(flags.get("carried_stixels", 0))
+    source = "the scene model" + (" and tracks" if carried else "")
     # The solver's own reason ("camera translation ... m < ...") or the ego-motion's ("no translation").
     if reason.startswith(("camera translation", "no translation")):
-        return ["camera standing: depths from the scene model"]
-    return ["no camera motion estimate: depths from the scene model"]
+        return [f"camera standing: depths from {source}"]
+    return [f"no camera motion estimate: depths from {source}"]
 
 
 def _text_scale(width: int) -> float:
@@ -491,6 +496,7 @@ def stixel_depth_overlay(
     motion: torch.Tensor | np.ndarray | None = None,
     notes: Sequence[str] = (),
     legend: bool = True,
+    ttc_warning: np.ndarray | None = None,
 ) -> np.ndarray:
     """Draw the stixels over the image: each object a box in the colour of its depth.
 
@@ -512,6 +518,9 @@ def stixel_depth_overlay(
             arrows; default ``stixels.motion``.
         notes: more lines for the top-left box (e.g. warnings of a caller).
         legend: draw the depth scale.
+        ttc_warning: (N,) bool, stixels closing within the TTC warning time in the camera's path
+            (:mod:`monostixels.tracking`): a red outline and their time to collision; default
+            ``stixels.ttc_warning`` where the sequence layer set it.
 
     Returns:
         (H, W, 3) uint8 RGB.
@@ -560,10 +569,43 @@ def stixel_depth_overlay(
         contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(rgb, contours, -1, _MOVER_RGB, th, cv2.LINE_8)  # crisp: boxes are pixel-aligned
         _mover_arrows(rgb, stixels, groups, mot, MOTION_ARROW_FRAMES, th)
+    warn = getattr(stixels, "ttc_warning", None) if ttc_warning is None else ttc_warning
+    ttc_notes: list[str] = []
+    if warn is not None:
+        warn = _to_numpy(warn, "ttc_warning").astype(bool).reshape(-1)
+        if warn.shape[0] != n:
+            raise InputError(f"ttc_warning: expected ({n},), got {warn.shape}")
+        if warn.any():
+            ttc_notes = _ttc_marks(rgb, stixels, idx, warn)
     if legend:
         _draw_depth_legend(rgb, min_depth, max_depth, movers=bool(groups))
-    draw_notes(rgb, [*frame_notes(stixels), *notes])
+    draw_notes(rgb, [*frame_notes(stixels), *ttc_notes, *notes])
     return rgb
+
+
+def _ttc_marks(rgb: np.ndarray, stixels: Any, idx: np.ndarray, warn: np.ndarray) -> list[str]:
+    """Outline the warned stixels (N,) in red with each region's least time to collision; the notes line."""
+    import cv2
+
+    H, W = idx.shape
+    ttc = _to_numpy(stixels.ttc_s, "ttc_s").astype(np.float64).reshape(-1)
+    safe = np.where(idx >= 0, idx, 0)
+    mask = ((idx >= 0) & warn[safe]).astype(np.uint8)
+    th = max(2, round(_text_scale(W) * 3))
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(rgb, contours, -1, _TTC_RGB, th, cv2.LINE_8)
+    scale = _text_scale(W) * 0.6
+    for c in contours:
+        x, y, w, h = cv2.boundingRect(c)
+        region = idx[y:y + h, x:x + w]
+        inside = region[(region >= 0) & warn[np.where(region >= 0, region, 0)]]
+        t = float(np.min(ttc[inside])) if inside.size else float("nan")
+        label = f"TTC {t:.1f} s"
+        (tw, tht), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+        org = (int(np.clip(x, 0, max(0, W - tw))), int(max(tht + 2, y - 4)))
+        cv2.putText(rgb, label, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(rgb, label, org, cv2.FONT_HERSHEY_SIMPLEX, scale, _TTC_RGB, 1, cv2.LINE_AA)
+    return [f"TTC warning: {len(contours)} object(s) closing in the path"]
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray, *, gap: int = 4) -> np.ndarray:

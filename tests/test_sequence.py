@@ -54,7 +54,7 @@ def test_keyframe_when_nothing_is_far_enough():
     ("keyframes.min_distance_m", -0.5, "min_distance_m"),
     ("keyframes.window", 0, "window"),
     ("temporal.accel_std_mps2", 0, "accel_std_mps2"),
-    ("temporal.min_vote_share", 1.5, "min_vote_share"),
+    ("temporal.group_depth_ratio", -0.1, "group_depth_ratio"),
     ("ttc.warn_s", -1, "warn_s"),
 ])
 def test_bad_sequence_settings_are_named(key, value, match):

@@ -831,24 +831,42 @@ class TrackParams:
         scale_meas_std: relative error (std) of one pair's monocular scale (KITTI raw: 2-5 %).
         scale_gate: a pair's scale farther than this many innovation standard deviations from the
             prediction is an outlier and replaced by the prediction.
+        normal_process_std_deg: how fast the road normal may turn in the camera (degrees per
+            square-root second: a random walk; pitching on bumps, a change of slope).
+        normal_meas_std_deg: error (std, degrees) of one pair's fitted road normal (KITTI raw drive
+            0023: consecutive fits differ by 0.3-2 degrees).
+        normal_gate_deg: a fit farther than this from the prediction (degrees, beyond its innovation
+            std) is an outlier and the prediction stands. 0 = no normal filter.
     """
 
     sequence_prior: bool = True
     speed_process_std: float = 0.3
     scale_meas_std: float = 0.04
     scale_gate: float = 2.0
+    normal_process_std_deg: float = 0.3
+    normal_meas_std_deg: float = 0.5
+    normal_gate_deg: float = 3.0
 
 
 class MotionTrack:
-    """Steadies the metric scale of monocular ego-motion over consecutive pairs of a sequence.
+    """Steadies the metric scale and the road normal of monocular ego-motion over a sequence.
 
-    The state is the log speed ``log(|t| / dt)`` (dt seconds between the frames, ``meta["dt"]``;
-    1 per pair when unknown) with its variance. Per pair: predict (constant velocity, variance
-    grows by ``(speed_process_std dt)^2``), gate the new measurement, update. Only the length of
-    ``t`` changes (direction and rotation are the pair's own: with ~20 px parallax they are
-    already steady, 0.3-0.6 deg on KITTI raw). Pairs are consecutive when they come from the same
-    ``meta["sequence"]`` and the previous pair's current frame is this pair's previous frame;
-    anything else (another sequence, a jump, a degenerate or failed pair) restarts the track.
+    Scale: the state is the log speed ``log(|t| / dt)`` (dt seconds between the frames,
+    ``meta["dt"]``; 1 per pair when unknown) with its variance. Per pair: predict (constant velocity,
+    variance grows by ``(speed_process_std dt)^2``), gate the new measurement, update. Only the
+    length of ``t`` changes (direction and rotation are the pair's own: with ~20 px parallax they are
+    already steady, 0.3-0.6 deg on KITTI raw).
+
+    Road normal (the plane the ground stixels lie on, ``ground_normal``): the filtered normal of the
+    pair's earlier frame, turned into the current camera (``n_cur = R^T n_prev``), is the prediction
+    (variance grows by ``normal_process_std_deg^2 dt``); the pair's fit updates it (isotropic, in
+    radians on the unit sphere). One fit's error moves far ground by ``z / h`` times the angle (0.3
+    degrees: 6 % at 20 m), so the filter steadies the ground's depth from frame to frame.
+
+    Pairs continue the track when they come from the same ``meta["sequence"]`` in time order: this
+    pair's current frame after the last one, its earlier frame not after it (a keyframe pair may reach
+    back several frames); anything else (another sequence, a jump, a degenerate or failed pair)
+    restarts the track.
 
     Args:
         params: the prior's parameters.
@@ -859,6 +877,7 @@ class MotionTrack:
         self._key: tuple | None = None
         self._x = 0.0  # log speed
         self._var = math.inf
+        self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
 
     @staticmethod
     def from_config(cfg: Any) -> "MotionTrack":
@@ -868,13 +887,14 @@ class MotionTrack:
 
     def reset(self) -> None:
         self._key, self._x, self._var = None, 0.0, math.inf
+        self._normals = {}
 
     def update(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
-        """The estimate of ``pair`` with its scale filtered by the sequence so far (and the state advanced)."""
+        """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the state advanced)."""
         prm = self.params
         seq, cur, prev = pair.meta.get("sequence"), pair.meta.get("frame"), pair.meta.get("frame_prev")
-        consecutive = (seq is not None and cur is not None and self._key is not None
-                       and self._key == (seq, prev) and math.isfinite(self._var))
+        consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
+                       and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
         if est.motion is None or est.degenerate or seq is None or cur is None:
             self.reset()
             return est
@@ -883,6 +903,7 @@ class MotionTrack:
         if norm <= 0:
             self.reset()
             return est
+        est = self._filter_normal(est, cur, prev if consecutive else None, dt)
         z = math.log(norm / dt)
         r = prm.scale_meas_std**2
         self._key = (seq, cur)
@@ -906,6 +927,32 @@ class MotionTrack:
         t_new = est.motion.t * (math.exp(self._x) * dt / norm)
         logger.debug("%s: %s", pair.name, note)
         return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}")
+
+
+    def _filter_normal(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
+        """``est`` with its road normal fused with the one of frame ``prev`` (None: restart)."""
+        prm = self.params
+        n_m = est.ground_normal
+        if n_m is None or prm.normal_gate_deg <= 0:
+            return est
+        n_m = n_m.double() / n_m.double().norm()
+        r = math.radians(prm.normal_meas_std_deg) ** 2
+        old = self._normals.get(prev) if prev is not None else None
+        if old is None:
+            self._normals = {cur: (n_m, r)}
+            return est
+        n_prev, var = old
+        n_pred = est.motion.R.double().T @ n_prev  # a direction in the earlier camera, seen from the current one
+        var_pred = var + math.radians(prm.normal_process_std_deg) ** 2 * dt
+        innov = math.acos(max(-1.0, min(1.0, float(n_pred @ n_m))))
+        if innov > math.radians(prm.normal_gate_deg) + 3.0 * math.sqrt(var_pred + r):
+            n_new, var_new = n_pred, var_pred
+        else:
+            k = var_pred / (var_pred + r)
+            n_new = n_pred + k * (n_m - n_pred)
+            n_new, var_new = n_new / n_new.norm(), (1.0 - k) * var_pred
+        self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (n_new, var_new)}
+        return dataclasses.replace(est, ground_normal=n_new.to(est.ground_normal.dtype))
 
 
 def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:
