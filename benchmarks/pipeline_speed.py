@@ -7,10 +7,15 @@ each drive in order, frame by frame: keyframes, the stream state carried from fr
 (``stream``), tracks. The first ``--warmup`` frames of each drive are not counted (model loading,
 kernel loading, and the stream has nothing to carry yet); the table gives the median over the others.
 
-Stages: each stage's own time within ``Pipeline.run`` (flow and semantics may run side by side), the
-dense depth map ``run`` turns into its outputs, and ``sequence`` (reading the images, keyframes, tracks,
-time to collision: the rest of a step of the sequence layer). ``total`` is the step's own clock from
-one frame to the next, depth map included: what a stream of frames sustains.
+Stages: each stage's own time within ``Pipeline.run`` (flow and semantics may run side by side, and
+with ``stream.overlap`` they run for the next pair while this one is solved), the dense depth map
+``run`` turns into its outputs, and ``sequence`` (reading the images, keyframes, tracks, time to
+collision: the rest of a step of the sequence layer). ``total`` is the step's own clock from one frame
+to the next, depth map included: what a stream of frames sustains. ``cpu`` is the CPU time of the
+whole process over that step (every thread) and ``main_thread_cpu`` that of the sequence layer's
+thread alone: on a shared machine, where the wall clock measures the other jobs too,
+``max(cpu / cores, main_thread_cpu)`` bounds what an idle machine with that many cores would take
+(from below: waiting is not counted).
 
 Usage::
 
@@ -70,18 +75,23 @@ def time_preset(preset: str, roots: list[str], sets: list[str], frames: int | No
         src = cli._source(cfg)
         pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, overlap=overlap)  # as `monostixels run` builds it
         runner = SequenceRunner(cfg, pipe)
-        last = clock()
+        last, cpu_last, main_last = clock(), time.process_time(), time.thread_time()
         for k, step in enumerate(runner.run(src)):
             res = step.result
             t0 = clock()
             res.stixels.depth_map()  # what `run` turns into its depth outputs
             now = clock()
-            sec = {k2: v for k2, v in res.seconds.items() if k2 != "wall"}
+            sec = {k2: v for k2, v in res.seconds.items() if k2 not in ("wall", "inputs", "inputs_ahead")}
             sec["depth_map"] = now - t0
             # From the last frame's end to this one's: the images read, the pair solved, tracks, depth map.
             sec["total"] = now - last
-            sec["sequence"] = max(sec["total"] - sec["depth_map"] - res.seconds["wall"], 0.0)
-            last = now
+            # The pipeline's own clock on this step (inputs computed ahead ran during the last one).
+            own = res.seconds["wall"] - res.seconds.get("inputs_ahead", 0.0)
+            sec["sequence"] = max(sec["total"] - sec["depth_map"] - own, 0.0)
+            # CPU seconds of the step: all threads of the process, and this (the sequence layer's) thread.
+            cpu, main = time.process_time(), time.thread_time()
+            sec["cpu"], sec["main_thread_cpu"] = cpu - cpu_last, main - main_last
+            last, cpu_last, main_last = now, cpu, main
             size = list(step.pair.size)
             print(f"{preset} {Path(root).name}/{step.pair.name}: " + " ".join(f"{k2} {v:.3f}" for k2, v in sec.items())
                   + ("  (warm-up)" if k < warmup else ""), flush=True)
@@ -106,7 +116,7 @@ def main() -> None:
                          "shared machine inflate far less than wall time")
     ap.add_argument("--no-overlap", action="store_true",
                     help="semantics after the flow instead of beside it (Pipeline(overlap=False)); implied by --clock cpu, "
-                         "where the stages' CPU seconds would otherwise mix")
+                         "where the stages' CPU seconds would otherwise mix (as would stream.overlap's, also off then)")
     ap.add_argument("--json", type=str, default=None, help="write the per-stage medians and all frame times here")
     args = ap.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
@@ -121,7 +131,9 @@ def main() -> None:
     results: dict[str, dict[str, Any]] = {}
     size: list[int] = []
     for preset in args.presets:
-        frames, cfg, overrides, size = time_preset(preset, args.roots, list(args.sets), args.frames, args.warmup, overlap, clock)
+        # The CPU clock counts every thread: stages must then run one after the other (no pair ahead).
+        sets = list(args.sets) + (["stream.overlap=false"] if args.clock == "cpu" else [])
+        frames, cfg, overrides, size = time_preset(preset, args.roots, sets, args.frames, args.warmup, overlap, clock)
         if not frames:
             raise SystemExit("no frames timed: raise --frames above --warmup")
         stages = list(dict.fromkeys(k for f in frames for k in f))
@@ -140,6 +152,12 @@ def main() -> None:
     print("| --- |" + " ---: |" * len(names))
     for k in stages:
         print(f"| {k} | " + " | ".join(f"{results[n]['median_seconds'].get(k, 0.0):.3f}" for n in names) + " |")
+    cores = os.cpu_count() or 1
+    for n in names:
+        m = results[n]["median_seconds"]
+        bound = max(m["cpu"] / cores, m["main_thread_cpu"])
+        results[n]["idle_bound_seconds"] = bound
+        print(f"{n}: idle {cores}-core bound max(cpu / {cores}, main thread) = {bound:.3f} s per frame")
     for n in names:
         c = results[n]["config"]
         print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) semantic={c['semantic']} "

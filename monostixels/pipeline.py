@@ -68,7 +68,9 @@ class PipelineResult:
         scores or None. motion: the camera motion used (``X_prev = R X_cur + t``) and how it was
         obtained. stixels: the result. sfm_depth: (H, W) depth of the triangulation baseline
         (metres; invalid = negative or inf), None from a pipeline made with ``sfm=False``.
-        seconds: wall time of each stage (flow and semantic may overlap) and of the pair (``wall``).
+        seconds: wall time of each stage (flow and semantic may overlap; ``inputs`` both together) and of
+            the pair (``wall``); ``inputs_ahead``: the inputs' time where a stream computed them while
+            the last pair was solved (``stream.overlap``; part of ``wall`` all the same).
         pose: (4, 4) camera-to-world of the current frame on sequences (world = the first camera;
         :mod:`monostixels.sequence`), else None.
     """
@@ -205,6 +207,7 @@ class Pipeline:
             return estimate_semantics(pair, self.cfg.semantic, threads=ort_threads), time.perf_counter() - t
 
         fresh = carried.semantic is None
+        t_in = time.perf_counter()
         with ThreadPoolExecutor(max_workers=1) if self.overlap and fresh else nullcontext() as pool:
             future = pool.submit(semantics) if pool is not None else None
             t0 = time.perf_counter()
@@ -218,6 +221,7 @@ class Pipeline:
                 t0 = time.perf_counter()
                 semantic = warp_scores(carried.semantic, flow.flow)
                 sec["semantic"] = time.perf_counter() - t0
+        sec["inputs"] = time.perf_counter() - t_in
         return flow, semantic, sec
 
     def _run(self, pair: FramePair, state: StreamState | None, sec: dict[str, float], start: float) -> PipelineResult:
@@ -225,6 +229,10 @@ class Pipeline:
         ready = state.take_inputs(pair) if state is not None else None
         flow, semantic, input_sec = ready if ready is not None else self.inputs(pair, carried)
         sec.update(input_sec)
+        if ready is not None:
+            # Computed ahead, while the last pair was solved: counted in this pair's wall time all the same.
+            sec["inputs_ahead"] = sec["inputs"]
+            start -= sec["inputs"]
         t0 = time.perf_counter()
         motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio)
         sec["motion"] = time.perf_counter() - t0
