@@ -7,6 +7,9 @@ Usage::
     monostixels run data=frames data.root=my_frames    # stixels of a user's own images
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90   # a dashcam video
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90 output.rerun=true  # + a 3D recording
+    monostixels run data=video data.path=0 data.hfov_deg=90 data.realtime=true   # camera 0, frames dropped while solving
+    monostixels run data=kitti_raw data.root=drives preset=accurate   # the best inputs instead of preset=fast
+    monostixels eval data=kitti_raw data.root=drives preset=fast      # measures exactly what `run` does
     monostixels batch batch.inputs='clips/*.mp4' batch.output=fleet data.hfov_deg=90  # many clips on Ray
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """

@@ -26,6 +26,7 @@ camera motion ``X_prev = R X_cur + t`` (metres).
 from __future__ import annotations
 
 import threading
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -208,6 +209,11 @@ class StreamState:
         la.pending = (key, future)
         self._ready = future
 
+    @property
+    def waited_s(self) -> float:
+        """Seconds the sequence layer has waited for pairs read ahead and their inputs (``stream.overlap``)."""
+        return self._lookahead.waited_s if self._lookahead is not None else 0.0
+
     def take_inputs(self, pair: FramePair) -> Any:
         """The inputs computed ahead for ``pair`` (the very pair object read ahead, with the state as it is
         now), or None: then the pipeline computes them."""
@@ -331,6 +337,8 @@ class _Lookahead:
         self._source = source
         self._next: tuple[int, int] | None = None
         self.pending: tuple[tuple[int, int], Future] | None = None
+        #: Seconds the reader of the pairs spent waiting for pairs read ahead (and their inputs).
+        self.waited_s = 0.0
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._source, name)
@@ -352,7 +360,10 @@ class _Lookahead:
         pending, self.pending = self.pending, None
         self._next = (index, back)
         if pending is not None and pending[0] == (index, back):
-            return pending[1].result()[0]  # waits for its inputs too: the pipeline needs them next
+            t0 = time.perf_counter()
+            pair = pending[1].result()[0]  # waits for its inputs too: the pipeline needs them next
+            self.waited_s += time.perf_counter() - t0
+            return pair
         return self.load((index, back))
 
     def guess(self) -> tuple[int, int] | None:
