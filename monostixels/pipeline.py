@@ -139,7 +139,8 @@ class Pipeline:
         ``allow_motion_failure=True`` (``monostixels run``): then the frame is treated as degenerate,
         flagged, with a warning.
         """
-        est = estimate_motion(pair, flow, self.cfg.motion, semantic, prior=prior, interval_ratio=interval_ratio)
+        warm = {} if prior is None else {"prior": prior, "interval_ratio": interval_ratio}
+        est = estimate_motion(pair, flow, self.cfg.motion, semantic, **warm)
         if self.motion_track is not None:
             est = self.motion_track.update(pair, est)
         if est.motion is None:
@@ -211,7 +212,8 @@ class Pipeline:
         with ThreadPoolExecutor(max_workers=1) if self.overlap and fresh else nullcontext() as pool:
             future = pool.submit(semantics) if pool is not None else None
             t0 = time.perf_counter()
-            flow = estimate_flow(pair, self.cfg.flow, init=carried.flow_init, grey_prev=carried.grey_prev)
+            kept = {k: v for k, v in (("init", carried.flow_init), ("grey_prev", carried.grey_prev)) if v is not None}
+            flow = estimate_flow(pair, self.cfg.flow, **kept)
             sec["flow"] = time.perf_counter() - t0
             if future is not None:
                 semantic, sec["semantic"] = future.result()

@@ -37,7 +37,6 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.base import FramePair
-from monostixels.inputs.flow import _pixel_grid
 
 __all__ = ["StreamParams", "StreamState", "Carried", "warp_scores"]
 
@@ -218,8 +217,8 @@ class StreamState:
         """The inputs computed ahead for ``pair`` (the very pair object read ahead, with the state as it is
         now), or None: then the pipeline computes them."""
         future, self._ready = self._ready, None
-        if future is None or not future.done():
-            return None
+        if future is None or not future.done() or future.exception() is not None:
+            return None  # not this pair's, or its reading failed (the source raised that where it was asked)
         ahead, out = future.result()
         if ahead is not pair or out is None or out[0] != self._generation:
             return None
@@ -277,6 +276,12 @@ class StreamState:
         if key != self._key:
             self.reset()
             self._key = key
+        with self._lock:  # a pair read ahead in vain may still be reading the state
+            self._update(pair, grey, flow, semantic, semantic_fresh, motion, carried)
+
+    def _update(self, pair: FramePair, grey: np.ndarray | None, flow: torch.Tensor | None,
+                semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried) -> None:
+        frame = pair.meta["frame"]
         self._generation += 1
         self.continued += int(carried.anything)
         self.cold += int(not carried.anything)
@@ -314,9 +319,9 @@ def warp_scores(scores: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     C, H, W = scores.shape
     if tuple(flow.shape) != (2, H, W):
         raise InputError(f"warp_scores: flow of shape {tuple(flow.shape)} for scores of shape {tuple(scores.shape)}")
-    xx, yy = _pixel_grid(H, W)
     f = flow.float().numpy()
-    mx, my = xx + f[0], yy + f[1]
+    mx = f[0] + np.arange(W, dtype=np.float32)[None, :]
+    my = f[1] + np.arange(H, dtype=np.float32)[:, None]
     src = np.ascontiguousarray(scores.float().numpy())
     out = np.empty_like(src)
     # One plane at a time: no interleaving of the channels (OpenCV remaps at most 4 at once).

@@ -799,6 +799,20 @@ def _prediction(prior: MotionEstimate | None, ratio: float) -> _Prediction | Non
     return _Prediction(R, t / s, s, n, float(prior.inlier_ratio))
 
 
+def _cheirality_sign(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """+1 if ``(R, t)`` puts more of the ray pairs (current ``a``, previous ``b``, (N, 3)) in front of both
+    cameras than ``(R, -t)``, else -1. Depths from ``λ_a R a + t = λ_b b``: ``λ_a = -(b × t)·(b × Ra) /
+    |b × Ra|²``, ``λ_b = (Ra × t)·(Ra × b) / |Ra × b|²`` (both change sign with ``t``)."""
+    Ra = a @ R.T
+    bra = np.cross(b, Ra)
+    den = np.maximum(np.einsum("ij,ij->i", bra, bra), 1e-30)
+    lam_a = -np.einsum("ij,ij->i", np.cross(b, t[None]), bra) / den
+    lam_b = -np.einsum("ij,ij->i", np.cross(Ra, t[None]), bra) / den
+    front = int(np.count_nonzero((lam_a > 0) & (lam_b > 0)))
+    behind = int(np.count_nonzero((lam_a < 0) & (lam_b < 0)))
+    return 1.0 if front >= behind else -1.0
+
+
 #: Warm start of the essential matrix: the prediction replaces RANSAC when, within this many times the
 #: RANSAC threshold (Sampson distance), it explains at least the given share of the vectors the last pair's
 #: estimate explained (a sudden turn or a mover taking the view fails it). A prediction is not exact (yaw
@@ -834,7 +848,10 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         # A stream's prediction in place of RANSAC where it explains as many vectors as the last pair did.
         inl = np.abs(_sampson(_skew(pred.t_unit) @ pred.R, a_all, b_all)) < _WARM_SEED_FACTOR * f_scale
         warm = inl.sum() >= params.min_points and inl.mean() >= _WARM_MIN_INLIER_SHARE * pred.inlier_ratio
-        R, t = pred.R, pred.t_unit
+        # The epipolar constraint holds for -t as well: the sign is the one that puts the points in front
+        # of both cameras (recoverPose's cheirality test), the prediction's where it does (a camera that
+        # reverses does not).
+        R, t = pred.R, pred.t_unit * _cheirality_sign(pred.R, pred.t_unit, a_all[inl], b_all[inl])
     if not warm:
         E, mask = cv2.findEssentialMat(pc, pp, Kn, method=cv2.RANSAC, prob=params.ransac_confidence,
                                        threshold=params.ransac_threshold)
