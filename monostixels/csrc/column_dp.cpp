@@ -12,6 +12,17 @@
 // prefix sums accumulate in double like torch.cumsum on the CPU. Minima keep the first index on
 // ties, like torch.min. The result is bit-identical to the eager path (tests/test_solver_fast.py).
 //
+// Work saved against the eager formulation, none of which changes a value:
+// - Repeated hypotheses (bit-identical inverse depths: the reference ground and the farthest
+//   depth fill every cell without a valid fit, typically 40-65 % of a column's ground and static
+//   sets) are solved once. Every cost of a copy equals its original's, and the original has the
+//   lower flat index, so torch.min would pick the original: the first occurrences decide alone.
+// - Hypothesis loops run over whole vectors of kLanes (copies of a real hypothesis pad the sets;
+//   their open segments are held at +inf, so they never win).
+// - The minimum over (hypothesis, class) keeps one running (value, hypothesis) pair per class
+//   and lane and resolves the eager flatten order (hypothesis-major, first index on ties) once
+//   per stage, instead of a compare-and-blend chain through every element.
+//
 // Layout: all inputs are contiguous, of one floating dtype (float32 or float64); C columns,
 // n cells (cell 0 at the image bottom), Kg / Ko / Kd hypotheses of ground / object / dynamic.
 #include <ATen/ATen.h>
@@ -23,39 +34,81 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 namespace {
 
 constexpr int kTypes = 4;  // ground, static object, dynamic object, sky
 constexpr int64_t kChunk = 2;  // columns a thread takes at a time
+constexpr int kMaxClasses = 3;  // classes per type (solver: TYPE_CLASSES; cls_table has 3 slots)
 constexpr int kGround = 0, kStatic = 1, kDynamic = 2, kSky = 3;
 inline bool is_object(int j) { return j == kStatic || j == kDynamic; }
 
-// Eight lanes of T (GCC/Clang vector extension) for the minimum over all hypotheses.
+// Vectors of 64 bytes (GCC/Clang vector extension; one AVX-512 register, two AVX2 registers):
+// 16 floats or 8 doubles, with integers of the same width (hypothesis / bottom indices) so that
+// comparison masks of values and indices have one type.
+constexpr int kVecBytes = 64;
 template <typename T>
-struct LanesOf;
+struct Simd;
 template <>
-struct LanesOf<float> { typedef float type __attribute__((vector_size(32))); };
+struct Simd<float> {
+  using I = int32_t;
+  typedef float V __attribute__((vector_size(kVecBytes)));
+  typedef int32_t VI __attribute__((vector_size(kVecBytes)));
+  typedef int8_t VB __attribute__((vector_size(kVecBytes / 4)));
+};
 template <>
-struct LanesOf<double> { typedef double type __attribute__((vector_size(64))); };
+struct Simd<double> {
+  using I = int64_t;
+  typedef double V __attribute__((vector_size(kVecBytes)));
+  typedef int64_t VI __attribute__((vector_size(kVecBytes)));
+  typedef int8_t VB __attribute__((vector_size(kVecBytes / 8)));
+};
 template <typename T>
-using Lanes = typename LanesOf<T>::type;
-// Integers of T's width (segment bottoms, flat indices): their vectors share T's comparison masks.
-template <typename T>
-struct IdxOf;
-template <>
-struct IdxOf<float> { using type = int32_t; typedef int32_t vec __attribute__((vector_size(32))); };
-template <>
-struct IdxOf<double> { using type = int64_t; typedef int64_t vec __attribute__((vector_size(64))); };
-template <typename T>
-using IdxLanes = typename IdxOf<T>::vec;
+constexpr int64_t kLanes = kVecBytes / static_cast<int64_t>(sizeof(T));
 
-template <typename V, typename S>
-inline V splat(S s) {
-  V v;
-  for (int l = 0; l < 8; ++l) v[l] = s;
+template <typename Vec>
+inline Vec load(const void* p) {
+  Vec v;
+  std::memcpy(&v, p, sizeof(Vec));
   return v;
+}
+template <typename Vec>
+inline void store(void* p, const Vec& v) {
+  std::memcpy(p, &v, sizeof(Vec));
+}
+// Every lane = s (s - 0 is s bit for bit, -0 and inf included; the compiler emits a broadcast).
+template <typename Vec, typename S>
+inline Vec splat(S s) {
+  using E = typename std::remove_reference<decltype(Vec{}[0])>::type;
+  return static_cast<E>(s) - Vec{};
+}
+template <typename Vec>
+inline Vec iota() {
+  Vec v;
+  for (size_t l = 0; l < sizeof(Vec) / sizeof(v[0]); ++l) v[l] = l;
+  return v;
+}
+inline int64_t round_up(int64_t x, int64_t m) { return (x + m - 1) / m * m; }
+
+// Lanes rotated by H: lane l gets lane (l + H) mod N.
+template <int H, typename Vec, size_t... Is>
+inline Vec rotate(const Vec& a, std::index_sequence<Is...>) {
+  return __builtin_shufflevector(a, a, ((Is + H) % sizeof...(Is))...);
+}
+
+// The lexicographic minimum of (value, flat index) over the lanes, by halving (lane 0 holds it).
+template <int H, typename V, typename VI>
+inline void lexmin_lanes(V& v, VI& f) {
+  constexpr size_t N = sizeof(V) / sizeof(v[0]);
+  const V v2 = rotate<H>(v, std::make_index_sequence<N>{});
+  const VI f2 = rotate<H>(f, std::make_index_sequence<N>{});
+  const VI better = (v2 < v) | ((v2 == v) & (f2 < f));
+  v = better ? v2 : v;
+  f = better ? f2 : f;
+  if constexpr (H > 1) lexmin_lanes<H / 2>(v, f);
 }
 
 // Prior parameters, in the order of `_PARAM_ORDER` in monostixels/_dp_cpp.py.
@@ -66,14 +119,15 @@ struct Params {
 };
 
 // Ψ_str of an object with depth 1/inv_p above predecessor type j (energy.gravity and
-// energy.ordering_from_depths, combined as in solver._structural_object).
-template <typename T>
-inline T structural(const Params<T>& P, T inv_p, T q, T inv_pp, T inv_gp, int j) {
-  const T dh = inv_gp - q * inv_p;
-  const T grav = (dh < -P.grav_tol) ? P.a_gb + P.b_gb * (-dh) : P.a_ga + P.b_ga * dh;
+// energy.ordering_from_depths, combined as in solver._structural_object). q_inv_p = q * inv_p.
+// Scalars or vectors of T alike.
+template <typename T, typename X>
+inline X structural(const Params<T>& P, X inv_p, X q_inv_p, T inv_pp, T inv_gp, int j) {
+  const X dh = inv_gp - q_inv_p;
+  const X grav = (dh < -P.grav_tol) ? P.a_gb + P.b_gb * (-dh) : P.a_ga + P.b_ga * dh;
   if (!is_object(j)) return grav;
-  const T d = inv_pp - inv_p;
-  const T ord = (d > T(0)) ? P.a_ord + P.b_ord * d : T(0);
+  const X d = inv_pp - inv_p;
+  const X ord = (d > T(0)) ? P.a_ord + P.b_ord * d : X{} + T(0);
   return ord < grav ? ord : grav;  // torch.minimum (no NaN here)
 }
 
@@ -140,23 +194,100 @@ void flow_prefix(const Params<T>& P, const std::vector<Cell<T>>& cells, int64_t 
   }
 }
 
-// G[k] = min_j Ep[j] + st(j, k) and kb[k] = the first j attaining it (torch.min semantics): types
-// in ascending order with a strict "<", starting from +inf / 0. Unreachable predecessors
-// (Ep = inf) never win a strict minimum and are skipped.
+// G = min_j Ep[j] + st(j) and kb = the first j attaining it (torch.min semantics): types in
+// ascending order with a strict "<", starting from +inf / 0. Unreachable predecessors (Ep = inf)
+// never win a strict minimum and are skipped. For the types whose prior does not depend on the
+// hypothesis.
 template <typename T, typename St>
-inline void best_predecessor(const T* Ep, int64_t K, T* G, int32_t* kb, St&& st) {
+inline void best_predecessor(const T* Ep, T& G, int32_t& kb, St&& st) {
   const T inf = std::numeric_limits<T>::infinity();
-  for (int64_t k = 0; k < K; ++k) { G[k] = inf; kb[k] = 0; }
+  G = inf;
+  kb = 0;
   for (int j = 0; j < kTypes; ++j) {
     if (!(Ep[j] < inf)) continue;
-    const T e = Ep[j];
-    for (int64_t k = 0; k < K; ++k) {
-      const T cand = e + st(j, k);
-      const bool lt = cand < G[k];
-      G[k] = lt ? cand : G[k];
-      kb[k] = lt ? j : kb[k];
+    const T cand = Ep[j] + st(j);
+    if (cand < G) { G = cand; kb = j; }
+  }
+}
+
+// Indices of the first occurrence of every distinct value of x[0..K) (bit patterns), ascending.
+// `table` is scratch for an open-addressing hash set of indices + 1 (0 = empty).
+template <typename T>
+int64_t first_occurrences(const T* x, int64_t K, std::vector<int32_t>& table, int32_t* keep) {
+  using U = typename std::conditional<sizeof(T) == 4, uint32_t, uint64_t>::type;
+  int bits = 1;
+  while ((int64_t{1} << bits) < 2 * K) ++bits;
+  const int64_t cap = int64_t{1} << bits;
+  table.assign(cap, 0);
+  int64_t m = 0;
+  for (int64_t k = 0; k < K; ++k) {
+    U key;
+    std::memcpy(&key, x + k, sizeof(T));
+    uint64_t h = (static_cast<uint64_t>(key) * 0x9E3779B97F4A7C15ull) >> (64 - bits);
+    for (;; h = (h + 1) & (cap - 1)) {
+      const int32_t e = table[h];
+      if (e == 0) {
+        table[h] = static_cast<int32_t>(k + 1);
+        keep[m++] = static_cast<int32_t>(k);
+        break;
+      }
+      if (std::memcmp(x + (e - 1), x + k, sizeof(T)) == 0) break;  // a copy of an earlier one
     }
   }
+  return m;
+}
+
+// One type's DP stage for NC classes: update the running minimum over segment bottoms per
+// (class, hypothesis) with the segments that start at cell i (gk = G - P0: best predecessor
+// minus the prefix at i), close all open segments at cell i with the prefix sums at i + 1, and
+// return the minimum `val` and its first (hypothesis-major) index (h, c), as torch.min over the
+// eager flatten would. Kp is a multiple of the lane count; gk is +inf on padding hypotheses.
+template <typename T, int NC>
+inline void close_segments(int64_t Kp, const T* gk, const T* P1, T* MH, typename Simd<T>::I* MB, const T* L0,
+                           const T* L1, typename Simd<T>::I ii, T& val, int64_t& h, int64_t& c) {
+  using V = typename Simd<T>::V;
+  using VI = typename Simd<T>::VI;
+  using I = typename Simd<T>::I;
+  constexpr int64_t L = kLanes<T>;
+  const V vinf = splat<V>(std::numeric_limits<T>::infinity());
+  const VI iiv = splat<VI>(ii);
+  V best[NC];
+  VI bk[NC];
+  VI kv = iota<VI>();
+  for (int cc = 0; cc < NC; ++cc) { best[cc] = vinf; bk[cc] = kv; }
+  for (int64_t k = 0; k < Kp; k += L) {
+    const V g = load<V>(gk + k), p1 = load<V>(P1 + k);
+    for (int cc = 0; cc < NC; ++cc) {
+      T* mh = MH + cc * Kp + k;
+      I* mb = MB + cc * Kp + k;
+      V m = load<V>(mh);
+      VI b = load<VI>(mb);
+      const V cH = g - L0[cc];
+      const VI lt = cH < m;
+      m = lt ? cH : m;
+      b = lt ? iiv : b;
+      store(mh, m);
+      store(mb, b);
+      const V tot = m + (p1 + L1[cc]);
+      // Per (class, lane) the hypotheses come in ascending order: a strict "<" keeps the first.
+      const VI bt = tot < best[cc];
+      best[cc] = bt ? tot : best[cc];
+      bk[cc] = bt ? kv : bk[cc];
+    }
+    kv += static_cast<I>(L);
+  }
+  V v = best[0];
+  VI f = bk[0] * static_cast<I>(NC);
+  for (int cc = 1; cc < NC; ++cc) {
+    const VI fc = bk[cc] * static_cast<I>(NC) + static_cast<I>(cc);
+    const VI better = (best[cc] < v) | ((best[cc] == v) & (fc < f));
+    v = better ? best[cc] : v;
+    f = better ? fc : f;
+  }
+  lexmin_lanes<static_cast<int>(L / 2)>(v, f);
+  val = v[0];
+  h = f[0] / NC;
+  c = f[0] % NC;
 }
 
 template <typename T>
@@ -167,24 +298,32 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
                  const T* q, const T* p_ref, const bool* degenerate, const int64_t* cls_table,
                  const int64_t* ncs, bool has_sem, T* E, T* pS, T* gS, T* tauS, int64_t* bpB,
                  int64_t* bpK, int64_t* bpC) {
+  using V = typename Simd<T>::V;
+  using VI = typename Simd<T>::VI;
+  using VB = typename Simd<T>::VB;
+  using I = typename Simd<T>::I;
+  constexpr int64_t L = kLanes<T>;
   const T inf = std::numeric_limits<T>::infinity();
-  const int64_t Ks[kTypes] = {Kg, Ko, Kd, 1};
-  const int64_t Kmax = std::max(std::max(Kg, Ko), Kd);
+  const V vinf = splat<V>(inf);
+  // Padded capacities; a column's distinct sets are at most these.
+  const int64_t Kcap[kTypes] = {round_up(Kg, L), round_up(Ko, L), round_up(Kd, L), 1};
+  const int64_t Kmax = std::max(std::max(Kcap[kGround], Kcap[kStatic]), Kcap[kDynamic]);
   // Thread-local buffers, reused for every column of this range.
   std::vector<Cell<T>> cells(n);
-  std::vector<T> Pref[kTypes];  // (n + 1) x K_T: prefix-summed flow cost, cell-major
+  std::vector<T> Pref[kTypes];  // (n + 1) x Kp_T: prefix-summed flow cost, cell-major
   std::vector<double> acc(Kmax);
-  std::vector<T> MH[kTypes];    // nc x K_T running minimum per (class, hypothesis), class-major
-  std::vector<typename IdxOf<T>::type> MB[kTypes];  // its segment bottom
-  std::vector<int8_t> kbest[kTypes];  // n x K'_T: best predecessor type per (bottom, hypothesis)
-  std::vector<T> G(Kmax), gk(Kmax);
-  std::vector<int32_t> kb(Kmax);
-  std::vector<T> p_rule(n * kTypes), inv_pg(Kg), inv_po(Ko);
+  std::vector<T> MH[kTypes];    // nc x Kp_T running minimum per (class, hypothesis), class-major
+  std::vector<I> MB[kTypes];    // its segment bottom
+  std::vector<int8_t> kbest[kTypes];  // n x Kp'_T: best predecessor type per (bottom, hypothesis)
+  std::vector<T> gk(Kmax), p_rule(n * kTypes);
+  std::vector<T> hg(Kcap[kGround]), ho(Kcap[kStatic]), hd(Kcap[kDynamic] * 3);  // distinct, padded
+  std::vector<T> inv_pg(Kcap[kGround]), inv_po(Kcap[kStatic]);
+  std::vector<int32_t> table, keep(std::max(Kg, Ko));
   for (int T_ = 0; T_ < kTypes; ++T_) {
-    Pref[T_].resize((n + 1) * Ks[T_]);
-    MH[T_].resize(Ks[T_] * ncs[T_]);
-    MB[T_].resize(Ks[T_] * ncs[T_]);
-    kbest[T_].resize(n * ((T_ == kGround || T_ == kStatic) ? Ks[T_] : 1));
+    Pref[T_].resize((n + 1) * Kcap[T_]);
+    MH[T_].resize(Kcap[T_] * ncs[T_]);
+    MB[T_].resize(Kcap[T_] * ncs[T_]);
+    kbest[T_].resize(n * ((T_ == kGround || T_ == kStatic) ? Kcap[T_] : 1));
   }
 
   // Columns are taken in small chunks from a shared counter instead of one fixed share per
@@ -210,13 +349,27 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
       c.sg = s_g[cj];
       c.so = s_o[cj];
     }
-    const T cK0 = cK[col * 3 + 0], cK1 = cK[col * 3 + 1], cK2 = cK[col * 3 + 2];
+    // ---- distinct hypotheses, padded to whole vectors with copies of the last one
     const T* pg = p_ground + col * Kg;
     const T* po = p_object + col * Ko;
     const T* gd = g_dyn + col * Kd * 3;
-    flow_prefix<T, kGround>(P, cells, Kg, pg, cK0, cK1, cK2, acc.data(), Pref[kGround].data());
-    flow_prefix<T, kStatic>(P, cells, Ko, po, cK0, cK1, cK2, acc.data(), Pref[kStatic].data());
-    flow_prefix<T, kDynamic>(P, cells, Kd, gd, cK0, cK1, cK2, acc.data(), Pref[kDynamic].data());
+    int64_t K[kTypes], Kp[kTypes];
+    K[kGround] = first_occurrences(pg, Kg, table, keep.data());
+    Kp[kGround] = round_up(K[kGround], L);
+    for (int64_t k = 0; k < Kp[kGround]; ++k) hg[k] = pg[keep[std::min(k, K[kGround] - 1)]];
+    K[kStatic] = first_occurrences(po, Ko, table, keep.data());
+    Kp[kStatic] = round_up(K[kStatic], L);
+    for (int64_t k = 0; k < Kp[kStatic]; ++k) ho[k] = po[keep[std::min(k, K[kStatic] - 1)]];
+    K[kDynamic] = Kd;  // (dynamic hypotheses are (tx, ty) pairs; copies are rare there)
+    Kp[kDynamic] = Kcap[kDynamic];
+    for (int64_t k = 0; k < Kp[kDynamic]; ++k)
+      for (int d = 0; d < 3; ++d) hd[k * 3 + d] = gd[std::min(k, Kd - 1) * 3 + d];
+    K[kSky] = Kp[kSky] = 1;
+
+    const T cK0 = cK[col * 3 + 0], cK1 = cK[col * 3 + 1], cK2 = cK[col * 3 + 2];
+    flow_prefix<T, kGround>(P, cells, Kp[kGround], hg.data(), cK0, cK1, cK2, acc.data(), Pref[kGround].data());
+    flow_prefix<T, kStatic>(P, cells, Kp[kStatic], ho.data(), cK0, cK1, cK2, acc.data(), Pref[kStatic].data());
+    flow_prefix<T, kDynamic>(P, cells, Kp[kDynamic], hd.data(), cK0, cK1, cK2, acc.data(), Pref[kDynamic].data());
     flow_prefix<T, kSky>(P, cells, 1, nullptr, cK0, cK1, cK2, acc.data(), Pref[kSky].data());
 
     // ---- the DP (solver.solve_columns, hard minima)
@@ -237,11 +390,11 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
     }
     Ec[kGround] = T(0);  // virtual ground stixel at the camera height
     for (int T_ = 0; T_ < kTypes; ++T_) {
-      std::fill(MH[T_].begin(), MH[T_].end(), inf);
-      std::fill(MB[T_].begin(), MB[T_].end(), 0);
+      std::fill(MH[T_].begin(), MH[T_].begin() + Kp[T_] * ncs[T_], inf);
+      std::fill(MB[T_].begin(), MB[T_].begin() + Kp[T_] * ncs[T_], 0);
     }
-    for (int64_t k = 0; k < Kg; ++k) inv_pg[k] = T(1) / pg[k];
-    for (int64_t k = 0; k < Ko; ++k) inv_po[k] = T(1) / po[k];
+    for (int64_t k = 0; k < Kp[kGround]; ++k) inv_pg[k] = T(1) / hg[k];
+    for (int64_t k = 0; k < Kp[kStatic]; ++k) inv_po[k] = T(1) / ho[k];
     const bool deg = degenerate[col];
     const T* Lc = Lp + col * ncl * (n + 1);
     const T* qc = q + col * n;
@@ -252,6 +405,7 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
       const T* gp = gSc + i * kTypes;
       const T qi = qc[i];
       T inv_gp[kTypes], inv_pp[kTypes], st_rule[kTypes];
+      int act[kTypes], nact = 0;  // reachable predecessor types, ascending
       for (int j = 0; j < kTypes; ++j) {
         inv_gp[j] = T(1) / gp[j];
         const T ppc = pp[j] < P.p_min ? P.p_min : pp[j];
@@ -260,106 +414,97 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
         pr = pr < P.p_min ? P.p_min : pr;
         pr = pr > P.p_max ? P.p_max : pr;
         p_rule[i * kTypes + j] = pr;
-        st_rule[j] = structural(P, T(1) / pr, qi, inv_pp[j], inv_gp[j], j);
+        const T inv_pr = T(1) / pr;
+        st_rule[j] = structural(P, inv_pr, qi * inv_pr, inv_pp[j], inv_gp[j], j);
+        if (Ep[j] < inf) act[nact++] = j;
       }
       for (int T_ = 0; T_ < kTypes; ++T_) {
-        const int64_t K = Ks[T_], nc = ncs[T_];
+        const int64_t Kt = Kp[T_], nc = ncs[T_];
         const bool per_k = (T_ == kGround || T_ == kStatic);
-        // Best predecessor type per hypothesis (per_k) or for the whole type.
-        if (T_ == kGround) {
-          best_predecessor(Ep, K, G.data(), kb.data(), [&](int j, int64_t k) {
-            const T dh = inv_gp[j] - inv_pg[k];
-            return P.a_flat + P.b_flat * dh * dh;  // flat ground (paper Ψ_flat)
-          });
-        } else if (T_ == kStatic && !deg) {
-          best_predecessor(Ep, K, G.data(), kb.data(), [&](int j, int64_t k) {
-            return structural(P, inv_po[k], qi, inv_pp[j], inv_gp[j], j);
-          });
-        } else if (T_ == kStatic) {  // degenerate motion: the scene model's depth for every hypothesis
-          best_predecessor(Ep, 1, G.data(), kb.data(), [&](int j, int64_t) { return st_rule[j]; });
-          for (int64_t k = 1; k < K; ++k) { G[k] = G[0]; kb[k] = kb[0]; }
-        } else if (T_ == kDynamic) {
-          best_predecessor(Ep, 1, G.data(), kb.data(), [&](int j, int64_t) { return st_rule[j]; });
+        const T* P0 = Pref[T_].data() + i * Kt;
+        const T* P1 = P0 + Kt;
+        int8_t* kbi = kbest[T_].data() + i * (per_k ? Kt : 1);
+        // Best predecessor type per hypothesis (ground, static) or for the whole type, and
+        // gk = G - P0 for the segments that start at cell i.
+        if (T_ == kGround || (T_ == kStatic && !deg)) {
+          const T* ip = T_ == kGround ? inv_pg.data() : inv_po.data();
+          for (int64_t k = 0; k < Kt; k += L) {
+            const V ipk = load<V>(ip + k);
+            const V qip = qi * ipk;  // (static) q * inv_p, shared by every predecessor
+            V G = vinf;
+            VI kb = splat<VI>(0);
+            for (int aa = 0; aa < nact; ++aa) {
+              const int j = act[aa];
+              V st;
+              if (T_ == kGround) {
+                const V dh = inv_gp[j] - ipk;
+                st = P.a_flat + P.b_flat * dh * dh;  // flat ground (paper Ψ_flat)
+              } else {
+                st = structural(P, ipk, qip, inv_pp[j], inv_gp[j], j);
+              }
+              const V cand = Ep[j] + st;
+              const VI lt = cand < G;
+              G = lt ? cand : G;
+              kb = lt ? splat<VI>(j) : kb;
+            }
+            store(kbi + k, __builtin_convertvector(kb, VB));
+            store(gk.data() + k, G - load<V>(P0 + k));
+          }
         } else {
-          // Sky has no structural prior: Ep + 0 == Ep exactly, as in the eager path.
-          best_predecessor(Ep, 1, G.data(), kb.data(), [&](int, int64_t) { return T(0); });
+          T G0;
+          int32_t kb0;
+          if (T_ == kSky) {  // no structural prior: Ep + 0 == Ep exactly, as in the eager path
+            best_predecessor(Ep, G0, kb0, [&](int) { return T(0); });
+          } else {  // dynamic, or static under degenerate motion: the scene model's depth
+            best_predecessor(Ep, G0, kb0, [&](int j) { return st_rule[j]; });
+          }
+          if (per_k) {
+            std::fill(kbi, kbi + Kt, static_cast<int8_t>(kb0));
+          } else {
+            kbi[0] = static_cast<int8_t>(kb0);
+          }
+          for (int64_t k = 0; k < Kt; ++k) gk[k] = G0 - P0[k];
         }
-        int8_t* kbi = kbest[T_].data() + i * (per_k ? K : 1);
-        for (int64_t k = 0; k < (per_k ? K : 1); ++k) kbi[k] = static_cast<int8_t>(kb[k]);
-        const T* P0 = Pref[T_].data() + i * K;
-        const T* P1 = P0 + K;
-        if (per_k) {
-          for (int64_t k = 0; k < K; ++k) gk[k] = G[k] - P0[k];
-        } else {
-          for (int64_t k = 0; k < K; ++k) gk[k] = G[0] - P0[k];
-        }
+        for (int64_t k = K[T_]; k < Kt; ++k) gk[k] = inf;  // padding: never opens a segment
         const int64_t* ct = cls_table + T_ * 3;
-        // Running minimum over segment bottoms per (class, hypothesis), and the segments that end
-        // at cell i closed with the prefix sums at i + 1; the minimum over all of them.
-        // Running minimum over segment bottoms per (class, hypothesis), the segments that end at
-        // cell i closed with the prefix sums at i + 1, and the first (hypothesis-major, like the
-        // eager flatten) index of their minimum: 8 hypotheses at a time (vector extension; the
-        // compiler does not vectorise an argmin by itself). Ties go to the lower flat index.
-        using V = Lanes<T>;
-        using VI = IdxLanes<T>;
-        using I = typename IdxOf<T>::type;
-        V best = splat<V>(inf);
-        VI bidx = splat<VI>(std::numeric_limits<I>::max());
-        T best_s = inf;
-        I bidx_s = std::numeric_limits<I>::max();
-        const I ii = static_cast<I>(i);
-        const VI iiv = splat<VI>(ii);
-        VI koff;
-        for (int l = 0; l < 8; ++l) koff[l] = static_cast<I>(l);
+        T L0[kMaxClasses], L1[kMaxClasses];
         for (int64_t c = 0; c < nc; ++c) {
           const int64_t cl = has_sem ? ct[c] : 0;
-          const T L0 = Lc[cl * (n + 1) + i], L1 = Lc[cl * (n + 1) + i + 1];
-          T* mh = MH[T_].data() + c * K;
-          I* mb = MB[T_].data() + c * K;
-          int64_t k = 0;
-          for (; k + 8 <= K; k += 8) {
-            V g, m, p1;
-            VI bb;
-            std::memcpy(&g, gk.data() + k, sizeof(V));
-            std::memcpy(&m, mh + k, sizeof(V));
-            std::memcpy(&p1, P1 + k, sizeof(V));
-            std::memcpy(&bb, mb + k, sizeof(VI));
-            const V cH = g - L0;
-            const auto lt = cH < m;
-            m = lt ? cH : m;
-            bb = lt ? iiv : bb;
-            std::memcpy(mh + k, &m, sizeof(V));
-            std::memcpy(mb + k, &bb, sizeof(VI));
-            const V tot_v = m + (p1 + L1);
-            const VI flat = (koff + static_cast<I>(k)) * static_cast<I>(nc) + static_cast<I>(c);
-            const auto better = (tot_v < best) | ((tot_v == best) & (flat < bidx));
-            best = better ? tot_v : best;
-            bidx = better ? flat : bidx;
-          }
-          for (; k < K; ++k) {
-            const T cH = gk[k] - L0;
-            if (cH < mh[k]) { mh[k] = cH; mb[k] = ii; }
-            const T tot_s = mh[k] + (P1[k] + L1);
-            const I flat = static_cast<I>(k * nc + c);
-            if (tot_s < best_s || (tot_s == best_s && flat < bidx_s)) { best_s = tot_s; bidx_s = flat; }
-          }
+          L0[c] = Lc[cl * (n + 1) + i];
+          L1[c] = Lc[cl * (n + 1) + i + 1];
         }
-        T val = best_s;
-        I arg = bidx_s;
-        for (int l = 0; l < 8; ++l)
-          if (best[l] < val || (best[l] == val && bidx[l] < arg)) { val = best[l]; arg = bidx[l]; }
-        const int64_t h_star = arg / nc, c_star = arg % nc;
+        T* mh = MH[T_].data();
+        I* mb = MB[T_].data();
+        const I ii = static_cast<I>(i);
+        T val;
+        int64_t h_star, c_star;
+        if (T_ == kSky) {  // one hypothesis: scalar, classes in ascending order
+          val = inf;
+          h_star = c_star = 0;
+          for (int64_t c = 0; c < nc; ++c) {
+            const T cH = gk[0] - L0[c];
+            if (cH < mh[c]) { mh[c] = cH; mb[c] = ii; }
+            const T tot = mh[c] + (P1[0] + L1[c]);
+            if (tot < val) { val = tot; c_star = c; }
+          }
+        } else if (nc == 3) {
+          close_segments<T, 3>(Kt, gk.data(), P1, mh, mb, L0, L1, ii, val, h_star, c_star);
+        } else if (nc == 2) {
+          close_segments<T, 2>(Kt, gk.data(), P1, mh, mb, L0, L1, ii, val, h_star, c_star);
+        } else {
+          close_segments<T, 1>(Kt, gk.data(), P1, mh, mb, L0, L1, ii, val, h_star, c_star);
+        }
         const int64_t s = (i + 1) * kTypes + T_;
         Ec[s] = val + P.beta_mc;
-        const int64_t b_star = MB[T_][c_star * K + h_star];
-        const int64_t k_star = kbest[T_][b_star * (per_k ? K : 1) + (per_k ? h_star : 0)];
+        const int64_t b_star = mb[c_star * Kt + h_star];
+        const int64_t k_star = kbest[T_][b_star * (per_k ? Kt : 1) + (per_k ? h_star : 0)];
         const T g_pred = gSc[b_star * kTypes + k_star];
         T p_new, g_new = g_pred;
         if (T_ == kGround) {
-          p_new = pg[h_star];
+          p_new = hg[h_star];
           g_new = p_new;
         } else if (T_ == kStatic) {
-          p_new = deg ? p_rule[b_star * kTypes + k_star] : po[h_star];
+          p_new = deg ? p_rule[b_star * kTypes + k_star] : ho[h_star];
         } else if (T_ == kDynamic) {
           p_new = p_rule[b_star * kTypes + k_star];
           tSc[2 * s] = tau[(col * Kd + h_star) * 2];
