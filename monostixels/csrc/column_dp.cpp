@@ -31,9 +31,11 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <tuple>
 #include <type_traits>
 #include <utility>
 #include <vector>
@@ -43,6 +45,7 @@ namespace {
 constexpr int kTypes = 4;  // ground, static object, dynamic object, sky
 constexpr int64_t kChunk = 2;  // columns a thread takes at a time
 constexpr int kMaxClasses = 3;  // classes per type (solver: TYPE_CLASSES; cls_table has 3 slots)
+constexpr int64_t kCovEntries = 4;  // a 2 x 2 flow covariance per pixel
 constexpr int kGround = 0, kStatic = 1, kDynamic = 2, kSky = 3;
 inline bool is_object(int j) { return j == kStatic || j == kDynamic; }
 
@@ -579,60 +582,360 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
 // Sums (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the image bottom and
 // columns of w pixels (solver._block_sum, in its order: a row's pixels left to right, then the
 // cell's rows bottom-up, a missing top row adding 0), so the two give the same bits.
-template <typename T>
-void cell_sums_impl(const T* x, T* out, int64_t planes, int64_t H, int64_t W, int64_t r, int64_t w) {
+//
+// Two layouts are read in place: planes of contiguous rows (flow, scores), and CH channels
+// interleaved per pixel (the covariance (H, W, 2, 2) seen as (B, 4, H, W)); CH = 0 and W_ = 0
+// take the channel count and the column width at run time, fixed ones let the compiler unroll
+// the sum of a cell's row (the default column width, 5, and the 4 covariance entries).
+//
+// The same pass checks the values (solver._check_values), so that the inputs, tens of MB that
+// do not stay in cache, are read once: every sum finite (a NaN or inf pixel makes its cell's sum
+// NaN or inf), and per pixel either x >= 0 (scores) or a positive definite 2 x 2 matrix
+// (c00 > 0 and det > 0, det in the order of solver._check_values). A failed check only means
+// "look closer": the solver then runs its own checks, which name the problem.
+enum CellCheck : int64_t { kNoCheck = 0, kFinite = 1, kNonNegative = 2, kPositiveDefinite = 3 };
+
+// The row sums of one image row: row[k * C + c] for channel k and column c. Returns false where
+// a pixel fails the per-pixel check.
+template <typename T, int W_, int CH_>
+inline bool cell_row_sums(const T* xv, int64_t W, int64_t w, int64_t C, int64_t ch, T* row, int64_t check) {
+  const int64_t nch = CH_ ? CH_ : ch, cw = W_ ? W_ : w;
+  const int64_t full = W / cw;
+  for (int64_t c = 0; c < full; ++c) {
+    const T* px = xv + c * cw * nch;
+    T acc[CH_ ? CH_ : 1];
+    if (CH_) {
+      for (int64_t k = 0; k < nch; ++k) acc[k] = px[k];
+      for (int64_t uu = 1; uu < cw; ++uu)
+        for (int64_t k = 0; k < nch; ++k) acc[k] = acc[k] + px[uu * nch + k];
+      for (int64_t k = 0; k < nch; ++k) row[k * C + c] = acc[k];
+    } else {
+      for (int64_t k = 0; k < nch; ++k) {
+        T a = px[k];
+        for (int64_t uu = 1; uu < cw; ++uu) a = a + px[uu * nch + k];
+        row[k * C + c] = a;
+      }
+    }
+  }
+  if (full < C) {  // a partial last column sums the pixels it has
+    const T* px = xv + full * cw * nch;
+    const int64_t left = W - full * cw;
+    for (int64_t k = 0; k < nch; ++k) {
+      T a = px[k];
+      for (int64_t uu = 1; uu < left; ++uu) a = a + px[uu * nch + k];
+      row[k * C + full] = a;
+    }
+  }
+  bool bad = false;  // branch-free, so that the loops vectorise
+  if (check == kNonNegative) {
+    for (int64_t e = 0; e < W * nch; ++e) bad |= xv[e] < T(0);
+  } else if (check == kPositiveDefinite && nch == kCovEntries) {
+    for (int64_t uu = 0; uu < W; ++uu) {
+      const T* m = xv + uu * kCovEntries;  // c00, c01, c10, c11
+      const T det = m[0] * m[3] - m[1] * m[2];
+      bad |= !(m[0] > T(0)) | !(det > T(0));
+    }
+  }
+  return !bad;
+}
+
+// x: plane p (of `planes`) starts at x + p * plane_stride; pixel (v, u) channel k at
+// v * row_stride + u * nch + k (nch = 1: planar). Returns whether the values pass `check`.
+template <typename T, int W_, int CH_>
+bool cell_sums_impl(const T* x, T* out, int64_t planes, int64_t plane_stride, int64_t nch, int64_t row_stride,
+                    int64_t H, int64_t W, int64_t r, int64_t w, int64_t check) {
   const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
   // Work items (plane, cell row) from a shared counter, like the columns of the DP: a thread
   // that the OS deschedules on a shared machine then holds up one row of cells, not half the image.
   std::atomic<int64_t> next{0};
+  std::atomic<bool> ok{true};
   const int64_t items = planes * n;
   const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), items / 16));
   at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {
-    std::vector<T> row(C);
+    std::vector<T> row(nch * C);
+    bool good = true;
     for (int64_t item; (item = next.fetch_add(1)) < items;) {
       const int64_t p = item / n, i = item % n;
-      const T* xp = x + p * H * W;
-      T* oi = out + p * n * C + i * C;
+      const T* xp = x + p * plane_stride;
       for (int64_t jj = 0; jj < r; ++jj) {
         const int64_t v = H - 1 - (i * r + jj);  // image row, bottom-up
         if (v >= 0) {
-          const T* xv = xp + v * W;
-          for (int64_t c = 0; c < C; ++c) {
-            const int64_t u0 = c * w, u1 = std::min(u0 + w, W);
-            T acc = xv[u0];
-            for (int64_t u = u0 + 1; u < u1; ++u) acc = acc + xv[u];
-            row[c] = acc;
-          }
+          good &= cell_row_sums<T, W_, CH_>(xp + v * row_stride, W, w, C, nch, row.data(), check);
         } else {
           std::fill(row.begin(), row.end(), T(0));
         }
-        if (jj == 0) {
-          std::copy(row.begin(), row.end(), oi);
-        } else {
-          for (int64_t c = 0; c < C; ++c) oi[c] = oi[c] + row[c];
+        for (int64_t k = 0; k < nch; ++k) {
+          T* oi = out + ((p * nch + k) * n + i) * C;
+          const T* rk = row.data() + k * C;
+          if (jj == 0) {
+            std::copy(rk, rk + C, oi);
+          } else {
+            for (int64_t c = 0; c < C; ++c) oi[c] = oi[c] + rk[c];
+          }
+        }
+      }
+      if (check != kNoCheck) {
+        for (int64_t k = 0; k < nch; ++k) {
+          const T* oi = out + ((p * nch + k) * n + i) * C;
+          bool fin = true;
+          for (int64_t c = 0; c < C; ++c) fin &= std::isfinite(oi[c]);
+          good &= fin;
+        }
+      }
+    }
+    if (!good) ok = false;
+  });
+  return ok;
+}
+
+// The default column width (conf/solver/default.yaml): its cell rows are summed unrolled.
+constexpr int kUnrolledWidth = 5;
+
+std::tuple<at::Tensor, at::Tensor> cell_sums(const at::Tensor& x, int64_t r, int64_t w, int64_t check) {
+  TORCH_CHECK(x.dim() == 4, "cell_sums: x must be (B, ch, H, W), got ", x.dim(), " dims");
+  TORCH_CHECK(r >= 1 && w >= 1, "cell_sums: r and w must be >= 1");
+  TORCH_CHECK(check >= kNoCheck && check <= kPositiveDefinite, "cell_sums: unknown check ", check);
+  const int64_t B = x.size(0), ch = x.size(1), H = x.size(2), W = x.size(3);
+  const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
+  TORCH_CHECK(check != kPositiveDefinite || ch == kCovEntries, "cell_sums: a 2 x 2 matrix has 4 entries, got ", ch);
+  auto out = at::empty({B, ch, n, C}, x.options());
+  // Channels interleaved per pixel, images one after another (a permuted (B, H, W, ch) tensor):
+  // read in place. Anything else is made contiguous (planes of rows).
+  // (The stride of a dimension of size 1 is arbitrary.)
+  auto stride_is = [&](int d, int64_t s) { return x.size(d) == 1 || x.stride(d) == s; };
+  const bool interleaved = ch > 1 && x.stride(1) == 1 && stride_is(3, ch) && stride_is(2, W * ch) &&
+                           stride_is(0, H * W * ch);
+  TORCH_CHECK(check != kPositiveDefinite || interleaved, "cell_sums: the matrix check needs (B, H, W, 4) memory");
+  auto xc = interleaved ? x : x.contiguous();
+  const int64_t planes = interleaved ? B : B * ch, nch = interleaved ? ch : 1;
+  const int64_t plane_stride = interleaved ? H * W * ch : H * W, row_stride = interleaved ? W * ch : W;
+  bool ok = true;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cell_sums", [&] {
+    const scalar_t* xp = xc.data_ptr<scalar_t>();
+    scalar_t* op = out.data_ptr<scalar_t>();
+    const bool w5 = w == kUnrolledWidth;
+    if (nch == 1) {
+      ok = (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, 1> : cell_sums_impl<scalar_t, 0, 1>)(
+          xp, op, planes, plane_stride, 1, row_stride, H, W, r, w, check);
+    } else if (nch == kCovEntries) {
+      ok = (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, kCovEntries> : cell_sums_impl<scalar_t, 0, kCovEntries>)(
+          xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check);
+    } else {
+      ok = cell_sums_impl<scalar_t, 0, 0>(xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check);
+    }
+  });
+  return {out, at::scalar_tensor(ok, x.options().dtype(at::kBool))};
+}
+
+// Per-cell geometry of every column (solver._geometry, in the order of its torch ops): the
+// ray K^-1 x of each cell centre (geometry.pixel_rays), a = K R K^-1 x, s = n^T K^-1 x for the
+// ground and object normals, and the bottom-ray ratio q (solver._bottom_ray_ratio). The 3 x 3
+// products add like torch's small-matrix bmm (from 0, in index order) and the 3-term dot
+// products like its sum over the last dimension (from 0, then its 3 idle partial sums, which
+// only turn a zero sum of -0 into +0).
+template <typename T>
+inline T sum3(const T* x) {
+  T acc = T(0);
+  for (int k = 0; k < 3; ++k) acc = acc + x[k];
+  return acc + T(0) + T(0) + T(0);
+}
+
+template <typename T>
+inline void pixel_ray(const T* K, T u, T v, T* ray) {
+  const T fx = K[0], s = K[1], cx = K[2], fy = K[4], cy = K[5];
+  const T y = (v - cy) / fy;
+  ray[0] = (u - cx - s * y) / fx;
+  ray[1] = y;
+  ray[2] = T(1);
+}
+
+template <typename T>
+void geometry_impl(int64_t C, int64_t n, const T* K, const T* KR, const T* n_g, const T* n_obj, const T* u,
+                   const T* v, const T* v_edge, T* ray, T* a, T* s_g, T* s_o, T* q) {
+  at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      const T *Kc = K + c * 9, *M = KR + c * 9, *ng = n_g + c * 3, *no = n_obj + c * 3;
+      for (int64_t j = 0; j < n; ++j) {
+        const int64_t cj = c * n + j;
+        T* r = ray + cj * 3;
+        pixel_ray(Kc, u[c], v[j], r);
+        for (int i = 0; i < 3; ++i) {
+          T acc = T(0);
+          for (int k = 0; k < 3; ++k) acc = acc + M[i * 3 + k] * r[k];
+          a[cj * 3 + i] = acc;
+        }
+        T rb[3], p_g[3], p_o[3];  // (ray * n) of the torch code, then its sum
+        for (int k = 0; k < 3; ++k) { p_g[k] = r[k] * ng[k]; p_o[k] = r[k] * no[k]; }
+        s_g[cj] = sum3(p_g);
+        s_o[cj] = sum3(p_o);
+        pixel_ray(Kc, u[c], v_edge[j], rb);  // the ray through the cell's lower edge
+        for (int k = 0; k < 3; ++k) { p_g[k] = rb[k] * ng[k]; p_o[k] = rb[k] * no[k]; }
+        q[cj] = sum3(p_g) / sum3(p_o);
+      }
+    }
+  });
+}
+
+std::vector<at::Tensor> geometry(const at::Tensor& K, const at::Tensor& KR, const at::Tensor& n_g,
+                                 const at::Tensor& n_obj, const at::Tensor& u, const at::Tensor& v,
+                                 const at::Tensor& v_edge) {
+  const int64_t C = u.size(0), n = v.size(0);
+  const auto opt = u.options();
+  auto ray = at::empty({C, n, 3}, opt), a = at::empty({C, n, 3}, opt);
+  auto s_g = at::empty({C, n}, opt), s_o = at::empty({C, n}, opt), q = at::empty({C, n}, opt);
+  AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "geometry", [&] {
+    using T = scalar_t;
+    auto cont = [&](const at::Tensor& x, const char* name) {
+      TORCH_CHECK(x.scalar_type() == u.scalar_type(), "geometry: ", name, " has dtype ", x.scalar_type(),
+                  ", expected ", u.scalar_type());
+      return x.contiguous();
+    };
+    auto K_ = cont(K, "K"), KR_ = cont(KR, "KR"), ng_ = cont(n_g, "n_g"), no_ = cont(n_obj, "n_obj");
+    auto u_ = cont(u, "u"), v_ = cont(v, "v"), ve_ = cont(v_edge, "v_edge");
+    geometry_impl<T>(C, n, K_.data_ptr<T>(), KR_.data_ptr<T>(), ng_.data_ptr<T>(), no_.data_ptr<T>(),
+                     u_.data_ptr<T>(), v_.data_ptr<T>(), ve_.data_ptr<T>(), ray.data_ptr<T>(), a.data_ptr<T>(),
+                     s_g.data_ptr<T>(), s_o.data_ptr<T>(), q.data_ptr<T>());
+  });
+  return {ray, a, s_g, s_o, q};
+}
+
+// Prefix-summed semantic cost (C, 10, n + 1) of every column (solver._semantic_prefix, in the
+// order of its torch ops): min(nll, alpha_L) * rows * delta_L per cell and class, plus extra[j] for
+// the sky class where `unseen` (if given), summed in double like torch.cumsum on the CPU.
+template <typename T>
+void semantic_prefix_impl(int64_t C, int64_t n, int64_t ncl, const T* nll, const T* rows, T alpha_L, T delta_L,
+                          const bool* unseen, const T* extra, int64_t sky, T* Lp) {
+  at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
+    std::vector<double> acc(ncl);
+    for (int64_t c = c0; c < c1; ++c) {
+      T* L = Lp + c * ncl * (n + 1);
+      std::fill(acc.begin(), acc.end(), 0.0);
+      for (int64_t k = 0; k < ncl; ++k) L[k * (n + 1)] = T(0);
+      for (int64_t j = 0; j < n; ++j) {
+        const T* x = nll + (c * n + j) * ncl;
+        for (int64_t k = 0; k < ncl; ++k) {
+          const T m = alpha_L < x[k] ? alpha_L : x[k];  // torch.minimum (no NaN here)
+          T e = m * rows[j] * delta_L;
+          if (k == sky && unseen != nullptr && unseen[c * n + j]) e = e + extra[j];
+          acc[k] += static_cast<double>(e);
+          L[k * (n + 1) + j + 1] = static_cast<T>(acc[k]);
         }
       }
     }
   });
 }
 
-at::Tensor cell_sums(const at::Tensor& x, int64_t r, int64_t w) {
-  TORCH_CHECK(x.dim() == 4, "cell_sums: x must be (B, ch, H, W), got ", x.dim(), " dims");
-  TORCH_CHECK(r >= 1 && w >= 1, "cell_sums: r and w must be >= 1");
-  const int64_t B = x.size(0), ch = x.size(1), H = x.size(2), W = x.size(3);
-  const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
-  auto xc = x.contiguous();
-  auto out = at::empty({B, ch, n, C}, x.options());
-  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cell_sums", [&] {
-    cell_sums_impl<scalar_t>(xc.data_ptr<scalar_t>(), out.data_ptr<scalar_t>(), B * ch, H, W, r, w);
+at::Tensor semantic_prefix(const at::Tensor& nll, const at::Tensor& rows, const at::Tensor& alpha_L,
+                           const at::Tensor& delta_L, const c10::optional<at::Tensor>& unseen,
+                           const c10::optional<at::Tensor>& extra, int64_t sky) {
+  const int64_t C = nll.size(0), n = nll.size(1), ncl = nll.size(2);
+  auto Lp = at::empty({C, ncl, n + 1}, nll.options());
+  const bool rule = unseen.has_value() && unseen->defined();
+  auto un = rule ? unseen->to(at::kBool).contiguous() : at::Tensor();
+  AT_DISPATCH_FLOATING_TYPES(nll.scalar_type(), "semantic_prefix", [&] {
+    using T = scalar_t;
+    auto nll_ = nll.contiguous(), rows_ = rows.to(nll.scalar_type()).contiguous();
+    auto ex = rule ? extra->to(nll.scalar_type()).contiguous() : at::Tensor();
+    semantic_prefix_impl<T>(C, n, ncl, nll_.data_ptr<T>(), rows_.data_ptr<T>(), alpha_L.item<T>(),
+                            delta_L.item<T>(), rule ? un.data_ptr<bool>() : nullptr,
+                            rule ? ex.data_ptr<T>() : nullptr, sky, Lp.data_ptr<T>());
   });
-  return out;
+  return Lp;
+}
+
+// Hypothesis sets of every column for hypothesis_stride = 1 (solver._hypotheses with
+// solver._fits, in the order of their torch ops): each cell's own static fits for the ground and
+// object normals (geometry.static_dof_system + solve_static_dof), its dynamic fit
+// (dynamic_dof_system + solve_dynamic_dof), the standing depths, the replacements of missing
+// ones. The systems' 2-term sums are written x0 + x1: torch's reduction adds the same two
+// numbers (and zeros, which only change the sign of a zero sum: such a fit is p = +-0, outside
+// [p_min, p_max], so it is dropped either way).
+template <typename T>
+void hypotheses_impl(int64_t C, int64_t n, const T* a, const T* cK, const T* s_g, const T* s_o, const T* q,
+                     const T* u, const T* v, const T* flow, const T* M, const T* p_ref, const bool* degenerate,
+                     T p_min, T p_max, T eps, bool standing, T* pg, T* po, T* tau) {
+  const T nan = std::numeric_limits<T>::quiet_NaN();
+  const int64_t Kg = n + 1, Ko = standing ? 2 * n : n;
+  auto valid = [&](T p) { return (std::isfinite(p) && p >= p_min && p <= p_max) ? p : nan; };
+  at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
+    for (int64_t c = c0; c < c1; ++c) {
+      const T* Mc = M + c * 6;  // K B, 3 x 2
+      const T cK0 = cK[c * 3], cK1 = cK[c * 3 + 1], cK2 = cK[c * 3 + 2], pr = p_ref[c];
+      for (int64_t j = 0; j < n; ++j) {
+        const int64_t cj = c * n + j;
+        const T up = u[c] + flow[cj * 2], vp = v[j] + flow[cj * 2 + 1];
+        const T* ac = a + cj * 3;
+        const T b0 = ac[0] - up * ac[2], b1 = ac[1] - vp * ac[2];
+        const T cu = up * cK2 - cK0, cv = vp * cK2 - cK1;
+        auto fit = [&](T s) {
+          const T A0 = s * cu, A1 = s * cv;
+          const T den = A0 * A0 + A1 * A1;
+          const T p = (A0 * b0 + A1 * b1) / den;
+          return valid(den > eps ? p : nan);
+        };
+        T p_g = fit(s_g[cj]);
+        if (degenerate[c]) p_g = nan;  // without translation the ground is the reference ground
+        pg[c * Kg + j] = std::isnan(p_g) ? pr : p_g;
+        const T p_o = fit(s_o[cj]);
+        po[c * Ko + j] = std::isnan(p_o) ? p_min : p_o;
+        if (standing) {
+          const T p_s = valid(q[cj] * pr);
+          po[c * Ko + n + j] = std::isnan(p_s) ? p_min : p_s;
+        }
+        const T s = s_o[cj];
+        const T A00 = s * (up * Mc[4] - Mc[0]), A01 = s * (up * Mc[5] - Mc[1]);
+        const T A10 = s * (vp * Mc[4] - Mc[2]), A11 = s * (vp * Mc[5] - Mc[3]);
+        const T det = A00 * A11 - A01 * A10;
+        const bool ok = std::abs(det) > eps;
+        const T tx = ok ? (A11 * b0 - A01 * b1) / det : nan;
+        const T ty = ok ? (A00 * b1 - A10 * b0) / det : nan;
+        tau[cj * 2] = std::isfinite(tx) ? tx : T(0);
+        tau[cj * 2 + 1] = std::isfinite(ty) ? ty : T(0);
+      }
+      pg[c * Kg + n] = pr;  // the reference ground is always a hypothesis
+    }
+  });
+}
+
+std::vector<at::Tensor> hypotheses(const at::Tensor& a, const at::Tensor& cK, const at::Tensor& s_g,
+                                   const at::Tensor& s_o, const at::Tensor& q, const at::Tensor& u,
+                                   const at::Tensor& v, const at::Tensor& flow, const at::Tensor& M,
+                                   const at::Tensor& p_ref, const at::Tensor& degenerate, double p_min, double p_max,
+                                   double eps, bool standing) {
+  const int64_t C = a.size(0), n = a.size(1);
+  const auto opt = a.options();
+  auto pg = at::empty({C, n + 1}, opt);
+  auto po = at::empty({C, standing ? 2 * n : n}, opt);
+  auto tau = at::empty({C, n, 2}, opt);
+  auto deg = degenerate.to(at::kBool).contiguous();
+  AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "hypotheses", [&] {
+    using T = scalar_t;
+    auto cont = [&](const at::Tensor& x, const char* name) {
+      TORCH_CHECK(x.scalar_type() == a.scalar_type(), "hypotheses: ", name, " has dtype ", x.scalar_type(),
+                  ", expected ", a.scalar_type());
+      return x.contiguous();
+    };
+    auto a_ = cont(a, "a"), cK_ = cont(cK, "cK"), sg_ = cont(s_g, "s_g"), so_ = cont(s_o, "s_o"), q_ = cont(q, "q");
+    auto u_ = cont(u, "u"), v_ = cont(v, "v"), fl_ = cont(flow, "flow"), M_ = cont(M, "M"), pr_ = cont(p_ref, "p_ref");
+    hypotheses_impl<T>(C, n, a_.data_ptr<T>(), cK_.data_ptr<T>(), sg_.data_ptr<T>(), so_.data_ptr<T>(),
+                       q_.data_ptr<T>(), u_.data_ptr<T>(), v_.data_ptr<T>(), fl_.data_ptr<T>(), M_.data_ptr<T>(),
+                       pr_.data_ptr<T>(), deg.data_ptr<bool>(), static_cast<T>(p_min), static_cast<T>(p_max),
+                       static_cast<T>(eps), standing, pg.data_ptr<T>(), po.data_ptr<T>(), tau.data_ptr<T>());
+  });
+  return {pg, po, tau};
 }
 
 }  // namespace
 
 TORCH_LIBRARY(monostixels, m) {
-  m.def("cell_sums(Tensor x, int r, int w) -> Tensor");
+  m.def("cell_sums(Tensor x, int r, int w, int check) -> (Tensor, Tensor)");
+  m.def("geometry(Tensor K, Tensor KR, Tensor n_g, Tensor n_obj, Tensor u, Tensor v, Tensor v_edge) -> Tensor[]");
+  m.def(
+      "semantic_prefix(Tensor nll, Tensor rows, Tensor alpha_L, Tensor delta_L, Tensor? unseen, Tensor? extra, "
+      "int sky) -> Tensor");
+  m.def(
+      "hypotheses(Tensor a, Tensor cK, Tensor s_g, Tensor s_o, Tensor q, Tensor u, Tensor v, Tensor flow, "
+      "Tensor M, Tensor p_ref, Tensor degenerate, float p_min, float p_max, float eps, bool standing) -> Tensor[]");
   m.def(
       "column_dp(Tensor a, Tensor cK, Tensor s_g, Tensor s_o, Tensor u, Tensor v, Tensor rows, Tensor flow, "
       "Tensor cov_inv, Tensor logdet, Tensor p_ground, Tensor p_object, Tensor g_dyn, Tensor tau, Tensor Lp, "
@@ -643,4 +946,7 @@ TORCH_LIBRARY(monostixels, m) {
 TORCH_LIBRARY_IMPL(monostixels, CPU, m) {
   m.impl("column_dp", &column_dp);
   m.impl("cell_sums", &cell_sums);
+  m.impl("hypotheses", &hypotheses);
+  m.impl("geometry", &geometry);
+  m.impl("semantic_prefix", &semantic_prefix);
 }
