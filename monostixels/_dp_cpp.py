@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "column_dp", "cell_sums", "cell_sums_checked", "hypotheses", "geometry",
+__all__ = ["available", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry", "backtrack",
            "semantic_prefix", "build_error", "CHECK_FINITE",
            "CHECK_NONNEGATIVE", "CHECK_POSITIVE_DEFINITE"]
 
@@ -33,7 +33,7 @@ _LDFLAGS = ["-fopenmp"]
 PARAM_ORDER = ("beta_mc", "alpha_grav_below", "beta_grav_below", "alpha_grav_above", "beta_grav_above",
                "alpha_ord", "beta_ord", "alpha_flat", "beta_flat", "alpha_F", "delta_F", "alpha_dyn")
 
-#: Value checks of :func:`cell_sums_checked` (``CellCheck`` in column_dp.cpp): all finite; and every
+#: Value checks of :func:`cell_means_checked` (``CellCheck`` in column_dp.cpp): all finite; and every
 #: pixel >= 0; and every pixel a positive definite 2 x 2 matrix (4 channels, (B, H, W, 2, 2) memory).
 CHECK_FINITE, CHECK_NONNEGATIVE, CHECK_POSITIVE_DEFINITE = 1, 2, 3
 _NO_CHECK = 0
@@ -76,7 +76,8 @@ def available() -> bool:
             _state["tried"] = True
             try:
                 _build()
-                _state["ok"] = all(hasattr(torch.ops.monostixels, op) for op in ("column_dp", "cell_sums", "hypotheses", "geometry", "semantic_prefix"))
+                _state["ok"] = all(hasattr(torch.ops.monostixels, op) for op in ("column_dp", "cell_sums", "hypotheses", "geometry",
+                                                                     "semantic_prefix", "backtrack"))
             except Exception as exc:  # noqa: BLE001 - any build/load failure means: use the eager path
                 _state["error"] = f"{type(exc).__name__}: {exc}"
                 logger.warning("solver: the C++ column DP could not be built or loaded (%s); using the "
@@ -97,17 +98,18 @@ def column_dp(*args: object) -> list[torch.Tensor]:
 
 def cell_sums(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
     """Cell sums (B, ch, n, C) of x (B, ch, H, W); the same bits as ``solver._block_sum``."""
-    return torch.ops.monostixels.cell_sums(x, r, w, _NO_CHECK)[0]
+    return torch.ops.monostixels.cell_sums(x, r, w, _NO_CHECK, None)[0]
 
 
-def cell_sums_checked(x: torch.Tensor, r: int, w: int, check: int) -> tuple[torch.Tensor, bool]:
-    """:func:`cell_sums` and, from the same pass, whether the values pass ``check`` (``CHECK_*``).
+def cell_means_checked(x: torch.Tensor, r: int, w: int, count: torch.Tensor, check: int) -> tuple[torch.Tensor, bool]:
+    """Cell means (B, C, n, ch) (the sums of :func:`cell_sums` divided by ``count`` (n, C)) and,
+    from the same pass, whether the values pass ``check`` (``CHECK_*``).
 
     False only says that some value may be bad (a sum can also overflow): the caller then runs
     its full checks, which name the problem.
     """
-    sums, ok = torch.ops.monostixels.cell_sums(x, r, w, check)
-    return sums, bool(ok)
+    means, ok = torch.ops.monostixels.cell_sums(x, r, w, check, count)
+    return means, bool(ok)
 
 
 def hypotheses(*args: object) -> list[torch.Tensor]:
@@ -123,3 +125,8 @@ def geometry(*args: object) -> list[torch.Tensor]:
 def semantic_prefix(*args: object) -> torch.Tensor:
     """Prefix-summed semantic cost (C, 10, n + 1) (see ``solver._semantic_prefix``)."""
     return torch.ops.monostixels.semantic_prefix(*args)
+
+
+def backtrack(*args: object) -> list[torch.Tensor]:
+    """Stixel table (col, b, t, type, cls, p, p_ground, tau, cost) of the DP's state (see ``solver._backtrack``)."""
+    return torch.ops.monostixels.backtrack(*args)

@@ -297,23 +297,24 @@ def _prepare(
     cpp = cfg.backend != "eager" and _dp_cpp.available()
     checked = cpp
 
-    def cell_sums(x: torch.Tensor, check: int) -> torch.Tensor:
+    def cell_means(x: torch.Tensor, check: int) -> torch.Tensor:
+        """(B, C, n, ch) means of x (B, ch, H, W) over the cells."""
         nonlocal checked
         if not (cpp and not x.requires_grad):
             checked = False
-            return _block_sum(x, r, w)
-        sums, ok = _dp_cpp.cell_sums_checked(x, r, w, check)  # _block_sum's bits, and the check
+            return (_block_sum(x, r, w) / count).permute(0, 3, 2, 1)
+        means, ok = _dp_cpp.cell_means_checked(x, r, w, count, check)  # the same bits, and the check
         checked &= ok
-        return sums
+        return means
 
-    fl = cell_sums(flow.to(dt), _dp_cpp.CHECK_FINITE) / count  # B x 2 x n x C
+    fl = cell_means(flow.to(dt), _dp_cpp.CHECK_FINITE)  # B x C x n x 2
     # (B, 4, H, W) view of the (B, H, W, 2, 2) memory: the kernel reads the 4 entries per pixel in place.
     cv = cov.to(dt).contiguous().permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
-    cv = (cell_sums(cv, _dp_cpp.CHECK_POSITIVE_DEFINITE) / count).permute(0, 3, 2, 1).reshape(B, C, n, 2, 2)
+    cv = cell_means(cv, _dp_cpp.CHECK_POSITIVE_DEFINITE).reshape(B, C, n, 2, 2)
     nll = None
     if scores is not None:
-        sc = cell_sums(scores.to(dt), _dp_cpp.CHECK_NONNEGATIVE) / count  # B x 10 x n x C
-        nll = -torch.log(sc.clamp(min=1e-12)).permute(0, 3, 2, 1).reshape(B * C, n, NUM_CLASSES)
+        sc = cell_means(scores.to(dt), _dp_cpp.CHECK_NONNEGATIVE)  # B x C x n x 10
+        nll = -torch.log(sc.clamp(min=1e-12)).reshape(B * C, n, NUM_CLASSES)
 
     j0 = torch.arange(n, dtype=dt) * r  # bottom-based index of each cell's lowest row
     v = (H - 1) - (j0 + (rows - 1) / 2)
@@ -337,7 +338,7 @@ def _prepare(
     prob = ColumnProblem(
         K=K_c, R=rep(R), t=rep(t), n_g=n_g_c, n_obj=object_normals(K_c, n_g_c, u_c), h_cam=rep(h),
         u=u_c, v=v, v_edge=v_edge, rows=rows,
-        flow=fl.permute(0, 3, 2, 1).reshape(B * C, n, 2), cov_inv=inv, logdet=torch.log(det),
+        flow=fl.reshape(B * C, n, 2), cov_inv=inv, logdet=torch.log(det),
         nll=nll, degenerate=rep(degenerate), frame=torch.arange(B).repeat_interleave(C),
         column=torch.arange(C).repeat(B), image_size=(H, W),
     )
@@ -647,7 +648,7 @@ def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig)
 
     Hypotheses, their geometry and the semantic prefix sums are computed here with the same torch
     code as the eager path; the kernel does the flow costs, their prefix sums and the DP stages
-    per column and returns the state arrays that :func:`_backtrack` reads. Bit-identical to eager.
+    per column, and follows the back-pointers as :func:`_backtrack` does. Bit-identical to eager.
     """
     dt = cfg.torch_dtype
     geo = _geometry(prob, cpp=_cpp_prep(prob, cfg))
@@ -664,7 +665,8 @@ def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig)
         hyp.p_ground, hyp.p_object, g, hyp.tau, Lp, geo.q, 1.0 / prob.h_cam,
         prob.degenerate, params, cls_table, ncs, prob.nll is not None)
     energy = E[:, prob.num_cells].amin(1)
-    return _backtrack(prob, E, pS, gS, tauS, bpB, bpK, bpC, energy)
+    col, b, t, typ, cls, p, g, tau, cost = _dp_cpp.backtrack(E, pS, gS, tauS, bpB, bpK, bpC)  # _backtrack's table
+    return ColumnSolution(col=col, b=b, t=t, type=typ, cls=cls, p=p, p_ground=g, tau=tau, cost=cost, energy=energy)
 
 
 def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:

@@ -102,16 +102,14 @@ inline Vec rotate(const Vec& a, std::index_sequence<Is...>) {
   return __builtin_shufflevector(a, a, ((Is + H) % sizeof...(Is))...);
 }
 
-// The lexicographic minimum of (value, flat index) over the lanes, by halving (lane 0 holds it).
-template <int H, typename V, typename VI>
-inline void lexmin_lanes(V& v, VI& f) {
-  constexpr size_t N = sizeof(V) / sizeof(v[0]);
-  const V v2 = rotate<H>(v, std::make_index_sequence<N>{});
-  const VI f2 = rotate<H>(f, std::make_index_sequence<N>{});
-  const VI better = (v2 < v) | ((v2 == v) & (f2 < f));
-  v = better ? v2 : v;
-  f = better ? f2 : f;
-  if constexpr (H > 1) lexmin_lanes<H / 2>(v, f);
+// Every lane = the minimum over the lanes, by halving.
+template <int H, typename Vec>
+inline Vec min_lanes(Vec v) {
+  constexpr size_t N = sizeof(Vec) / sizeof(v[0]);
+  const Vec v2 = rotate<H>(v, std::make_index_sequence<N>{});
+  v = v2 < v ? v2 : v;
+  if constexpr (H > 1) return min_lanes<H / 2>(v);
+  return v;
 }
 
 // Prior parameters, in the order of `_PARAM_ORDER` in monostixels/_dp_cpp.py.
@@ -279,6 +277,8 @@ inline void close_segments(int64_t Kp, const T* gk, const T* P1, T* MH, typename
     }
     kv += static_cast<I>(L);
   }
+  // Per lane the first (value, flat index) over the classes, then over the lanes: the minimum
+  // value, and the lowest flat index among the lanes that hold it.
   V v = best[0];
   VI f = bk[0] * static_cast<I>(NC);
   for (int cc = 1; cc < NC; ++cc) {
@@ -287,10 +287,11 @@ inline void close_segments(int64_t Kp, const T* gk, const T* P1, T* MH, typename
     v = better ? best[cc] : v;
     f = better ? fc : f;
   }
-  lexmin_lanes<static_cast<int>(L / 2)>(v, f);
-  val = v[0];
-  h = f[0] / NC;
-  c = f[0] % NC;
+  const V vm = min_lanes<static_cast<int>(L / 2)>(v);
+  const VI fm = min_lanes<static_cast<int>(L / 2)>(vm == v ? f : splat<VI>(std::numeric_limits<I>::max()));
+  val = vm[0];
+  h = fm[0] / NC;
+  c = fm[0] % NC;
 }
 
 template <typename T>
@@ -640,10 +641,13 @@ inline bool cell_row_sums(const T* xv, int64_t W, int64_t w, int64_t C, int64_t 
 }
 
 // x: plane p (of `planes`) starts at x + p * plane_stride; pixel (v, u) channel k at
-// v * row_stride + u * nch + k (nch = 1: planar). Returns whether the values pass `check`.
+// v * row_stride + u * nch + k (nch = 1: planar). Cell (i, c) of channel k of plane p goes to
+// out[p * o_p + k * o_k + i * o_i + c * o_c], divided by count[i * C + c] if count is given.
+// Returns whether the values pass `check`.
 template <typename T, int W_, int CH_>
 bool cell_sums_impl(const T* x, T* out, int64_t planes, int64_t plane_stride, int64_t nch, int64_t row_stride,
-                    int64_t H, int64_t W, int64_t r, int64_t w, int64_t check) {
+                    int64_t H, int64_t W, int64_t r, int64_t w, int64_t check, const T* count, int64_t o_p,
+                    int64_t o_k, int64_t o_i, int64_t o_c) {
   const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
   // Work items (plane, cell row) from a shared counter, like the columns of the DP: a thread
   // that the OS deschedules on a shared machine then holds up one row of cells, not half the image.
@@ -652,7 +656,7 @@ bool cell_sums_impl(const T* x, T* out, int64_t planes, int64_t plane_stride, in
   const int64_t items = planes * n;
   const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), items / 16));
   at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {
-    std::vector<T> row(nch * C);
+    std::vector<T> row(nch * C), cell(nch * C);
     bool good = true;
     for (int64_t item; (item = next.fetch_add(1)) < items;) {
       const int64_t p = item / n, i = item % n;
@@ -664,24 +668,21 @@ bool cell_sums_impl(const T* x, T* out, int64_t planes, int64_t plane_stride, in
         } else {
           std::fill(row.begin(), row.end(), T(0));
         }
-        for (int64_t k = 0; k < nch; ++k) {
-          T* oi = out + ((p * nch + k) * n + i) * C;
-          const T* rk = row.data() + k * C;
-          if (jj == 0) {
-            std::copy(rk, rk + C, oi);
-          } else {
-            for (int64_t c = 0; c < C; ++c) oi[c] = oi[c] + rk[c];
-          }
+        if (jj == 0) {
+          std::copy(row.begin(), row.end(), cell.begin());
+        } else {
+          for (int64_t e = 0; e < nch * C; ++e) cell[e] = cell[e] + row[e];
         }
       }
       if (check != kNoCheck) {
-        for (int64_t k = 0; k < nch; ++k) {
-          const T* oi = out + ((p * nch + k) * n + i) * C;
-          bool fin = true;
-          for (int64_t c = 0; c < C; ++c) fin &= std::isfinite(oi[c]);
-          good &= fin;
-        }
+        bool fin = true;
+        for (int64_t e = 0; e < nch * C; ++e) fin &= std::isfinite(cell[e]);
+        good &= fin;
       }
+      T* op = out + p * o_p + i * o_i;
+      for (int64_t k = 0; k < nch; ++k)
+        for (int64_t c = 0; c < C; ++c)
+          op[k * o_k + c * o_c] = count ? cell[k * C + c] / count[i * C + c] : cell[k * C + c];
     }
     if (!good) ok = false;
   });
@@ -691,14 +692,25 @@ bool cell_sums_impl(const T* x, T* out, int64_t planes, int64_t plane_stride, in
 // The default column width (conf/solver/default.yaml): its cell rows are summed unrolled.
 constexpr int kUnrolledWidth = 5;
 
-std::tuple<at::Tensor, at::Tensor> cell_sums(const at::Tensor& x, int64_t r, int64_t w, int64_t check) {
+// Without `count`: the sums (B, ch, n, C). With count (n, C), the cell's pixel count: the means
+// sum / count (the division of solver._prepare) in memory (B, C, n, ch), the layout of the
+// solver's per-column arrays.
+std::tuple<at::Tensor, at::Tensor> cell_sums(const at::Tensor& x, int64_t r, int64_t w, int64_t check,
+                                             const c10::optional<at::Tensor>& count) {
   TORCH_CHECK(x.dim() == 4, "cell_sums: x must be (B, ch, H, W), got ", x.dim(), " dims");
   TORCH_CHECK(r >= 1 && w >= 1, "cell_sums: r and w must be >= 1");
   TORCH_CHECK(check >= kNoCheck && check <= kPositiveDefinite, "cell_sums: unknown check ", check);
   const int64_t B = x.size(0), ch = x.size(1), H = x.size(2), W = x.size(3);
   const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
   TORCH_CHECK(check != kPositiveDefinite || ch == kCovEntries, "cell_sums: a 2 x 2 matrix has 4 entries, got ", ch);
-  auto out = at::empty({B, ch, n, C}, x.options());
+  const bool means = count.has_value() && count->defined();
+  at::Tensor cnt;
+  if (means) {
+    TORCH_CHECK(count->dim() == 2 && count->size(0) == n && count->size(1) == C, "cell_sums: count must be (n, C)");
+    TORCH_CHECK(count->scalar_type() == x.scalar_type(), "cell_sums: count has dtype ", count->scalar_type());
+    cnt = count->contiguous();
+  }
+  auto out = means ? at::empty({B, C, n, ch}, x.options()) : at::empty({B, ch, n, C}, x.options());
   // Channels interleaved per pixel, images one after another (a permuted (B, H, W, ch) tensor):
   // read in place. Anything else is made contiguous (planes of rows).
   // (The stride of a dimension of size 1 is arbitrary.)
@@ -709,19 +721,28 @@ std::tuple<at::Tensor, at::Tensor> cell_sums(const at::Tensor& x, int64_t r, int
   auto xc = interleaved ? x : x.contiguous();
   const int64_t planes = interleaved ? B : B * ch, nch = interleaved ? ch : 1;
   const int64_t plane_stride = interleaved ? H * W * ch : H * W, row_stride = interleaved ? W * ch : W;
+  // Output strides of (image b, channel k, cell row i, column c); a planar plane p is (b, k) = (p / ch, p % ch).
+  const int64_t s_b = ch * n * C, s_k = means ? 1 : n * C, s_i = means ? ch : C, s_c = means ? n * ch : 1;
+  const int64_t o_p = interleaved ? s_b : s_k, o_k = interleaved ? s_k : 0;
   bool ok = true;
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cell_sums", [&] {
     const scalar_t* xp = xc.data_ptr<scalar_t>();
     scalar_t* op = out.data_ptr<scalar_t>();
+    const scalar_t* cp = means ? cnt.data_ptr<scalar_t>() : nullptr;
     const bool w5 = w == kUnrolledWidth;
     if (nch == 1) {
-      ok = (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, 1> : cell_sums_impl<scalar_t, 0, 1>)(
-          xp, op, planes, plane_stride, 1, row_stride, H, W, r, w, check);
+      // Planes (b, k) are not equally spaced in the output: one call per image.
+      for (int64_t bi = 0; bi < B; ++bi) {
+        ok &= (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, 1> : cell_sums_impl<scalar_t, 0, 1>)(
+            xp + bi * ch * plane_stride, op + bi * s_b, ch, plane_stride, 1, row_stride, H, W, r, w, check, cp,
+            o_p, o_k, s_i, s_c);
+      }
     } else if (nch == kCovEntries) {
       ok = (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, kCovEntries> : cell_sums_impl<scalar_t, 0, kCovEntries>)(
-          xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check);
+          xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check, cp, o_p, o_k, s_i, s_c);
     } else {
-      ok = cell_sums_impl<scalar_t, 0, 0>(xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check);
+      ok = cell_sums_impl<scalar_t, 0, 0>(xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check, cp, o_p,
+                                          o_k, s_i, s_c);
     }
   });
   return {out, at::scalar_tensor(ok, x.options().dtype(at::kBool))};
@@ -925,10 +946,83 @@ std::vector<at::Tensor> hypotheses(const at::Tensor& a, const at::Tensor& cK, co
   return {pg, po, tau};
 }
 
+// The optimal stixels of every column from the DP's state arrays (solver._backtrack): from the
+// cheapest type at the top (the first on ties, like torch.argmin) down the back-pointers to the
+// virtual start; per column bottom-up, columns in order. cost = E(top) - E(predecessor).
+std::vector<at::Tensor> backtrack(const at::Tensor& E, const at::Tensor& pS, const at::Tensor& gS,
+                                  const at::Tensor& tauS, const at::Tensor& bpB, const at::Tensor& bpK,
+                                  const at::Tensor& bpC) {
+  const int64_t C = E.size(0), n = E.size(1) - 1;
+  auto bB = bpB.contiguous(), bK = bpK.contiguous(), bC = bpC.contiguous();
+  const int64_t* pb = bB.data_ptr<int64_t>();
+  const int64_t* pk = bK.data_ptr<int64_t>();
+  const int64_t* pc = bC.data_ptr<int64_t>();
+  auto lopt = bpB.options();
+  std::vector<int64_t> top(C), count(C), offset(C + 1, 0);
+  std::vector<at::Tensor> out;
+  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "backtrack", [&] {
+    using T = scalar_t;
+    auto E_ = E.contiguous(), pS_ = pS.contiguous(), gS_ = gS.contiguous(), tS_ = tauS.contiguous();
+    const T* e = E_.data_ptr<T>();
+    at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        const T* et = e + (c * (n + 1) + n) * kTypes;
+        int64_t best = 0;
+        for (int j = 1; j < kTypes; ++j)
+          if (et[j] < et[best]) best = j;
+        top[c] = best;
+        int64_t m = 0;
+        for (int64_t i = n, t = best; i > 0; ++m) {
+          const int64_t s = (c * (n + 1) + i) * kTypes + t;
+          i = pb[s];
+          t = pk[s];
+        }
+        count[c] = m;
+      }
+    });
+    for (int64_t c = 0; c < C; ++c) offset[c + 1] = offset[c] + count[c];
+    const int64_t N = offset[C];
+    auto col = at::empty({N}, lopt), b = at::empty({N}, lopt), t = at::empty({N}, lopt);
+    auto type = at::empty({N}, lopt), cls = at::empty({N}, lopt);
+    auto p = at::empty({N}, E.options()), g = at::empty({N}, E.options()), tau = at::empty({N, 2}, E.options());
+    auto cost = at::empty({N}, E.options());
+    int64_t *o_col = col.data_ptr<int64_t>(), *o_b = b.data_ptr<int64_t>(), *o_t = t.data_ptr<int64_t>();
+    int64_t *o_type = type.data_ptr<int64_t>(), *o_cls = cls.data_ptr<int64_t>();
+    T *o_p = p.data_ptr<T>(), *o_g = g.data_ptr<T>(), *o_tau = tau.data_ptr<T>(), *o_cost = cost.data_ptr<T>();
+    const T *ps = pS_.data_ptr<T>(), *gs = gS_.data_ptr<T>(), *ts = tS_.data_ptr<T>();
+    at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
+      for (int64_t c = c0; c < c1; ++c) {
+        int64_t r = offset[c + 1];  // filled top-down, from the column's last row
+        for (int64_t i = n, ty = top[c]; i > 0;) {
+          const int64_t s = (c * (n + 1) + i) * kTypes + ty;
+          const int64_t bb = pb[s], kk = pk[s];
+          --r;
+          o_col[r] = c;
+          o_b[r] = bb;
+          o_t[r] = i - 1;
+          o_type[r] = ty;
+          o_cls[r] = pc[s];
+          o_p[r] = ps[s];
+          o_g[r] = gs[s];
+          o_tau[2 * r] = ts[2 * s];
+          o_tau[2 * r + 1] = ts[2 * s + 1];
+          o_cost[r] = e[s] - e[(c * (n + 1) + bb) * kTypes + kk];
+          i = bb;
+          ty = kk;
+        }
+      }
+    });
+    out = {col, b, t, type, cls, p, g, tau, cost};
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY(monostixels, m) {
-  m.def("cell_sums(Tensor x, int r, int w, int check) -> (Tensor, Tensor)");
+  m.def("cell_sums(Tensor x, int r, int w, int check, Tensor? count) -> (Tensor, Tensor)");
+  m.def(
+      "backtrack(Tensor E, Tensor pS, Tensor gS, Tensor tauS, Tensor bpB, Tensor bpK, Tensor bpC) -> Tensor[]");
   m.def("geometry(Tensor K, Tensor KR, Tensor n_g, Tensor n_obj, Tensor u, Tensor v, Tensor v_edge) -> Tensor[]");
   m.def(
       "semantic_prefix(Tensor nll, Tensor rows, Tensor alpha_L, Tensor delta_L, Tensor? unseen, Tensor? extra, "
@@ -948,5 +1042,6 @@ TORCH_LIBRARY_IMPL(monostixels, CPU, m) {
   m.impl("cell_sums", &cell_sums);
   m.impl("hypotheses", &hypotheses);
   m.impl("geometry", &geometry);
+  m.impl("backtrack", &backtrack);
   m.impl("semantic_prefix", &semantic_prefix);
 }
