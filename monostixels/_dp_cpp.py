@@ -113,7 +113,7 @@ def cell_means_checked(x: torch.Tensor, r: int, w: int, count: torch.Tensor, che
 
 
 def hypotheses(*args: object) -> list[torch.Tensor]:
-    """Hypothesis sets (p_ground, p_object, tau) for hypothesis_stride 1 (see ``solver._hypotheses``)."""
+    """Hypothesis sets (p_ground, p_object, tau, g = K B tau) for hypothesis_stride 1 (see ``solver._hypotheses``)."""
     return torch.ops.monostixels.hypotheses(*args)
 
 

@@ -354,6 +354,7 @@ class _Hypotheses:
     p_object: torch.Tensor   # C x Ko
     tau: torch.Tensor        # C x Kd x 2
     B: torch.Tensor          # C x 3 x 2 ground-plane basis
+    g: torch.Tensor | None = None  # C x Kd x 3 K B tau, if already computed (see _flow_geometry)
 
 
 def _window_median(x: torch.Tensor, stride: int) -> torch.Tensor:
@@ -453,10 +454,10 @@ def _hypotheses(prob: ColumnProblem, cfg: SolverConfig, geo: _Geometry | None = 
     if s == 1 and _cpp_prep(prob, cfg):
         # The same expressions, cell by cell in one pass (csrc/column_dp.cpp; tests/test_solver_fast.py).
         Bm = ground_basis(prob.n_g)
-        p_g, p_o, tau = _dp_cpp.hypotheses(
+        p_g, p_o, tau, g = _dp_cpp.hypotheses(
             geo.a, geo.cK, geo.s_g, geo.s_o, geo.q, prob.u, prob.v, prob.flow, prob.K @ Bm, p_ref[:, 0],
             prob.degenerate, p_min, p_max, _FIT_EPS, cfg.standing_hypotheses)
-        return _Hypotheses(p_ground=p_g, p_object=p_o, tau=tau, B=Bm)
+        return _Hypotheses(p_ground=p_g, p_object=p_o, tau=tau, B=Bm, g=g)
 
     def valid(p: torch.Tensor) -> torch.Tensor:
         ok = torch.isfinite(p) & (p >= p_min) & (p <= p_max)
@@ -523,8 +524,10 @@ def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses, geo: _Geometry | None 
         one ``a + s_o g``, the sky ``a``.
     """
     geo = _geometry(prob) if geo is None else geo
-    M = prob.K @ hyp.B  # C x 3 x 2
-    g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
+    g = hyp.g
+    if g is None:
+        M = prob.K @ hyp.B  # C x 3 x 2
+        g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
     return geo.a, geo.cK, geo.s_g, geo.s_o, g
 
 

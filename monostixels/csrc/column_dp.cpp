@@ -596,6 +596,33 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
 // "look closer": the solver then runs its own checks, which name the problem.
 enum CellCheck : int64_t { kNoCheck = 0, kFinite = 1, kNonNegative = 2, kPositiveDefinite = 3 };
 
+// out[e][l] = x[4 l + e] for the L pixels l of 4 entries e at x: two rounds of two-vector shuffles
+// (pick4: entries E0 of the first half of the pixels in x, y, then entries E1; halves: the
+// lower or upper halves of x and y).
+template <int E0, int E1, typename V, size_t... Is>
+inline V pick4(const V& x, const V& y, std::index_sequence<Is...>) {
+  constexpr size_t H = sizeof...(Is) / 2;
+  return __builtin_shufflevector(x, y, (Is < H ? 4 * Is + E0 : 4 * (Is - H) + E1)...);
+}
+template <int Off, typename V, size_t... Is>
+inline V halves(const V& x, const V& y, std::index_sequence<Is...>) {
+  constexpr size_t H = sizeof...(Is) / 2;
+  return __builtin_shufflevector(x, y, (Is < H ? Is + Off : sizeof...(Is) + Is - H + Off)...);
+}
+template <typename T>
+inline void deinterleave4(const T* x, typename Simd<T>::V* out) {
+  using V = typename Simd<T>::V;
+  constexpr int64_t N = kLanes<T>;
+  const auto seq = std::make_index_sequence<N>{};
+  const V v0 = load<V>(x), v1 = load<V>(x + N), v2 = load<V>(x + 2 * N), v3 = load<V>(x + 3 * N);
+  const V a01 = pick4<0, 1>(v0, v1, seq), a23 = pick4<2, 3>(v0, v1, seq);  // pixels 0 .. N/2 - 1
+  const V b01 = pick4<0, 1>(v2, v3, seq), b23 = pick4<2, 3>(v2, v3, seq);  // pixels N/2 .. N - 1
+  out[0] = halves<0>(a01, b01, seq);
+  out[1] = halves<N / 2>(a01, b01, seq);
+  out[2] = halves<0>(a23, b23, seq);
+  out[3] = halves<N / 2>(a23, b23, seq);
+}
+
 // The row sums of one image row: row[k * C + c] for channel k and column c. Returns false where
 // a pixel fails the per-pixel check.
 template <typename T, int W_, int CH_>
@@ -627,16 +654,30 @@ inline bool cell_row_sums(const T* xv, int64_t W, int64_t w, int64_t C, int64_t 
       row[k * C + full] = a;
     }
   }
-  bool bad = false;  // branch-free, so that the loops vectorise
+  using V = typename Simd<T>::V;
+  using VI = typename Simd<T>::VI;
+  constexpr int64_t L = kLanes<T>;
+  VI badv{};  // whole vectors (the row is in L1 now), then the rest one by one
+  bool bad = false;
   if (check == kNonNegative) {
-    for (int64_t e = 0; e < W * nch; ++e) bad |= xv[e] < T(0);
+    int64_t e = 0;
+    for (; e + L <= W * nch; e += L) badv |= load<V>(xv + e) < T(0);
+    for (; e < W * nch; ++e) bad |= xv[e] < T(0);
   } else if (check == kPositiveDefinite && nch == kCovEntries) {
-    for (int64_t uu = 0; uu < W; ++uu) {
+    int64_t uu = 0;
+    for (; uu + L <= W; uu += L) {  // L pixels: their 4 entries deinterleaved
+      V m[kCovEntries];
+      deinterleave4(xv + uu * kCovEntries, m);
+      const V det = m[0] * m[3] - m[1] * m[2];
+      badv |= ~(m[0] > T(0)) | ~(det > T(0));
+    }
+    for (; uu < W; ++uu) {
       const T* m = xv + uu * kCovEntries;  // c00, c01, c10, c11
       const T det = m[0] * m[3] - m[1] * m[2];
       bad |= !(m[0] > T(0)) | !(det > T(0));
     }
   }
+  for (int64_t l = 0; l < L; ++l) bad |= badv[l] != 0;
   return !bad;
 }
 
@@ -868,13 +909,13 @@ at::Tensor semantic_prefix(const at::Tensor& nll, const at::Tensor& rows, const 
 // solver._fits, in the order of their torch ops): each cell's own static fits for the ground and
 // object normals (geometry.static_dof_system + solve_static_dof), its dynamic fit
 // (dynamic_dof_system + solve_dynamic_dof), the standing depths, the replacements of missing
-// ones. The systems' 2-term sums are written x0 + x1: torch's reduction adds the same two
+// ones, and g = K B tau of the dynamic ones (solver._flow_geometry). The systems' 2-term sums are written x0 + x1: torch's reduction adds the same two
 // numbers (and zeros, which only change the sign of a zero sum: such a fit is p = +-0, outside
 // [p_min, p_max], so it is dropped either way).
 template <typename T>
 void hypotheses_impl(int64_t C, int64_t n, const T* a, const T* cK, const T* s_g, const T* s_o, const T* q,
                      const T* u, const T* v, const T* flow, const T* M, const T* p_ref, const bool* degenerate,
-                     T p_min, T p_max, T eps, bool standing, T* pg, T* po, T* tau) {
+                     T p_min, T p_max, T eps, bool standing, T* pg, T* po, T* tau, T* g) {
   const T nan = std::numeric_limits<T>::quiet_NaN();
   const int64_t Kg = n + 1, Ko = standing ? 2 * n : n;
   auto valid = [&](T p) { return (std::isfinite(p) && p >= p_min && p <= p_max) ? p : nan; };
@@ -910,8 +951,15 @@ void hypotheses_impl(int64_t C, int64_t n, const T* a, const T* cK, const T* s_g
         const bool ok = std::abs(det) > eps;
         const T tx = ok ? (A11 * b0 - A01 * b1) / det : nan;
         const T ty = ok ? (A00 * b1 - A10 * b0) / det : nan;
-        tau[cj * 2] = std::isfinite(tx) ? tx : T(0);
-        tau[cj * 2 + 1] = std::isfinite(ty) ? ty : T(0);
+        const T t0 = std::isfinite(tx) ? tx : T(0), t1 = std::isfinite(ty) ? ty : T(0);
+        tau[cj * 2] = t0;
+        tau[cj * 2 + 1] = t1;
+        for (int r = 0; r < 3; ++r) {  // g = K B tau, added like torch's small-matrix bmm
+          T acc = T(0);
+          acc = acc + Mc[r * 2] * t0;
+          acc = acc + Mc[r * 2 + 1] * t1;
+          g[cj * 3 + r] = acc;
+        }
       }
       pg[c * Kg + n] = pr;  // the reference ground is always a hypothesis
     }
@@ -928,6 +976,7 @@ std::vector<at::Tensor> hypotheses(const at::Tensor& a, const at::Tensor& cK, co
   auto pg = at::empty({C, n + 1}, opt);
   auto po = at::empty({C, standing ? 2 * n : n}, opt);
   auto tau = at::empty({C, n, 2}, opt);
+  auto g = at::empty({C, n, 3}, opt);
   auto deg = degenerate.to(at::kBool).contiguous();
   AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "hypotheses", [&] {
     using T = scalar_t;
@@ -941,9 +990,10 @@ std::vector<at::Tensor> hypotheses(const at::Tensor& a, const at::Tensor& cK, co
     hypotheses_impl<T>(C, n, a_.data_ptr<T>(), cK_.data_ptr<T>(), sg_.data_ptr<T>(), so_.data_ptr<T>(),
                        q_.data_ptr<T>(), u_.data_ptr<T>(), v_.data_ptr<T>(), fl_.data_ptr<T>(), M_.data_ptr<T>(),
                        pr_.data_ptr<T>(), deg.data_ptr<bool>(), static_cast<T>(p_min), static_cast<T>(p_max),
-                       static_cast<T>(eps), standing, pg.data_ptr<T>(), po.data_ptr<T>(), tau.data_ptr<T>());
+                       static_cast<T>(eps), standing, pg.data_ptr<T>(), po.data_ptr<T>(), tau.data_ptr<T>(),
+                       g.data_ptr<T>());
   });
-  return {pg, po, tau};
+  return {pg, po, tau, g};
 }
 
 // The optimal stixels of every column from the DP's state arrays (solver._backtrack): from the
