@@ -30,7 +30,10 @@ DP. The hard DP (``tau = 0``, no gradients) runs by default (``solver.backend: a
 C++ kernel (``csrc/column_dp.cpp``, built at first use by :mod:`monostixels._dp_cpp`): flow
 costs, prefix sums and all stages of one column in cache-sized buffers, columns in parallel over
 torch's threads, every float operation in the eager order, so its results are bit-identical
-(tests/test_solver_fast.py). Without a compiler it falls back to this code with one warning.
+(tests/test_solver_fast.py). Where it is loaded, the preparation runs there too, with the same
+expressions: the cell means (which also check the input values, so that the inputs are read
+once), the per-cell geometry and hypotheses (stride 1), the semantic prefix sums and the
+back-tracking. Without a compiler it falls back to this code with one warning.
 """
 from __future__ import annotations
 

@@ -25,6 +25,11 @@
 //
 // Layout: all inputs are contiguous, of one floating dtype (float32 or float64); C columns,
 // n cells (cell 0 at the image bottom), Kg / Ko / Kd hypotheses of ground / object / dynamic.
+//
+// The file also holds the solver's preparation for this path, each the twin of its torch code
+// with the same bits: cell means with the input value checks (cell_sums), per-cell geometry
+// (geometry), hypothesis sets (hypotheses), semantic prefix sums (semantic_prefix), and the
+// back-tracking of the DP's state (backtrack).
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
