@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry", "backtrack",
+__all__ = ["available", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry",
            "semantic_prefix", "build_error", "CHECK_FINITE",
            "CHECK_NONNEGATIVE", "CHECK_POSITIVE_DEFINITE"]
 
@@ -77,7 +77,7 @@ def available() -> bool:
             try:
                 _build()
                 _state["ok"] = all(hasattr(torch.ops.monostixels, op) for op in ("column_dp", "cell_sums", "hypotheses", "geometry",
-                                                                     "semantic_prefix", "backtrack"))
+                                                                     "semantic_prefix"))
             except Exception as exc:  # noqa: BLE001 - any build/load failure means: use the eager path
                 _state["error"] = f"{type(exc).__name__}: {exc}"
                 logger.warning("solver: the C++ column DP could not be built or loaded (%s); using the "
@@ -92,7 +92,8 @@ def build_error() -> str | None:
 
 
 def column_dp(*args: object) -> list[torch.Tensor]:
-    """Call the kernel; arguments as in ``column_dp.cpp`` (see ``solver._solve_columns_cpp``)."""
+    """The hard DP and its back-tracking: (col, b, t, type, cls, p, p_ground, tau, cost, energy) of
+    ``solver.ColumnSolution``; arguments as in ``column_dp.cpp`` (see ``solver._solve_columns_cpp``)."""
     return torch.ops.monostixels.column_dp(*args)
 
 
@@ -126,7 +127,3 @@ def semantic_prefix(*args: object) -> torch.Tensor:
     """Prefix-summed semantic cost (C, 10, n + 1) (see ``solver._semantic_prefix``)."""
     return torch.ops.monostixels.semantic_prefix(*args)
 
-
-def backtrack(*args: object) -> list[torch.Tensor]:
-    """Stixel table (col, b, t, type, cls, p, p_ground, tau, cost) of the DP's state (see ``solver._backtrack``)."""
-    return torch.ops.monostixels.backtrack(*args)

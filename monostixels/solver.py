@@ -317,7 +317,8 @@ def _prepare(
     nll = None
     if scores is not None:
         sc = cell_means(scores.to(dt), _dp_cpp.CHECK_NONNEGATIVE)  # B x C x n x 10
-        nll = -torch.log(sc.clamp(min=1e-12)).reshape(B * C, n, NUM_CLASSES)
+        # In place on the fresh means: each MB-sized temporary costs page faults when it is mmap'ed.
+        nll = sc.clamp_(min=1e-12).log_().neg_().reshape(B * C, n, NUM_CLASSES)
 
     j0 = torch.arange(n, dtype=dt) * r  # bottom-based index of each cell's lowest row
     v = (H - 1) - (j0 + (rows - 1) / 2)
@@ -652,9 +653,10 @@ def _use_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> bool:
 def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:
     """The hard DP of :func:`solve_columns` in the fused C++ kernel (``csrc/column_dp.cpp``).
 
-    Hypotheses, their geometry and the semantic prefix sums are computed here with the same torch
-    code as the eager path; the kernel does the flow costs, their prefix sums and the DP stages
-    per column, and follows the back-pointers as :func:`_backtrack` does. Bit-identical to eager.
+    Hypotheses, their geometry and the semantic prefix sums are computed as on the eager path (by
+    the kernel's twins of that code, same bits); the kernel does the flow costs, their prefix sums
+    and the DP stages per column, and follows the back-pointers as :func:`_backtrack` does.
+    Bit-identical to eager.
     """
     dt = cfg.torch_dtype
     geo = _geometry(prob, cpp=_cpp_prep(prob, cfg))
@@ -666,12 +668,10 @@ def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig)
     params = torch.stack([getattr(prm, k) for k in _dp_cpp.PARAM_ORDER]
                          + [torch.tensor(x, dtype=dt) for x in (1.0 / cfg.max_depth, 1.0 / cfg.min_depth,
                                                                 GRAVITY_TOLERANCE_M, _Z_MIN)])
-    E, pS, gS, tauS, bpB, bpK, bpC = _dp_cpp.column_dp(
+    col, b, t, typ, cls, p, g, tau, cost, energy = _dp_cpp.column_dp(
         a, cK, s_g, s_o, prob.u, prob.v, prob.rows, prob.flow, prob.cov_inv, prob.logdet,
         hyp.p_ground, hyp.p_object, g, hyp.tau, Lp, geo.q, 1.0 / prob.h_cam,
         prob.degenerate, params, cls_table, ncs, prob.nll is not None)
-    energy = E[:, prob.num_cells].amin(1)
-    col, b, t, typ, cls, p, g, tau, cost = _dp_cpp.backtrack(E, pS, gS, tauS, bpB, bpK, bpC)  # _backtrack's table
     return ColumnSolution(col=col, b=b, t=t, type=typ, cls=cls, p=p, p_ground=g, tau=tau, cost=cost, energy=energy)
 
 

@@ -26,10 +26,11 @@
 // Layout: all inputs are contiguous, of one floating dtype (float32 or float64); C columns,
 // n cells (cell 0 at the image bottom), Kg / Ko / Kd hypotheses of ground / object / dynamic.
 //
-// The file also holds the solver's preparation for this path, each the twin of its torch code
-// with the same bits: cell means with the input value checks (cell_sums), per-cell geometry
-// (geometry), hypothesis sets (hypotheses), semantic prefix sums (semantic_prefix), and the
-// back-tracking of the DP's state (backtrack).
+// column_dp follows the back-pointers of each column as well (solver._backtrack) and returns the
+// stixel table: the DP's state never leaves the thread's buffers. The file also holds the
+// solver's preparation for this path, each the twin of its torch code with the same bits: cell
+// means with the input value checks (cell_sums), per-cell geometry (geometry), hypothesis sets
+// (hypotheses) and semantic prefix sums (semantic_prefix).
 #include <ATen/ATen.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
@@ -299,14 +300,20 @@ inline void close_segments(int64_t Kp, const T* gk, const T* P1, T* MH, typename
   c = fm[0] % NC;
 }
 
+// One stixel of the solution (solver.ColumnSolution's fields).
+template <typename T>
+struct Stixel {
+  int64_t col, b, t, type, cls;
+  T p, p_ground, tau0, tau1, cost;
+};
+
 template <typename T>
 void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg, int64_t Ko, int64_t Kd, int64_t ncl,
                  const Params<T>& P, const T* a, const T* cK, const T* s_g, const T* s_o, const T* u,
                  const T* v, const T* rows, const T* flow, const T* cov_inv, const T* logdet,
                  const T* p_ground, const T* p_object, const T* g_dyn, const T* tau, const T* Lp,
                  const T* q, const T* p_ref, const bool* degenerate, const int64_t* cls_table,
-                 const int64_t* ncs, bool has_sem, T* E, T* pS, T* gS, T* tauS, int64_t* bpB,
-                 int64_t* bpK, int64_t* bpC) {
+                 const int64_t* ncs, bool has_sem, T* energy, std::vector<Stixel<T>>& out) {
   using V = typename Simd<T>::V;
   using VI = typename Simd<T>::VI;
   using VB = typename Simd<T>::VB;
@@ -328,6 +335,12 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
   std::vector<T> hg(Kcap[kGround]), ho(Kcap[kStatic]), hd(Kcap[kDynamic] * 3);  // distinct, padded
   std::vector<T> inv_pg(Kcap[kGround]), inv_po(Kcap[kStatic]);
   std::vector<int32_t> table, keep(std::max(Kg, Ko));
+  // The DP state of one column per (cell boundary, type) (solver.solve_columns' E, pS, gS, tauS and
+  // back-pointers bpB, bpK, bpC): energy, inverse depth, reference ground, tau, segment bottom,
+  // predecessor type, class.
+  const int64_t S = (n + 1) * kTypes;
+  std::vector<T> Ebuf(S), pSbuf(S), gSbuf(S), tSbuf(2 * S);
+  std::vector<int64_t> bBbuf(S), bKbuf(S), bCbuf(S);
   for (int T_ = 0; T_ < kTypes; ++T_) {
     Pref[T_].resize((n + 1) * Kcap[T_]);
     MH[T_].resize(Kcap[T_] * ncs[T_]);
@@ -382,15 +395,10 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
     flow_prefix<T, kSky>(P, cells, 1, nullptr, cK0, cK1, cK2, acc.data(), Pref[kSky].data());
 
     // ---- the DP (solver.solve_columns, hard minima)
-    T* Ec = E + col * (n + 1) * kTypes;
-    T* pSc = pS + col * (n + 1) * kTypes;
-    T* gSc = gS + col * (n + 1) * kTypes;
-    T* tSc = tauS + col * (n + 1) * kTypes * 2;
-    int64_t* bB = bpB + col * (n + 1) * kTypes;
-    int64_t* bK = bpK + col * (n + 1) * kTypes;
-    int64_t* bC = bpC + col * (n + 1) * kTypes;
+    T *Ec = Ebuf.data(), *pSc = pSbuf.data(), *gSc = gSbuf.data(), *tSc = tSbuf.data();
+    int64_t *bB = bBbuf.data(), *bK = bKbuf.data(), *bC = bCbuf.data();
     const T pref = p_ref[col];
-    for (int64_t s = 0; s < (n + 1) * kTypes; ++s) {
+    for (int64_t s = 0; s < S; ++s) {
       Ec[s] = inf;
       pSc[s] = pref;
       gSc[s] = pref;
@@ -528,6 +536,23 @@ void solve_columns(std::atomic<int64_t>& next, int64_t C, int64_t n, int64_t Kg,
         bC[s] = has_sem ? ct[c_star] : ct[0];
       }
     }
+
+    // ---- back-tracking (solver._backtrack): from the cheapest type at the top (the first on
+    // ties, like torch.argmin) down the back-pointers to the virtual start; the column's stixels
+    // bottom-up. energy = min over the types (torch.amin), cost = E(top) - E(predecessor).
+    const T* et = Ec + n * kTypes;
+    int64_t top = 0;
+    for (int j = 1; j < kTypes; ++j)
+      if (et[j] < et[top]) top = j;
+    energy[col] = et[top];
+    const size_t first = out.size();
+    for (int64_t i = n, ty = top; i > 0;) {
+      const int64_t s = i * kTypes + ty, bb = bB[s], kk = bK[s];
+      out.push_back({col, bb, i - 1, ty, bC[s], pSc[s], gSc[s], tSc[2 * s], tSc[2 * s + 1], Ec[s] - Ec[bb * kTypes + kk]});
+      i = bb;
+      ty = kk;
+    }
+    std::reverse(out.begin() + first, out.end());
   }
 }
 
@@ -544,14 +569,8 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
   TORCH_CHECK(Kd > 0 && Kg > 0 && Ko > 0, "column_dp: empty hypothesis set");
   TORCH_CHECK(Lp.size(2) == n + 1, "column_dp: semantic prefix must have n + 1 entries");
   const auto opt = a.options();
-  auto E = at::empty({C, n + 1, kTypes}, opt);
-  auto pS = at::empty({C, n + 1, kTypes}, opt);
-  auto gS = at::empty({C, n + 1, kTypes}, opt);
-  auto tauS = at::empty({C, n + 1, kTypes, 2}, opt);
-  auto lopt = opt.dtype(at::kLong);
-  auto bpB = at::empty({C, n + 1, kTypes}, lopt);
-  auto bpK = at::empty({C, n + 1, kTypes}, lopt);
-  auto bpC = at::empty({C, n + 1, kTypes}, lopt);
+  auto energy = at::empty({C}, opt);
+  std::vector<at::Tensor> out;
   auto deg = degenerate.to(at::kBool).contiguous();
   auto cls = cls_table.to(at::kLong).contiguous();
   auto nc = ncs.to(at::kLong).contiguous();
@@ -572,17 +591,46 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
                 pv[12], pv[13], pv[14], pv[15]};
     std::atomic<int64_t> next{0};
     const int64_t workers = std::min<int64_t>(at::get_num_threads(), (C + kChunk - 1) / kChunk);
-    at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {
+    std::vector<std::vector<Stixel<T>>> lists(workers);  // one per worker, its columns ascending
+    at::parallel_for(0, workers, 1, [&](int64_t w0, int64_t) {
       solve_columns<T>(next, C, n, Kg, Ko, Kd, ncl, P, a_.data_ptr<T>(), cK_.data_ptr<T>(), sg_.data_ptr<T>(),
                      so_.data_ptr<T>(), u_.data_ptr<T>(), v_.data_ptr<T>(), rows_.data_ptr<T>(), fl_.data_ptr<T>(),
                      ci_.data_ptr<T>(), ld_.data_ptr<T>(), pg_.data_ptr<T>(), po_.data_ptr<T>(), gd_.data_ptr<T>(),
                      ta_.data_ptr<T>(), L_.data_ptr<T>(), q_.data_ptr<T>(), pr_.data_ptr<T>(), deg.data_ptr<bool>(),
-                     cls.data_ptr<int64_t>(), nc.data_ptr<int64_t>(), has_sem, E.data_ptr<T>(), pS.data_ptr<T>(),
-                     gS.data_ptr<T>(), tauS.data_ptr<T>(), bpB.data_ptr<int64_t>(), bpK.data_ptr<int64_t>(),
-                     bpC.data_ptr<int64_t>());
+                     cls.data_ptr<int64_t>(), nc.data_ptr<int64_t>(), has_sem, energy.data_ptr<T>(), lists[w0]);
     });
+    // The stixel table in column order (each column's stixels are contiguous in one list).
+    std::vector<int64_t> offset(C + 1, 0);
+    for (const auto& lst : lists)
+      for (const auto& st : lst) ++offset[st.col + 1];
+    for (int64_t c = 0; c < C; ++c) offset[c + 1] += offset[c];
+    const int64_t N = offset[C];
+    auto lopt = opt.dtype(at::kLong);
+    auto col = at::empty({N}, lopt), b = at::empty({N}, lopt), t = at::empty({N}, lopt);
+    auto type = at::empty({N}, lopt), cl = at::empty({N}, lopt);
+    auto p = at::empty({N}, opt), g = at::empty({N}, opt), tau2 = at::empty({N, 2}, opt), cost = at::empty({N}, opt);
+    int64_t *o_col = col.data_ptr<int64_t>(), *o_b = b.data_ptr<int64_t>(), *o_t = t.data_ptr<int64_t>();
+    int64_t *o_type = type.data_ptr<int64_t>(), *o_cls = cl.data_ptr<int64_t>();
+    T *o_p = p.data_ptr<T>(), *o_g = g.data_ptr<T>(), *o_tau = tau2.data_ptr<T>(), *o_cost = cost.data_ptr<T>();
+    for (const auto& lst : lists) {
+      for (const auto& st : lst) {
+        const int64_t r = offset[st.col]++;
+        o_col[r] = st.col;
+        o_b[r] = st.b;
+        o_t[r] = st.t;
+        o_type[r] = st.type;
+        o_cls[r] = st.cls;
+        o_p[r] = st.p;
+        o_g[r] = st.p_ground;
+        o_tau[2 * r] = st.tau0;
+        o_tau[2 * r + 1] = st.tau1;
+        o_cost[r] = st.cost;
+      }
+    }
+    out = {col, b, t, type, cl, p, g, tau2, cost};
   });
-  return {E, pS, gS, tauS, bpB, bpK, bpC};
+  out.push_back(energy);
+  return out;
 }
 
 // Sums (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the image bottom and
@@ -634,7 +682,15 @@ template <typename T, int W_, int CH_>
 inline bool cell_row_sums(const T* xv, int64_t W, int64_t w, int64_t C, int64_t ch, T* row, int64_t check) {
   const int64_t nch = CH_ ? CH_ : ch, cw = W_ ? W_ : w;
   const int64_t full = W / cw;
-  for (int64_t c = 0; c < full; ++c) {
+  if (CH_ == 1) {  // planar: the plain loop, which the compiler vectorises over the cells
+    for (int64_t c = 0; c < full; ++c) {
+      const T* px = xv + c * cw;
+      T a = px[0];
+      for (int64_t uu = 1; uu < cw; ++uu) a = a + px[uu];
+      row[c] = a;
+    }
+  }
+  for (int64_t c = 0; c < (CH_ == 1 ? 0 : full); ++c) {
     const T* px = xv + c * cw * nch;
     T acc[CH_ ? CH_ : 1];
     if (CH_) {
@@ -686,48 +742,57 @@ inline bool cell_row_sums(const T* xv, int64_t W, int64_t w, int64_t C, int64_t 
   return !bad;
 }
 
-// x: plane p (of `planes`) starts at x + p * plane_stride; pixel (v, u) channel k at
-// v * row_stride + u * nch + k (nch = 1: planar). Cell (i, c) of channel k of plane p goes to
-// out[p * o_p + k * o_k + i * o_i + c * o_c], divided by count[i * C + c] if count is given.
-// Returns whether the values pass `check`.
+// x: image b at x + b * img_stride; pixel (v, u) channel k at v * row_stride + u * CH + k with
+// CH channels interleaved per pixel (CH_ > 1, or 0 for a count taken at run time), or at
+// k * chan_stride + v * row_stride + u in planes of rows (CH_ = 1). Cell (i, c) of channel k of
+// image b goes to out[b * o_b + k * o_k + i * o_i + c * o_c], divided by count[i * C + c] if
+// count is given. Returns whether the values pass `check`.
 template <typename T, int W_, int CH_>
-bool cell_sums_impl(const T* x, T* out, int64_t planes, int64_t plane_stride, int64_t nch, int64_t row_stride,
-                    int64_t H, int64_t W, int64_t r, int64_t w, int64_t check, const T* count, int64_t o_p,
-                    int64_t o_k, int64_t o_i, int64_t o_c) {
+bool cell_sums_impl(const T* x, T* out, int64_t B, int64_t ch, int64_t img_stride, int64_t chan_stride,
+                    int64_t row_stride, int64_t H, int64_t W, int64_t r, int64_t w, int64_t check, const T* count,
+                    int64_t o_b, int64_t o_k, int64_t o_i, int64_t o_c) {
   const int64_t n = (H + r - 1) / r, C = (W + w - 1) / w;
-  // Work items (plane, cell row) from a shared counter, like the columns of the DP: a thread
+  const bool planar = CH_ == 1;
+  // Work items (image, cell row) from a shared counter, like the columns of the DP: a thread
   // that the OS deschedules on a shared machine then holds up one row of cells, not half the image.
   std::atomic<int64_t> next{0};
   std::atomic<bool> ok{true};
-  const int64_t items = planes * n;
+  const int64_t items = B * n;
   const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), items / 16));
   at::parallel_for(0, workers, 1, [&](int64_t, int64_t) {
-    std::vector<T> row(nch * C), cell(nch * C);
+    std::vector<T> rows(r * ch * C), cell(ch * C);
     bool good = true;
     for (int64_t item; (item = next.fetch_add(1)) < items;) {
-      const int64_t p = item / n, i = item % n;
-      const T* xp = x + p * plane_stride;
-      for (int64_t jj = 0; jj < r; ++jj) {
-        const int64_t v = H - 1 - (i * r + jj);  // image row, bottom-up
-        if (v >= 0) {
-          good &= cell_row_sums<T, W_, CH_>(xp + v * row_stride, W, w, C, nch, row.data(), check);
-        } else {
-          std::fill(row.begin(), row.end(), T(0));
+      // Memory is read in ascending order (the top cell row first, its image rows top-down):
+      // the hardware prefetchers follow that, not the bottom-up order of the sums (3x slower).
+      const int64_t b = item / n, i = n - 1 - item % n;
+      const T* xb = x + b * img_stride;
+      for (int64_t k = 0; k < (planar ? ch : 1); ++k) {
+        for (int64_t jj = r - 1; jj >= 0; --jj) {
+          const int64_t v = H - 1 - (i * r + jj);  // image row
+          T* row = rows.data() + jj * ch * C + k * C;
+          if (v < 0) {  // above the image (a partial top cell): adds 0
+            std::fill(row, row + (planar ? 1 : ch) * C, T(0));
+          } else if (planar) {
+            good &= cell_row_sums<T, W_, 1>(xb + k * chan_stride + v * row_stride, W, w, C, 1, row, check);
+          } else {
+            good &= cell_row_sums<T, W_, CH_>(xb + v * row_stride, W, w, C, ch, row, check);
+          }
         }
-        if (jj == 0) {
-          std::copy(row.begin(), row.end(), cell.begin());
-        } else {
-          for (int64_t e = 0; e < nch * C; ++e) cell[e] = cell[e] + row[e];
-        }
+      }
+      std::copy(rows.begin(), rows.begin() + ch * C, cell.begin());
+      for (int64_t jj = 1; jj < r; ++jj) {  // the cell's rows added bottom-up
+        const T* row = rows.data() + jj * ch * C;
+        for (int64_t e = 0; e < ch * C; ++e) cell[e] = cell[e] + row[e];
       }
       if (check != kNoCheck) {
         bool fin = true;
-        for (int64_t e = 0; e < nch * C; ++e) fin &= std::isfinite(cell[e]);
+        for (int64_t e = 0; e < ch * C; ++e) fin &= std::isfinite(cell[e]);
         good &= fin;
       }
-      T* op = out + p * o_p + i * o_i;
-      for (int64_t k = 0; k < nch; ++k)
-        for (int64_t c = 0; c < C; ++c)
+      T* op = out + b * o_b + i * o_i;
+      for (int64_t c = 0; c < C; ++c)
+        for (int64_t k = 0; k < ch; ++k)
           op[k * o_k + c * o_c] = count ? cell[k * C + c] / count[i * C + c] : cell[k * C + c];
     }
     if (!good) ok = false;
@@ -765,31 +830,20 @@ std::tuple<at::Tensor, at::Tensor> cell_sums(const at::Tensor& x, int64_t r, int
                            stride_is(0, H * W * ch);
   TORCH_CHECK(check != kPositiveDefinite || interleaved, "cell_sums: the matrix check needs (B, H, W, 4) memory");
   auto xc = interleaved ? x : x.contiguous();
-  const int64_t planes = interleaved ? B : B * ch, nch = interleaved ? ch : 1;
-  const int64_t plane_stride = interleaved ? H * W * ch : H * W, row_stride = interleaved ? W * ch : W;
-  // Output strides of (image b, channel k, cell row i, column c); a planar plane p is (b, k) = (p / ch, p % ch).
-  const int64_t s_b = ch * n * C, s_k = means ? 1 : n * C, s_i = means ? ch : C, s_c = means ? n * ch : 1;
-  const int64_t o_p = interleaved ? s_b : s_k, o_k = interleaved ? s_k : 0;
+  const int64_t img_stride = H * W * ch, chan_stride = interleaved ? 1 : H * W, row_stride = interleaved ? W * ch : W;
+  // Output strides of (image b, channel k, cell row i, column c).
+  const int64_t o_b = ch * n * C, o_k = means ? 1 : n * C, o_i = means ? ch : C, o_c = means ? n * ch : 1;
   bool ok = true;
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "cell_sums", [&] {
-    const scalar_t* xp = xc.data_ptr<scalar_t>();
-    scalar_t* op = out.data_ptr<scalar_t>();
-    const scalar_t* cp = means ? cnt.data_ptr<scalar_t>() : nullptr;
+    using T = scalar_t;
+    const T* xp = xc.data_ptr<T>();
+    T* op = out.data_ptr<T>();
+    const T* cp = means ? cnt.data_ptr<T>() : nullptr;
     const bool w5 = w == kUnrolledWidth;
-    if (nch == 1) {
-      // Planes (b, k) are not equally spaced in the output: one call per image.
-      for (int64_t bi = 0; bi < B; ++bi) {
-        ok &= (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, 1> : cell_sums_impl<scalar_t, 0, 1>)(
-            xp + bi * ch * plane_stride, op + bi * s_b, ch, plane_stride, 1, row_stride, H, W, r, w, check, cp,
-            o_p, o_k, s_i, s_c);
-      }
-    } else if (nch == kCovEntries) {
-      ok = (w5 ? cell_sums_impl<scalar_t, kUnrolledWidth, kCovEntries> : cell_sums_impl<scalar_t, 0, kCovEntries>)(
-          xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check, cp, o_p, o_k, s_i, s_c);
-    } else {
-      ok = cell_sums_impl<scalar_t, 0, 0>(xp, op, planes, plane_stride, nch, row_stride, H, W, r, w, check, cp, o_p,
-                                          o_k, s_i, s_c);
-    }
+    auto impl = !interleaved ? (w5 ? cell_sums_impl<T, kUnrolledWidth, 1> : cell_sums_impl<T, 0, 1>)
+                : ch == kCovEntries ? (w5 ? cell_sums_impl<T, kUnrolledWidth, kCovEntries> : cell_sums_impl<T, 0, kCovEntries>)
+                                    : cell_sums_impl<T, 0, 0>;
+    ok = impl(xp, op, B, ch, img_stride, chan_stride, row_stride, H, W, r, w, check, cp, o_b, o_k, o_i, o_c);
   });
   return {out, at::scalar_tensor(ok, x.options().dtype(at::kBool))};
 }
@@ -1001,83 +1055,10 @@ std::vector<at::Tensor> hypotheses(const at::Tensor& a, const at::Tensor& cK, co
   return {pg, po, tau, g};
 }
 
-// The optimal stixels of every column from the DP's state arrays (solver._backtrack): from the
-// cheapest type at the top (the first on ties, like torch.argmin) down the back-pointers to the
-// virtual start; per column bottom-up, columns in order. cost = E(top) - E(predecessor).
-std::vector<at::Tensor> backtrack(const at::Tensor& E, const at::Tensor& pS, const at::Tensor& gS,
-                                  const at::Tensor& tauS, const at::Tensor& bpB, const at::Tensor& bpK,
-                                  const at::Tensor& bpC) {
-  const int64_t C = E.size(0), n = E.size(1) - 1;
-  auto bB = bpB.contiguous(), bK = bpK.contiguous(), bC = bpC.contiguous();
-  const int64_t* pb = bB.data_ptr<int64_t>();
-  const int64_t* pk = bK.data_ptr<int64_t>();
-  const int64_t* pc = bC.data_ptr<int64_t>();
-  auto lopt = bpB.options();
-  std::vector<int64_t> top(C), count(C), offset(C + 1, 0);
-  std::vector<at::Tensor> out;
-  AT_DISPATCH_FLOATING_TYPES(E.scalar_type(), "backtrack", [&] {
-    using T = scalar_t;
-    auto E_ = E.contiguous(), pS_ = pS.contiguous(), gS_ = gS.contiguous(), tS_ = tauS.contiguous();
-    const T* e = E_.data_ptr<T>();
-    at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
-      for (int64_t c = c0; c < c1; ++c) {
-        const T* et = e + (c * (n + 1) + n) * kTypes;
-        int64_t best = 0;
-        for (int j = 1; j < kTypes; ++j)
-          if (et[j] < et[best]) best = j;
-        top[c] = best;
-        int64_t m = 0;
-        for (int64_t i = n, t = best; i > 0; ++m) {
-          const int64_t s = (c * (n + 1) + i) * kTypes + t;
-          i = pb[s];
-          t = pk[s];
-        }
-        count[c] = m;
-      }
-    });
-    for (int64_t c = 0; c < C; ++c) offset[c + 1] = offset[c] + count[c];
-    const int64_t N = offset[C];
-    auto col = at::empty({N}, lopt), b = at::empty({N}, lopt), t = at::empty({N}, lopt);
-    auto type = at::empty({N}, lopt), cls = at::empty({N}, lopt);
-    auto p = at::empty({N}, E.options()), g = at::empty({N}, E.options()), tau = at::empty({N, 2}, E.options());
-    auto cost = at::empty({N}, E.options());
-    int64_t *o_col = col.data_ptr<int64_t>(), *o_b = b.data_ptr<int64_t>(), *o_t = t.data_ptr<int64_t>();
-    int64_t *o_type = type.data_ptr<int64_t>(), *o_cls = cls.data_ptr<int64_t>();
-    T *o_p = p.data_ptr<T>(), *o_g = g.data_ptr<T>(), *o_tau = tau.data_ptr<T>(), *o_cost = cost.data_ptr<T>();
-    const T *ps = pS_.data_ptr<T>(), *gs = gS_.data_ptr<T>(), *ts = tS_.data_ptr<T>();
-    at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
-      for (int64_t c = c0; c < c1; ++c) {
-        int64_t r = offset[c + 1];  // filled top-down, from the column's last row
-        for (int64_t i = n, ty = top[c]; i > 0;) {
-          const int64_t s = (c * (n + 1) + i) * kTypes + ty;
-          const int64_t bb = pb[s], kk = pk[s];
-          --r;
-          o_col[r] = c;
-          o_b[r] = bb;
-          o_t[r] = i - 1;
-          o_type[r] = ty;
-          o_cls[r] = pc[s];
-          o_p[r] = ps[s];
-          o_g[r] = gs[s];
-          o_tau[2 * r] = ts[2 * s];
-          o_tau[2 * r + 1] = ts[2 * s + 1];
-          o_cost[r] = e[s] - e[(c * (n + 1) + bb) * kTypes + kk];
-          i = bb;
-          ty = kk;
-        }
-      }
-    });
-    out = {col, b, t, type, cls, p, g, tau, cost};
-  });
-  return out;
-}
-
 }  // namespace
 
 TORCH_LIBRARY(monostixels, m) {
   m.def("cell_sums(Tensor x, int r, int w, int check, Tensor? count) -> (Tensor, Tensor)");
-  m.def(
-      "backtrack(Tensor E, Tensor pS, Tensor gS, Tensor tauS, Tensor bpB, Tensor bpK, Tensor bpC) -> Tensor[]");
   m.def("geometry(Tensor K, Tensor KR, Tensor n_g, Tensor n_obj, Tensor u, Tensor v, Tensor v_edge) -> Tensor[]");
   m.def(
       "semantic_prefix(Tensor nll, Tensor rows, Tensor alpha_L, Tensor delta_L, Tensor? unseen, Tensor? extra, "
@@ -1097,6 +1078,5 @@ TORCH_LIBRARY_IMPL(monostixels, CPU, m) {
   m.impl("cell_sums", &cell_sums);
   m.impl("hypotheses", &hypotheses);
   m.impl("geometry", &geometry);
-  m.impl("backtrack", &backtrack);
   m.impl("semantic_prefix", &semantic_prefix);
 }
