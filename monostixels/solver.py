@@ -171,6 +171,10 @@ class ColumnProblem:
         degenerate: (C,) bool, frames whose camera translation carries no depth.
         frame: (C,) int64 frame index; column: (C,) int64 column index within its frame.
         image_size: (H, W).
+        checked: whether the kernel's cell sums found every input value valid in the same pass
+        (finite flow, covariances and scores; positive definite covariances; scores >= 0: the
+        inputs are read once). False on the eager path, which has no such pass, and where a value
+        may be bad: :func:`solve_batch` then runs :func:`_check_values`, which names the problem.
     """
 
     K: torch.Tensor
@@ -191,6 +195,7 @@ class ColumnProblem:
     frame: torch.Tensor
     column: torch.Tensor
     image_size: tuple[int, int]
+    checked: bool = False
 
     @property
     def num_columns(self) -> int:
@@ -271,24 +276,8 @@ def prepare_columns(
         scores: (B, 10, H, W) class scores or None.
         cameras, motions: one per frame.
         cfg: solver settings (column width, cell rows, dtype, min_translation).
-    """
-    return _prepare(flow, cov, scores, cameras, motions, cfg)[0]
 
-
-def _prepare(
-    flow: torch.Tensor,
-    cov: torch.Tensor,
-    scores: torch.Tensor | None,
-    cameras: Sequence[Camera],
-    motions: Sequence[Motion],
-    cfg: SolverConfig,
-) -> tuple[ColumnProblem, bool]:
-    """:func:`prepare_columns`, and whether its cell sums also found every input value valid.
-
-    The kernel's cell sums check the values in the same pass (finite flow, covariances and
-    scores; positive definite covariances; scores >= 0: the inputs are read once). False on the
-    eager path, which has no such pass, and where a value may be bad: :func:`solve_batch` then
-    runs :func:`_check_values`, which names the problem.
+    The kernel's cell sums check the input values in the same pass (``ColumnProblem.checked``).
     """
     dt = cfg.torch_dtype
     B, _, H, W = flow.shape
@@ -339,14 +328,13 @@ def _prepare(
     det = cov_c[..., 0, 0] * cov_c[..., 1, 1] - cov_c[..., 0, 1] * cov_c[..., 1, 0]
     inv = torch.stack([torch.stack([cov_c[..., 1, 1], -cov_c[..., 0, 1]], -1),
                        torch.stack([-cov_c[..., 1, 0], cov_c[..., 0, 0]], -1)], -2) / det[..., None, None]
-    prob = ColumnProblem(
+    return ColumnProblem(
         K=K_c, R=rep(R), t=rep(t), n_g=n_g_c, n_obj=object_normals(K_c, n_g_c, u_c), h_cam=rep(h),
         u=u_c, v=v, v_edge=v_edge, rows=rows,
         flow=fl.reshape(B * C, n, 2), cov_inv=inv, logdet=torch.log(det),
         nll=nll, degenerate=rep(degenerate), frame=torch.arange(B).repeat_interleave(C),
-        column=torch.arange(C).repeat(B), image_size=(H, W),
+        column=torch.arange(C).repeat(B), image_size=(H, W), checked=checked,
     )
-    return prob, checked
 
 
 # ---------------------------------------------------------------------------------------------
@@ -899,8 +887,8 @@ def solve_batch(
     if any(s is None for s in scores) and not all(s is None for s in scores):
         raise InputError("solve_batch: semantic scores must be given for all frames or for none")
     has_sem = scores[0] is not None
-    prob, checked = _prepare(_batch(flows), _batch(covs), _batch(scores) if has_sem else None, cameras, motions, cfg)
-    if not checked:  # the cell sums did not check the values, or found one that may be bad
+    prob = prepare_columns(_batch(flows), _batch(covs), _batch(scores) if has_sem else None, cameras, motions, cfg)
+    if not prob.checked:  # the cell sums did not check the values, or found one that may be bad
         for k, (f, c, s) in enumerate(zip(flows, covs, scores)):
             _check_values(f, c, s, names[k])
     sol = solve_columns(prob, prior, cfg)

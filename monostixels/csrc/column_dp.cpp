@@ -118,6 +118,13 @@ inline Vec min_lanes(Vec v) {
   return v;
 }
 
+// x made contiguous, after checking that it has ref's dtype (each op takes one floating dtype).
+inline at::Tensor contiguous_as(const at::Tensor& x, const at::Tensor& ref, const char* op, const char* name) {
+  TORCH_CHECK(x.scalar_type() == ref.scalar_type(), op, ": ", name, " has dtype ", x.scalar_type(), ", expected ",
+              ref.scalar_type());
+  return x.contiguous();
+}
+
 // Prior parameters, in the order of `_PARAM_ORDER` in monostixels/_dp_cpp.py.
 template <typename T>
 struct Params {
@@ -576,11 +583,7 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
   auto nc = ncs.to(at::kLong).contiguous();
   AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "column_dp", [&] {
     using T = scalar_t;
-    auto cont = [&](const at::Tensor& x, const char* name) {
-      TORCH_CHECK(x.scalar_type() == a.scalar_type(), "column_dp: ", name, " has dtype ", x.scalar_type(),
-                  ", expected ", a.scalar_type());
-      return x.contiguous();
-    };
+    auto cont = [&](const at::Tensor& x, const char* name) { return contiguous_as(x, a, "column_dp", name); };
     auto a_ = cont(a, "a"), cK_ = cont(cK, "cK"), sg_ = cont(s_g, "s_g"), so_ = cont(s_o, "s_o");
     auto u_ = cont(u, "u"), v_ = cont(v, "v"), rows_ = cont(rows, "rows"), fl_ = cont(flow, "flow");
     auto ci_ = cont(cov_inv, "cov_inv"), ld_ = cont(logdet, "logdet"), pg_ = cont(p_ground, "p_ground");
@@ -906,11 +909,7 @@ std::vector<at::Tensor> geometry(const at::Tensor& K, const at::Tensor& KR, cons
   auto s_g = at::empty({C, n}, opt), s_o = at::empty({C, n}, opt), q = at::empty({C, n}, opt);
   AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "geometry", [&] {
     using T = scalar_t;
-    auto cont = [&](const at::Tensor& x, const char* name) {
-      TORCH_CHECK(x.scalar_type() == u.scalar_type(), "geometry: ", name, " has dtype ", x.scalar_type(),
-                  ", expected ", u.scalar_type());
-      return x.contiguous();
-    };
+    auto cont = [&](const at::Tensor& x, const char* name) { return contiguous_as(x, u, "geometry", name); };
     auto K_ = cont(K, "K"), KR_ = cont(KR, "KR"), ng_ = cont(n_g, "n_g"), no_ = cont(n_obj, "n_obj");
     auto u_ = cont(u, "u"), v_ = cont(v, "v"), ve_ = cont(v_edge, "v_edge");
     geometry_impl<T>(C, n, K_.data_ptr<T>(), KR_.data_ptr<T>(), ng_.data_ptr<T>(), no_.data_ptr<T>(),
@@ -1039,11 +1038,7 @@ std::vector<at::Tensor> hypotheses(const at::Tensor& a, const at::Tensor& cK, co
   auto deg = degenerate.to(at::kBool).contiguous();
   AT_DISPATCH_FLOATING_TYPES(a.scalar_type(), "hypotheses", [&] {
     using T = scalar_t;
-    auto cont = [&](const at::Tensor& x, const char* name) {
-      TORCH_CHECK(x.scalar_type() == a.scalar_type(), "hypotheses: ", name, " has dtype ", x.scalar_type(),
-                  ", expected ", a.scalar_type());
-      return x.contiguous();
-    };
+    auto cont = [&](const at::Tensor& x, const char* name) { return contiguous_as(x, a, "hypotheses", name); };
     auto a_ = cont(a, "a"), cK_ = cont(cK, "cK"), sg_ = cont(s_g, "s_g"), so_ = cont(s_o, "s_o"), q_ = cont(q, "q");
     auto u_ = cont(u, "u"), v_ = cont(v, "v"), fl_ = cont(flow, "flow"), M_ = cont(M, "M"), pr_ = cont(p_ref, "p_ref");
     hypotheses_impl<T>(C, n, a_.data_ptr<T>(), cK_.data_ptr<T>(), sg_.data_ptr<T>(), so_.data_ptr<T>(),
