@@ -81,7 +81,7 @@ def available() -> bool:
             except Exception as exc:  # noqa: BLE001 - any build/load failure means: use the eager path
                 _state["error"] = f"{type(exc).__name__}: {exc}"
                 logger.warning("solver: the C++ column DP could not be built or loaded (%s); using the "
-                               "eager torch path (same results, ~100x slower). Set solver.backend=eager "
+                               "eager torch path (same results, ~50x slower). Set solver.backend=eager "
                                "to silence this.", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         return bool(_state["ok"])
 
