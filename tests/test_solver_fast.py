@@ -257,3 +257,23 @@ def test_bad_values_named_on_both_backends(backend):
     f = flow.clone()
     f[0, 0, :2] = 3e38
     assert len(solve(f, cov, sc, cam, mot, prm, cfg)) > 0
+
+
+@needs_kernel
+def test_cpp_batch_of_frames_identical_to_eager_and_single_frames():
+    """Three frames in one batch (the cell means read image after image): the same worlds as
+    solving each frame alone, and as the eager path."""
+    pairs = [render_pair(s, scale=0.25) for s in (1, 2, 3)]
+    H, W = pairs[0].size
+    flows = [p.gt.flow.float() for p in pairs]
+    covs = [(0.5**2) * torch.eye(2).expand(H, W, 2, 2).contiguous() for _ in pairs]
+    scores = [gt_scores(p.gt.labels, confidence=0.9) for p in pairs]
+    cams, mots, prior = [p.camera for p in pairs], [p.motion for p in pairs], PriorParams.from_yaml()
+    worlds = {b: solver_mod.solve_batch(flows, covs, scores, cams, mots, prior, SolverConfig.from_yaml(cell_rows=2, backend=b))
+              for b in ("eager", "cpp")}
+    cfg = SolverConfig.from_yaml(cell_rows=2, backend="cpp")
+    for k in range(len(pairs)):
+        alone = solve(flows[k], covs[k], scores[k], cams[k], mots[k], prior, cfg)
+        for f in WORLD_FIELDS:
+            assert torch.equal(getattr(worlds["cpp"][k], f), getattr(alone, f)), (k, f)
+            assert torch.equal(getattr(worlds["cpp"][k], f), getattr(worlds["eager"][k], f)), (k, f)
