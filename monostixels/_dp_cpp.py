@@ -1,4 +1,4 @@
-"""Build and call the fused C++ column DP (``monostixels/csrc/column_dp.cpp``).
+"""Build and call the fused C++ column DP and its preparation ops (``monostixels/csrc/column_dp.cpp``).
 
 The kernel is compiled at first use with :func:`torch.utils.cpp_extension.load` (g++ and ninja)
 and cached in torch's extension directory (``$TORCH_EXTENSIONS_DIR``, default
@@ -16,7 +16,9 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "column_dp", "cell_sums", "build_error"]
+__all__ = ["available", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry",
+           "semantic_prefix", "build_error", "CHECK_FINITE",
+           "CHECK_NONNEGATIVE", "CHECK_POSITIVE_DEFINITE"]
 
 logger = logging.getLogger(__name__)
 
@@ -30,6 +32,11 @@ _LDFLAGS = ["-fopenmp"]
 #: Order of the scalar parameters the kernel reads (``Params`` in column_dp.cpp).
 PARAM_ORDER = ("beta_mc", "alpha_grav_below", "beta_grav_below", "alpha_grav_above", "beta_grav_above",
                "alpha_ord", "beta_ord", "alpha_flat", "beta_flat", "alpha_F", "delta_F", "alpha_dyn")
+
+#: Value checks of :func:`cell_means_checked` (``CellCheck`` in column_dp.cpp): all finite; and every
+#: pixel >= 0; and every pixel a positive definite 2 x 2 matrix (4 channels, (B, H, W, 2, 2) memory).
+CHECK_FINITE, CHECK_NONNEGATIVE, CHECK_POSITIVE_DEFINITE = 1, 2, 3
+_NO_CHECK = 0
 
 _lock = threading.Lock()
 _state: dict[str, object] = {"tried": False, "ok": False, "error": None}
@@ -69,11 +76,12 @@ def available() -> bool:
             _state["tried"] = True
             try:
                 _build()
-                _state["ok"] = all(hasattr(torch.ops.monostixels, op) for op in ("column_dp", "cell_sums"))
+                _state["ok"] = all(hasattr(torch.ops.monostixels, op) for op in ("column_dp", "cell_sums", "hypotheses", "geometry",
+                                                                     "semantic_prefix"))
             except Exception as exc:  # noqa: BLE001 - any build/load failure means: use the eager path
                 _state["error"] = f"{type(exc).__name__}: {exc}"
                 logger.warning("solver: the C++ column DP could not be built or loaded (%s); using the "
-                               "eager torch path (same results, ~20x slower). Set solver.backend=eager "
+                               "eager torch path (same results, ~50x slower). Set solver.backend=eager "
                                "to silence this.", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         return bool(_state["ok"])
 
@@ -84,10 +92,38 @@ def build_error() -> str | None:
 
 
 def column_dp(*args: object) -> list[torch.Tensor]:
-    """Call the kernel; arguments as in ``column_dp.cpp`` (see ``solver._solve_columns_cpp``)."""
+    """The hard DP and its back-tracking: (col, b, t, type, cls, p, p_ground, tau, cost, energy) of
+    ``solver.ColumnSolution``; arguments as in ``column_dp.cpp`` (see ``solver._solve_columns_cpp``)."""
     return torch.ops.monostixels.column_dp(*args)
 
 
 def cell_sums(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
     """Cell sums (B, ch, n, C) of x (B, ch, H, W); the same bits as ``solver._block_sum``."""
-    return torch.ops.monostixels.cell_sums(x, r, w)
+    return torch.ops.monostixels.cell_sums(x, r, w, _NO_CHECK, None)[0]
+
+
+def cell_means_checked(x: torch.Tensor, r: int, w: int, count: torch.Tensor, check: int) -> tuple[torch.Tensor, bool]:
+    """Cell means (B, C, n, ch) (the sums of :func:`cell_sums` divided by ``count`` (n, C)) and,
+    from the same pass, whether the values pass ``check`` (``CHECK_*``).
+
+    False only says that some value may be bad (a sum can also overflow): the caller then runs
+    its full checks, which name the problem.
+    """
+    means, ok = torch.ops.monostixels.cell_sums(x, r, w, check, count)
+    return means, bool(ok)
+
+
+def hypotheses(*args: object) -> list[torch.Tensor]:
+    """Hypothesis sets (p_ground, p_object, tau, g = K B tau) for hypothesis_stride 1 (see ``solver._hypotheses``)."""
+    return torch.ops.monostixels.hypotheses(*args)
+
+
+def geometry(*args: object) -> list[torch.Tensor]:
+    """Per-cell (ray, a, s_g, s_o, q) of every column (see ``solver._geometry``)."""
+    return torch.ops.monostixels.geometry(*args)
+
+
+def semantic_prefix(*args: object) -> torch.Tensor:
+    """Prefix-summed semantic cost (C, 10, n + 1) (see ``solver._semantic_prefix``)."""
+    return torch.ops.monostixels.semantic_prefix(*args)
+

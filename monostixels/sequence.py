@@ -240,12 +240,15 @@ class SequenceRunner:
             pose = torch.eye(4, dtype=torch.float64)
             time = 0.0 if not self.frames else next(reversed(self.frames.values())).time + dt
         tracking = sequence and self.track_params.enabled
+        # The camera's velocity over the pair, current axes: it moved by R^T t (X_prev = R X_cur + t).
+        v_cam = (res.motion.motion.R.double().T @ res.motion.motion.t.double()) / max(dt, 1e-9)
         if tracking:
             out = self.tracks.update(
                 st, frame=frame_no, time=time, pose=pose, dt_pair=dt,
-                degenerate=bool(res.motion.degenerate or st.flags.get("degenerate_motion")))
+                degenerate=bool(res.motion.degenerate or st.flags.get("degenerate_motion")), camera_velocity=v_cam,
+                motion=res.motion.motion)
             track_id, velocity = out["track_id"], out["velocity"]
-            st = _with_filtered_depth(st, out["position"], pose)
+            st = _with_filtered_depth(st, out["point_cam"])
             if bool(out["carried"].any()):
                 st.flags["carried_stixels"] = int(out["carried"].sum())
                 st.flags["reason"] = (st.flags.get("reason", "") + "; static depths carried from the tracks of "
@@ -256,14 +259,14 @@ class SequenceRunner:
             dyn = st.type == DYNAMIC_OBJECT
             velocity = torch.where(dyn[:, None], st.motion.double() @ pose[:3, :3].T / max(dt, 1e-9),
                                    torch.zeros(N, 3, dtype=torch.float64))
-        # Time to collision from the (filtered) position and velocity relative to the camera, current axes.
+        # Time to collision: the tracks' filtered closing rate, or this pair's depth over its relative
+        # velocity (the same monocular scale in both, so it cancels); current camera axes.
         X_cam, _, _ = stixel_points(st)
         R_wc = pose[:3, :3]
-        v_cam = (res.motion.motion.R.double().T @ res.motion.motion.t.double()) / max(dt, 1e-9)
         v_rel = velocity @ R_wc - v_cam[None]
         obj = (st.type == STATIC_OBJECT) | (st.type == DYNAMIC_OBJECT)
-        ttc = torch.where(obj, time_to_collision(torch.nan_to_num(X_cam, nan=-1.0), v_rel),
-                          torch.full((len(st),), math.inf, dtype=torch.float64))
+        ttc = out["ttc"] if tracking else time_to_collision(torch.nan_to_num(X_cam, nan=-1.0), v_rel)
+        ttc = torch.where(obj, ttc, torch.full((len(st),), math.inf, dtype=torch.float64))
         warn = obj & critical(torch.nan_to_num(X_cam, nan=-1.0), v_rel, ttc, self.ttc)
         st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
         st.ttc_warning = warn
@@ -280,13 +283,11 @@ class SequenceRunner:
                 self.frames.popitem(last=False)
 
 
-def _with_filtered_depth(st: StixelWorld, position: torch.Tensor, pose: torch.Tensor) -> StixelWorld:
-    """The stixels with each tracked object's inverse depth from its filtered world position (N, 3)."""
-    ok = torch.isfinite(position).all(1)
+def _with_filtered_depth(st: StixelWorld, point_cam: torch.Tensor) -> StixelWorld:
+    """The stixels with each tracked stixel's inverse depth through its filtered point (N, 3), current camera."""
+    ok = torch.isfinite(point_cam).all(1)
     if not bool(ok.any()):
         return st
-    X_c = (position - pose[:3, 3]) @ pose[:3, :3]  # world -> current camera
-    n = st.normals()
-    d = (X_c * n).sum(-1)
+    d = (torch.nan_to_num(point_cam) * st.normals()).sum(-1)
     p = torch.where(ok & (d > 1e-3), 1.0 / d.clamp_min(1e-3), st.inverse_depth.double())
     return dataclasses.replace(st, inverse_depth=p.to(st.inverse_depth.dtype), flags=dict(st.flags))

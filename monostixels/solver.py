@@ -30,10 +30,14 @@ DP. The hard DP (``tau = 0``, no gradients) runs by default (``solver.backend: a
 C++ kernel (``csrc/column_dp.cpp``, built at first use by :mod:`monostixels._dp_cpp`): flow
 costs, prefix sums and all stages of one column in cache-sized buffers, columns in parallel over
 torch's threads, every float operation in the eager order, so its results are bit-identical
-(tests/test_solver_fast.py). Without a compiler it falls back to this code with one warning.
+(tests/test_solver_fast.py). Where it is loaded, the preparation runs there too, with the same
+expressions: the cell means (which also check the input values, so that the inputs are read
+once), the per-cell geometry and hypotheses (stride 1), the semantic prefix sums and the
+back-tracking. Without a compiler it falls back to this code with one warning.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from dataclasses import dataclass, fields
@@ -56,14 +60,12 @@ from monostixels.energy import (
 from monostixels.geometry import (
     Camera,
     Motion,
-    dynamic_dof_system,
     dynamic_motion,
     ground_basis,
     object_normals,
     pixel_rays,
     solve_dynamic_dof,
     solve_static_dof,
-    static_dof_system,
 )
 from monostixels.stixels import StixelWorld
 
@@ -80,6 +82,8 @@ _CHUNK_ELEMENTS = 4_000_000
 _IS_OBJECT = torch.tensor([False, True, True, False])
 #: A predicted point with ``z`` at or below this (homogeneous, px) is behind the camera: flow cap.
 _Z_MIN = 1e-9
+#: Singular-system threshold of the per-cell fits (geometry.solve_static_dof / solve_dynamic_dof).
+_FIT_EPS = inspect.signature(solve_static_dof).parameters["eps"].default
 #: ``solver.backend`` values: ``auto`` = the C++ kernel for the hard DP where it builds, else eager.
 BACKENDS = ("auto", "eager", "cpp")
 
@@ -167,6 +171,10 @@ class ColumnProblem:
         degenerate: (C,) bool, frames whose camera translation carries no depth.
         frame: (C,) int64 frame index; column: (C,) int64 column index within its frame.
         image_size: (H, W).
+        checked: whether the kernel's cell sums found every input value valid in the same pass
+        (finite flow, covariances and scores; positive definite covariances; scores >= 0: the
+        inputs are read once). False on the eager path, which has no such pass, and where a value
+        may be bad: :func:`solve_batch` then runs :func:`_check_values`, which names the problem.
     """
 
     K: torch.Tensor
@@ -187,6 +195,7 @@ class ColumnProblem:
     frame: torch.Tensor
     column: torch.Tensor
     image_size: tuple[int, int]
+    checked: bool = False
 
     @property
     def num_columns(self) -> int:
@@ -267,6 +276,8 @@ def prepare_columns(
         scores: (B, 10, H, W) class scores or None.
         cameras, motions: one per frame.
         cfg: solver settings (column width, cell rows, dtype, min_translation).
+
+    The kernel's cell sums check the input values in the same pass (``ColumnProblem.checked``).
     """
     dt = cfg.torch_dtype
     B, _, H, W = flow.shape
@@ -276,13 +287,27 @@ def prepare_columns(
     widths = torch.clamp(torch.tensor(W, dtype=dt) - torch.arange(C, dtype=dt) * w, max=w)
     count = rows[:, None] * widths[None, :]  # n x C pixels per cell
     cpp = cfg.backend != "eager" and _dp_cpp.available()
-    fl = _block_sum(flow.to(dt), r, w, cpp) / count  # B x 2 x n x C
-    cv = cov.to(dt).permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
-    cv = (_block_sum(cv, r, w, cpp) / count).permute(0, 3, 2, 1).reshape(B, C, n, 2, 2)
+    checked = cpp
+
+    def cell_means(x: torch.Tensor, check: int) -> torch.Tensor:
+        """(B, C, n, ch) means of x (B, ch, H, W) over the cells."""
+        nonlocal checked
+        if not (cpp and not x.requires_grad):
+            checked = False
+            return (_block_sum(x, r, w) / count).permute(0, 3, 2, 1)
+        means, ok = _dp_cpp.cell_means_checked(x, r, w, count, check)  # the same bits, and the check
+        checked &= ok
+        return means
+
+    fl = cell_means(flow.to(dt), _dp_cpp.CHECK_FINITE)  # B x C x n x 2
+    # (B, 4, H, W) view of the (B, H, W, 2, 2) memory: the kernel reads the 4 entries per pixel in place.
+    cv = cov.to(dt).contiguous().permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
+    cv = cell_means(cv, _dp_cpp.CHECK_POSITIVE_DEFINITE).reshape(B, C, n, 2, 2)
     nll = None
     if scores is not None:
-        sc = _block_sum(scores.to(dt), r, w, cpp) / count  # B x 10 x n x C
-        nll = -torch.log(sc.clamp(min=1e-12)).permute(0, 3, 2, 1).reshape(B * C, n, NUM_CLASSES)
+        sc = cell_means(scores.to(dt), _dp_cpp.CHECK_NONNEGATIVE)  # B x C x n x 10
+        # In place on the fresh means: each MB-sized temporary costs page faults when it is mmap'ed.
+        nll = sc.clamp_(min=1e-12).log_().neg_().reshape(B * C, n, NUM_CLASSES)
 
     j0 = torch.arange(n, dtype=dt) * r  # bottom-based index of each cell's lowest row
     v = (H - 1) - (j0 + (rows - 1) / 2)
@@ -306,9 +331,9 @@ def prepare_columns(
     return ColumnProblem(
         K=K_c, R=rep(R), t=rep(t), n_g=n_g_c, n_obj=object_normals(K_c, n_g_c, u_c), h_cam=rep(h),
         u=u_c, v=v, v_edge=v_edge, rows=rows,
-        flow=fl.permute(0, 3, 2, 1).reshape(B * C, n, 2), cov_inv=inv, logdet=torch.log(det),
+        flow=fl.reshape(B * C, n, 2), cov_inv=inv, logdet=torch.log(det),
         nll=nll, degenerate=rep(degenerate), frame=torch.arange(B).repeat_interleave(C),
-        column=torch.arange(C).repeat(B), image_size=(H, W),
+        column=torch.arange(C).repeat(B), image_size=(H, W), checked=checked,
     )
 
 
@@ -321,6 +346,7 @@ class _Hypotheses:
     p_object: torch.Tensor   # C x Ko
     tau: torch.Tensor        # C x Kd x 2
     B: torch.Tensor          # C x 3 x 2 ground-plane basis
+    g: torch.Tensor | None = None  # C x Kd x 3 K B tau, if already computed (see _flow_geometry)
 
 
 def _window_median(x: torch.Tensor, stride: int) -> torch.Tensor:
@@ -346,38 +372,98 @@ def _bottom_ray_ratio(prob: ColumnProblem) -> torch.Tensor:
     return (ray_b * prob.n_g[:, None]).sum(-1) / (ray_b * prob.n_obj[:, None]).sum(-1)
 
 
-def _hypotheses(prob: ColumnProblem, cfg: SolverConfig) -> _Hypotheses:
+@dataclass
+class _Geometry:
+    """Per-cell terms shared by the hypotheses, the flow costs and the priors (computed once per solve).
+
+    ray (C, n, 3): ``K^-1 x`` of each cell centre (unit z); a (C, n, 3): ``K R K^-1 x``; cK (C, 3):
+    ``K t``; s_g, s_o (C, n): ``n^T K^-1 x`` of the ground and object normals; q (C, n): the
+    bottom-ray ratio (:func:`_bottom_ray_ratio`). A static hypothesis ``p`` predicts
+    ``a + p s cK``, a dynamic one ``a + s_o K B tau``, the sky ``a``.
+    """
+
+    ray: torch.Tensor
+    a: torch.Tensor
+    cK: torch.Tensor
+    s_g: torch.Tensor
+    s_o: torch.Tensor
+    q: torch.Tensor
+
+
+def _geometry(prob: ColumnProblem, cpp: bool = False) -> _Geometry:
+    """The terms of :class:`_Geometry`, with the expressions of geometry.static_dof_system (same bits).
+
+    ``cpp``: the same expressions cell by cell in one pass (csrc/column_dp.cpp; tests/test_solver_fast.py).
+    """
+    if cpp:
+        ray, a, s_g, s_o, q = _dp_cpp.geometry(prob.K, prob.K @ prob.R, prob.n_g, prob.n_obj, prob.u, prob.v,
+                                               prob.v_edge)
+        return _Geometry(ray=ray, a=a, cK=(prob.K @ prob.t[..., None])[..., 0], s_g=s_g, s_o=s_o, q=q)
+    ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
+    return _Geometry(
+        ray=ray,
+        a=((prob.K @ prob.R)[:, None] @ ray[..., None])[..., 0],
+        cK=(prob.K @ prob.t[..., None])[..., 0],
+        s_g=(ray * prob.n_g[:, None]).sum(-1),
+        s_o=(ray * prob.n_obj[:, None]).sum(-1),
+        q=_bottom_ray_ratio(prob),
+    )
+
+
+def _fits(prob: ColumnProblem, geo: _Geometry) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every cell's own hypotheses: ground and object inverse depth (C, n), dynamic tau (C, n, 2), B (C, 3, 2).
+
+    The systems of geometry.static_dof_system / dynamic_dof_system built from the shared terms
+    (the same expressions, so the same bits; tests/test_solver_fast.py compares them), solved by
+    geometry.solve_static_dof / solve_dynamic_dof. NaN where a system is singular.
+    """
+    a, c = geo.a, geo.cK[:, None]  # C x n x 3, C x 1 x 3
+    up, vp = prob.u[:, None] + prob.flow[..., 0], prob.v[None] + prob.flow[..., 1]
+    b = torch.stack([a[..., 0] - up * a[..., 2], a[..., 1] - vp * a[..., 2]], -1)
+    cu, cv = up * c[..., 2] - c[..., 0], vp * c[..., 2] - c[..., 1]
+    p_g, p_o = (solve_static_dof(torch.stack([s * cu, s * cv], -1), b) for s in (geo.s_g, geo.s_o))
+    Bm = ground_basis(prob.n_g)
+    M = (prob.K @ Bm)[:, None]  # C x 1 x 3 x 2: K B
+    s = geo.s_o[..., None]
+    A = torch.stack([s * (up[..., None] * M[..., 2, :] - M[..., 0, :]),
+                     s * (vp[..., None] * M[..., 2, :] - M[..., 1, :])], -2)
+    return p_g, p_o, solve_dynamic_dof(A, b), Bm
+
+
+def _hypotheses(prob: ColumnProblem, cfg: SolverConfig, geo: _Geometry | None = None) -> _Hypotheses:
     """Per-column hypothesis sets of the three flow-fitted types (see module docstring).
 
     Every cell gives one hypothesis per type from its own flow vector. With
     ``hypothesis_stride = s > 1`` the cells are grouped in windows of ``s`` and each window gives
     the median of its cells' hypotheses: exact for a plane that covers most of a window, robust
     to flow noise, and ``s`` times fewer hypotheses (the DP cost is linear in their number).
+    ``geo``: the problem's :func:`_geometry`, if already computed.
     """
-    C, n = prob.num_columns, prob.num_cells
+    geo = _geometry(prob) if geo is None else geo
     s = cfg.hypothesis_stride
-    u = prob.u[:, None].expand(C, n)
-    v = prob.v[None].expand(C, n)
-    f = prob.flow
-    K, R, t = prob.K[:, None], prob.R[:, None], prob.t[:, None]
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
     p_ref = (1.0 / prob.h_cam)[:, None]
+    if s == 1 and _cpp_prep(prob, cfg):
+        # The same expressions, cell by cell in one pass (csrc/column_dp.cpp; tests/test_solver_fast.py).
+        Bm = ground_basis(prob.n_g)
+        p_g, p_o, tau, g = _dp_cpp.hypotheses(
+            geo.a, geo.cK, geo.s_g, geo.s_o, geo.q, prob.u, prob.v, prob.flow, prob.K @ Bm, p_ref[:, 0],
+            prob.degenerate, p_min, p_max, _FIT_EPS, cfg.standing_hypotheses)
+        return _Hypotheses(p_ground=p_g, p_object=p_o, tau=tau, B=Bm, g=g)
 
     def valid(p: torch.Tensor) -> torch.Tensor:
         ok = torch.isfinite(p) & (p >= p_min) & (p <= p_max)
         return torch.where(ok, p, torch.full_like(p, float("nan")))
 
-    p_g = valid(solve_static_dof(*static_dof_system(K, R, t, prob.n_g[:, None], u, v, f)))
-    p_o = valid(solve_static_dof(*static_dof_system(K, R, t, prob.n_obj[:, None], u, v, f)))
-    Bm = ground_basis(prob.n_g)
-    tau = solve_dynamic_dof(*dynamic_dof_system(K, R, Bm[:, None], prob.n_obj[:, None], u, v, f))
+    p_g, p_o, tau, Bm = _fits(prob, geo)
+    p_g, p_o = valid(p_g), valid(p_o)
     if s > 1:
         p_g, p_o, tau = _window_median(p_g, s), _window_median(p_o, s), _window_median(tau, s)
     if cfg.standing_hypotheses:
         # The scene model's depth of an object whose bottom is at each cell's lower edge: it stands
         # on the reference ground there. Where the flow fails (every hypothesis at the cap, e.g. a
         # near wall moving 100+ px) the priors can then still place it.
-        p_stand = valid(_bottom_ray_ratio(prob) * p_ref)
+        p_stand = valid(geo.q * p_ref)
         if s > 1:
             p_stand = p_stand[:, ::s]
         p_o = torch.cat([p_o, p_stand], dim=1)
@@ -421,27 +507,26 @@ def _prefix(x: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(torch.cumsum(x, -1), (1, 0))
 
 
-def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses) -> tuple[torch.Tensor, ...]:
+def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses, geo: _Geometry | None = None) -> tuple[torch.Tensor, ...]:
     """Terms of the predicted points ``H x`` of every hypothesis (shared by both backends).
 
     Returns:
-        a (C, n, 3) ``K R K^-1 x``; cK (C, 3) ``K t``; s_g, s_o (C, n) ``n^T K^-1 x`` of the ground
-        and object normals; g (C, Kd, 3) ``K B tau`` of the dynamic hypotheses. A static hypothesis
-        ``p`` predicts ``a + p s cK``, a dynamic one ``a + s_o g``, the sky ``a``.
+        a (C, n, 3), cK (C, 3), s_g, s_o (C, n) of :class:`_Geometry`, and g (C, Kd, 3) ``K B tau``
+        of the dynamic hypotheses. A static hypothesis ``p`` predicts ``a + p s cK``, a dynamic
+        one ``a + s_o g``, the sky ``a``.
     """
-    ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
-    a = ((prob.K @ prob.R)[:, None] @ ray[..., None])[..., 0]  # C x n x 3: K R K^-1 x
-    cK = (prob.K @ prob.t[..., None])[..., 0]  # C x 3
-    s_g = (ray * prob.n_g[:, None]).sum(-1)  # C x n
-    s_o = (ray * prob.n_obj[:, None]).sum(-1)
-    M = prob.K @ hyp.B  # C x 3 x 2
-    g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
-    return a, cK, s_g, s_o, g
+    geo = _geometry(prob) if geo is None else geo
+    g = hyp.g
+    if g is None:
+        M = prob.K @ hyp.B  # C x 3 x 2
+        g = (M[:, None] @ hyp.tau[..., None])[..., 0]  # C x Kd x 3: K B tau
+    return geo.a, geo.cK, geo.s_g, geo.s_o, g
 
 
-def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams) -> list[torch.Tensor]:
+def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams,
+                 geo: _Geometry | None = None) -> list[torch.Tensor]:
     """Prefix-summed flow cost (C, K_T, n + 1) of every hypothesis of every type."""
-    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp)
+    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp, geo)
 
     def chunked(Hx_of: Any, K: int) -> torch.Tensor:
         # Hypotheses in chunks: the (C, K, n, 3) points of all at once are the peak memory at r = 1.
@@ -488,15 +573,14 @@ def _structural_object(inv_p: torch.Tensor, q: torch.Tensor, inv_pp: torch.Tenso
     return torch.where(_IS_OBJECT, torch.minimum(grav, ordv), grav)
 
 
-def _sky_unseen(prob: ColumnProblem, margin_deg: float) -> torch.Tensor:
+def _sky_unseen(geo: _Geometry, margin_deg: float) -> torch.Tensor:
     """(C, n) cells whose ray points more than ``margin_deg`` below the horizon of the road plane."""
-    ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
-    sin_below = (ray * prob.n_g[:, None]).sum(-1) / ray.norm(dim=-1)
+    sin_below = geo.s_g / geo.ray.norm(dim=-1)
     return sin_below > math.sin(math.radians(margin_deg))
 
 
-def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype,
-                     sky_margin_deg: float = math.inf) -> tuple[torch.Tensor, list[list[int]]]:
+def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky_margin_deg: float = math.inf,
+                     geo: _Geometry | None = None, cpp: bool = False) -> tuple[torch.Tensor, list[list[int]]]:
     """Prefix-summed semantic cost (C, 10, n + 1) and the classes of each type.
 
     With semantics, the sky class also pays the flow and semantic caps (``alpha_F delta_F + alpha_L
@@ -505,18 +589,34 @@ def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype,
     the flow fails (the image's lower corners, which leave the previous frame) the net's score decided,
     and a bright patch of road read as sky became a sky stixel 6 m ahead (KITTI drive 0023). A road's
     grade changes by a few degrees, so sky is seen at most slightly below the road plane's horizon.
-    Without semantics: zeros (C, 1, n + 1) and the default class of each type.
+    Without semantics: zeros (C, 1, n + 1) and the default class of each type. ``cpp``: in the
+    kernel (values only, no gradients).
     """
     C, n = prob.num_columns, prob.num_cells
     if prob.nll is not None:
-        sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
+        unseen = extra = None
         if math.isfinite(sky_margin_deg):
-            unseen = _sky_unseen(prob, sky_margin_deg)
+            unseen = _sky_unseen(_geometry(prob) if geo is None else geo, sky_margin_deg)
             extra = (prm.alpha_F * prm.delta_F + prm.alpha_L * prm.delta_L) * prob.rows[None, :]
+        if cpp:  # the same expressions and sums, one pass (csrc/column_dp.cpp; tests/test_solver_fast.py)
+            Lp = _dp_cpp.semantic_prefix(prob.nll, prob.rows, prm.alpha_L, prm.delta_L, unseen,
+                                         None if extra is None else extra[0], _SKY_CLASS)
+            return Lp, [list(cs) for cs in TYPE_CLASSES]
+        sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
+        if unseen is not None:
             sky = torch.where(unseen, sem[..., _SKY_CLASS] + extra, sem[..., _SKY_CLASS])
             sem = torch.cat([sem[..., :_SKY_CLASS], sky[..., None], sem[..., _SKY_CLASS + 1:]], -1)
         return _prefix(sem.transpose(1, 2)), [list(cs) for cs in TYPE_CLASSES]  # C x 10 x (n + 1)
     return torch.zeros(C, 1, n + 1, dtype=dt), [[c] for c in _DEFAULT_CLASS]
+
+
+def _cpp_prep(prob: ColumnProblem, cfg: SolverConfig) -> bool:
+    """Whether the C++ kernel may prepare ``prob`` (values only: no gradients through it)."""
+    if cfg.backend == "eager" or prob.flow.dtype not in (torch.float32, torch.float64):
+        return False
+    if torch.is_grad_enabled() and any(x.requires_grad for x in (prob.flow, prob.K, prob.R, prob.t, prob.n_g)):
+        return False
+    return _dp_cpp.available()
 
 
 def _use_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> bool:
@@ -541,25 +641,26 @@ def _use_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> bool:
 def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:
     """The hard DP of :func:`solve_columns` in the fused C++ kernel (``csrc/column_dp.cpp``).
 
-    Hypotheses, their geometry and the semantic prefix sums are computed here with the same torch
-    code as the eager path; the kernel does the flow costs, their prefix sums and the DP stages
-    per column and returns the state arrays that :func:`_backtrack` reads. Bit-identical to eager.
+    Hypotheses, their geometry and the semantic prefix sums are computed as on the eager path (by
+    the kernel's twins of that code, same bits); the kernel does the flow costs, their prefix sums
+    and the DP stages per column, and follows the back-pointers as :func:`_backtrack` does.
+    Bit-identical to eager.
     """
     dt = cfg.torch_dtype
-    hyp = _hypotheses(prob, cfg)
-    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp)
-    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg)
+    geo = _geometry(prob, cpp=_cpp_prep(prob, cfg))
+    hyp = _hypotheses(prob, cfg, geo)
+    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp, geo)
+    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo, cpp=_cpp_prep(prob, cfg))
     cls_table = torch.tensor([cs + [-1] * (3 - len(cs)) for cs in classes], dtype=torch.long)  # 4 x 3
     ncs = torch.tensor([len(cs) for cs in classes], dtype=torch.long)
     params = torch.stack([getattr(prm, k) for k in _dp_cpp.PARAM_ORDER]
                          + [torch.tensor(x, dtype=dt) for x in (1.0 / cfg.max_depth, 1.0 / cfg.min_depth,
                                                                 GRAVITY_TOLERANCE_M, _Z_MIN)])
-    E, pS, gS, tauS, bpB, bpK, bpC = _dp_cpp.column_dp(
+    col, b, t, typ, cls, p, g, tau, cost, energy = _dp_cpp.column_dp(
         a, cK, s_g, s_o, prob.u, prob.v, prob.rows, prob.flow, prob.cov_inv, prob.logdet,
-        hyp.p_ground, hyp.p_object, g, hyp.tau, Lp, _bottom_ray_ratio(prob), 1.0 / prob.h_cam,
+        hyp.p_ground, hyp.p_object, g, hyp.tau, Lp, geo.q, 1.0 / prob.h_cam,
         prob.degenerate, params, cls_table, ncs, prob.nll is not None)
-    energy = E[:, prob.num_cells].amin(1)
-    return _backtrack(prob, E, pS, gS, tauS, bpB, bpK, bpC, energy)
+    return ColumnSolution(col=col, b=b, t=t, type=typ, cls=cls, p=p, p_ground=g, tau=tau, cost=cost, energy=energy)
 
 
 def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> ColumnSolution:
@@ -577,16 +678,17 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
         return _solve_columns_cpp(prob, prm, cfg)
     tau_T = float(cfg.tau)
     C, n = prob.num_columns, prob.num_cells
-    hyp = _hypotheses(prob, cfg)
-    P = _flow_prefix(prob, hyp, prm)  # per type: C x K_T x (n + 1)
+    geo = _geometry(prob, cpp=_cpp_prep(prob, cfg))
+    hyp = _hypotheses(prob, cfg, geo)
+    P = _flow_prefix(prob, hyp, prm, geo)  # per type: C x K_T x (n + 1)
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
 
-    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg)
+    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo)
     cls_idx = [torch.tensor(cs) if prob.nll is not None else torch.tensor([0]) for cs in classes]
     L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
 
     # Bottom-edge ray ratio q_b = n_g.r / n_obj.r of every cell (for gravity / standing on ground).
-    q = _bottom_ray_ratio(prob)  # C x n
+    q = geo.q  # C x n
 
     p_ref = 1.0 / prob.h_cam
     # State index i = number of cells consumed. Index 0 is a virtual ground stixel at the camera height.
@@ -719,27 +821,36 @@ def _all_finite(x: torch.Tensor) -> bool:
     return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
-def _check_inputs(flow: torch.Tensor, cov: torch.Tensor, scores: torch.Tensor | None, name: str) -> None:
-    # check_finite only where the cheap test fails: it counts and locates the bad values.
+def _check_shapes(flow: torch.Tensor, cov: torch.Tensor, scores: torch.Tensor | None, name: str) -> None:
     check_shape(flow, [2, "H", "W"], f"{name}flow")
-    if not _all_finite(flow):
-        check_finite(flow, f"{name}flow")
     check_shape(cov, ["H", "W", 2, 2], f"{name}flow covariance")
     check_same_size(flow, cov.permute(2, 3, 0, 1), f"{name}flow", f"{name}flow covariance")
+    if scores is not None:
+        if scores.dim() != 3 or scores.shape[0] != NUM_CLASSES:
+            raise InputError(f"{name}semantic scores: expected ({NUM_CLASSES}, H, W) class scores, got shape {tuple(scores.shape)}")
+        check_same_size(scores, flow, f"{name}semantic scores", f"{name}flow")
+
+
+def _check_values(flow: torch.Tensor, cov: torch.Tensor, scores: torch.Tensor | None, name: str) -> None:
+    # check_finite only where the cheap test fails: it counts and locates the bad values.
+    if not _all_finite(flow):
+        check_finite(flow, f"{name}flow")
     if not _all_finite(cov):
         check_finite(cov, f"{name}flow covariance")
     det = cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] * cov[..., 1, 0]
     if bool((cov[..., 0, 0] <= 0).any() or (det <= 0).any()):
         raise InputError(f"{name}flow covariance: must be positive definite at every pixel")
     if scores is not None:
-        if scores.dim() != 3 or scores.shape[0] != NUM_CLASSES:
-            raise InputError(f"{name}semantic scores: expected ({NUM_CLASSES}, H, W) class scores, got shape {tuple(scores.shape)}")
-        check_same_size(scores, flow, f"{name}semantic scores", f"{name}flow")
         lo, hi = torch.aminmax(scores)
         if not bool(torch.isfinite(lo) & torch.isfinite(hi)):
             check_finite(scores, f"{name}semantic scores")
         if bool(lo < 0):
             raise InputError(f"{name}semantic scores: must be non-negative pseudo-probabilities")
+
+
+def _batch(xs: Sequence[torch.Tensor]) -> torch.Tensor:
+    """(B, ...) of B tensors: a view for one frame (stacking would copy tens of MB)."""
+    return xs[0][None] if len(xs) == 1 else torch.stack(list(xs))
 
 
 def solve_batch(
@@ -769,16 +880,17 @@ def solve_batch(
         raise InputError("solve_batch: no frames given")
     if not (len(flows) == len(covs) == len(scores) == len(cameras) == len(motions)):
         raise InputError("solve_batch: flows, covs, scores, cameras and motions must have one entry per frame")
+    names = [f"frame {k}: " if len(flows) > 1 else "" for k in range(len(flows))]
     for k, (f, c, s) in enumerate(zip(flows, covs, scores)):
-        _check_inputs(f, c, s, f"frame {k}: " if len(flows) > 1 else "")
+        _check_shapes(f, c, s, names[k])
         check_same_size(f, flows[0], f"frame {k}: flow", "frame 0: flow")
     if any(s is None for s in scores) and not all(s is None for s in scores):
         raise InputError("solve_batch: semantic scores must be given for all frames or for none")
     has_sem = scores[0] is not None
-    prob = prepare_columns(
-        torch.stack(list(flows)), torch.stack(list(covs)),
-        torch.stack(list(scores)) if has_sem else None, cameras, motions, cfg,
-    )
+    prob = prepare_columns(_batch(flows), _batch(covs), _batch(scores) if has_sem else None, cameras, motions, cfg)
+    if not prob.checked:  # the cell sums did not check the values, or found one that may be bad
+        for k, (f, c, s) in enumerate(zip(flows, covs, scores)):
+            _check_values(f, c, s, names[k])
     sol = solve_columns(prob, prior, cfg)
     return _to_worlds(prob, sol, cameras, motions, cfg)
 

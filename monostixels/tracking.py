@@ -1,31 +1,32 @@
-"""Stixel tracks: association through the flow, a Kalman filter per track, velocities and time-to-collision.
+"""Stixel tracks: association, a Kalman filter per track, velocities and time-to-collision.
 
-A track follows one object stixel (static or dynamic) from frame to frame, after the stixel literature
-(Pfeiffer & Franke 2011). Its state is the stixel's position and velocity on the ground plane of the
-world (the first camera of the sequence, SPEC section 2: x right, y down, z forward):
-``x = (X, Z, V_X, V_Z)`` metres and m/s, with a constant-velocity model driven by white acceleration.
+A track follows one stixel (ground or object) from frame to frame, after the stixel literature
+(Pfeiffer & Franke 2011). An object track's state is the stixel's position and velocity on the
+ground plane of the world (the first camera of the sequence, SPEC section 2: x right, y down,
+z forward): ``x = (X, Z, V_X, V_Z)`` metres and m/s, a constant-velocity model driven by white
+acceleration. A ground track filters the distance of its plane (the camera's height above the road
+under it).
 
 Per frame, for the pair (current ``t``, earlier ``k``):
 
-1. **Association through the flow.** Pixels down the centre of every object stixel of frame ``t``
-   are mapped into frame ``k`` by the flow (``x_k = x + f``); the stixel of frame ``k`` they land in
-   votes for its track. The track with most votes, at least ``min_vote_share`` of the landed pixels,
-   whose prediction lies within the chi-square gate of the measurement, continues in this stixel. A
-   track claimed by several stixels (a split) continues in the one with most votes; the others start
-   tracks of their own from its state.
+1. **Association.** Every track's point, predicted by its own velocity and seen from the current
+   camera through the chained camera motion, lands in a stixel of frame ``t``; that stixel continues
+   the track if it is of the same kind and its measurement passes the chi-square gate on position
+   and velocity (several tracks in one stixel: the nearest). Stixels without a track start one.
 2. **Measurement.** Position: the stixel's plane at its column centre and middle row, in the world
    (along-ray standard deviation ``depth_std_rel`` of the distance, across the ray half a column).
-   Velocity: a dynamic stixel's metric motion ``Δ`` over the pair's interval (standard deviation
-   ``velocity_std_mps + velocity_std_rel |v|``); a static stixel is a measurement of zero velocity
-   (``static_velocity_std_mps``): the solver found the static plane to explain its flow.
-3. **Output.** The filtered position gives the stixel's depth (the plane through it, same normal);
-   the filtered velocity its world velocity; with the camera's own velocity, the time to collision.
+   Velocity: a dynamic stixel's metric motion over the pair's interval, the median over its object
+   (adjacent dynamic stixels at a similar depth) and, for a tracked one, recomputed at the track's
+   depth (the flow fixes ``g = p (t - R Δ)``, not ``Δ``); a static stixel is a measurement of zero
+   velocity: the solver found a static plane to explain its flow.
+3. **Output.** The filtered point, moved along the stixel's own ray, gives its depth (the plane
+   through it, same normal); the filtered velocity its world velocity.
 
 Time to collision (paper: ``t̃`` "represent the time to contact in the longitudinal and lateral
 direction"): with the stixel at ``X`` and the relative velocity ``v_rel = v - v_cam`` in the current
-camera's axes, ``ttc = Z / -v_rel,z`` where ``v_rel,z < 0`` (closing), else ``inf``. A stixel is
-*critical* when ``ttc < warn_s`` and its lateral position at contact, ``X + v_rel,x ttc``, lies within
-``corridor_m`` of the camera's path.
+camera's axes, ``ttc = Z / -v_rel,z`` where ``v_rel,z < 0`` (closing), else ``inf``; each track
+filters the closing rate ``-v_rel,z / Z``. A stixel is *critical* when ``ttc < warn_s`` and its
+lateral position at contact, ``X + v_rel,x ttc``, lies within ``corridor_m`` of the camera's path.
 
 Everything is vectorised over stixels and tracks (no Python loop over either).
 """
@@ -38,8 +39,8 @@ from typing import Any
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.geometry import object_normals, pixel_rays
+from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
+from monostixels.geometry import Motion, ground_basis, pixel_rays
 from monostixels.stixels import StixelWorld
 
 __all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical"]
@@ -64,17 +65,30 @@ class TrackParams:
         group_depth_ratio: dynamic stixels of one object (adjacent columns, overlapping rows, depths
             within this relative difference) share the median of their motions as the velocity
             measurement; 0 = every stixel on its own.
+        eta_std_rel, eta_std_abs: error (std) of one pair's closing rate ``-v_rel,z / Z``: relative, and
+            absolute (1/s).
+        eta_process_std: random walk of the closing rate beyond constant relative velocity (1/s per
+            square-root second: braking, turning).
+        ground_height_std_rel: error (std) of one pair's road height under a ground stixel, relative to
+            the camera height (the flow fits each ground stixel's plane).
+        ground_height_process_std: random walk of the road height along a track (metres per
+            square-root second: slopes, kerbs passing under the column).
     """
 
     enabled: bool = True
     accel_std_mps2: float = 2.0
     depth_std_rel: float = 0.08
     depth_std_min_m: float = 0.2
-    velocity_std_mps: float = 0.5
-    velocity_std_rel: float = 0.2
+    velocity_std_mps: float = 0.3
+    velocity_std_rel: float = 0.05
     static_velocity_std_mps: float = 0.3
     max_age_frames: int = 5
     group_depth_ratio: float = 0.25
+    eta_std_rel: float = 0.05
+    eta_std_abs: float = 0.01
+    eta_process_std: float = 0.05
+    ground_height_std_rel: float = 0.03
+    ground_height_process_std: float = 0.1
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -85,11 +99,13 @@ class TrackParams:
                 continue
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
                 raise InputError(f"temporal.{f.name}: a finite number, got {v!r}")
-        for k in ("accel_std_mps2", "depth_std_rel", "depth_std_min_m", "velocity_std_mps", "static_velocity_std_mps"):
+        for k in ("accel_std_mps2", "depth_std_rel", "depth_std_min_m", "velocity_std_mps", "static_velocity_std_mps",
+                  "eta_std_abs", "eta_process_std", "ground_height_std_rel", "ground_height_process_std"):
             if getattr(self, k) <= 0:
                 raise InputError(f"temporal.{k}: must be > 0, got {getattr(self, k)}")
-        if self.velocity_std_rel < 0:
-            raise InputError(f"temporal.velocity_std_rel: must be >= 0, got {self.velocity_std_rel}")
+        for k in ("velocity_std_rel", "eta_std_rel"):
+            if getattr(self, k) < 0:
+                raise InputError(f"temporal.{k}: must be >= 0, got {getattr(self, k)}")
         if not (isinstance(self.max_age_frames, int) and self.max_age_frames >= 1):
             raise InputError(f"temporal.max_age_frames: an integer >= 1, got {self.max_age_frames!r}")
         if self.group_depth_ratio < 0:
@@ -241,6 +257,11 @@ class Tracks:
         self.last_frame = torch.zeros(0, dtype=torch.long)   # (T,) frame number of the last update
         self.measured = torch.zeros(0, dtype=torch.bool)     # (T,) position measured with a baseline
         self.y = torch.zeros(0, dtype=torch.float64)         # (T,) world height of the tracked point (m)
+        self.kind = torch.zeros(0, dtype=torch.long)         # (T,) 0 object, 1 ground
+        self.gy = torch.zeros(0, dtype=torch.float64)        # (T,) ground tracks: the plane's distance (m)
+        self.gy_var = torch.zeros(0, dtype=torch.float64)    # (T,) its variance
+        self.eta = torch.zeros(0, dtype=torch.float64)       # (T,) closing rate -v_rel,z / Z (1/s)
+        self.eta_var = torch.zeros(0, dtype=torch.float64)   # (T,) its variance
         self.next_id = 0
 
     # ------------------------------------------------------------------ model
@@ -280,7 +301,8 @@ class Tracks:
 
     # ------------------------------------------------------------------ one frame
     def update(self, world: StixelWorld, *, frame: int, time: float, pose: torch.Tensor, dt_pair: float,
-               degenerate: bool) -> dict[str, torch.Tensor]:
+               degenerate: bool, camera_velocity: torch.Tensor | None = None,
+               motion: Motion | None = None) -> dict[str, torch.Tensor]:
         """Associate, filter and report the tracks of one frame.
 
         Args:
@@ -289,11 +311,16 @@ class Tracks:
             pose: (4, 4) camera-to-world of the frame.
             dt_pair: seconds between the pair's frames.
             degenerate: the pair had no baseline: static depths are the scene model's, not a measurement.
+            camera_velocity: (3,) the camera's velocity over the pair in its current axes (m/s), for the
+                closing rates; None = standing.
+            motion: the pair's camera motion (``X_prev = R X_cur + t``): tracked movers' motions are then
+                recomputed at their tracks' depths; None = the solver's.
 
         Returns:
-            ``track_id`` (N,) int64 (-1: ground, sky), ``position`` (N, 3) filtered world position (NaN where
-            untracked), ``velocity`` (N, 3) world m/s, ``carried`` (N,) bool: a static stixel of a frame
-            without baseline whose depth comes from its track.
+            ``track_id`` (N,) int64 (-1: sky), ``position`` (N, 3) filtered world position (NaN where
+            untracked), ``point_cam`` (N, 3) the filtered point on the stixel's ray in the current camera, ``velocity`` (N, 3) world m/s, ``carried`` (N,) bool: a static stixel of a frame
+            without baseline whose depth comes from its track, ``ttc`` (N,) seconds from the filtered
+            closing rate (inf: not closing; ground and sky inf).
         """
         prm = self.params
         N = len(world)
@@ -301,7 +328,11 @@ class Tracks:
         Rwc, o = pose[:3, :3].to(dtype), pose[:3, 3].to(dtype)
         X_cam, u, v = stixel_points(world)
         X_w = X_cam @ Rwc.T + o
-        obj = ((world.type == STATIC_OBJECT) | (world.type == DYNAMIC_OBJECT)) & torch.isfinite(X_w).all(1)
+        # Ground stixels are tracked too (static; their plane's height comes from the flow, and so does
+        # its frame-to-frame noise); objects continue object tracks, ground ground tracks.
+        obj = ((world.type == STATIC_OBJECT) | (world.type == DYNAMIC_OBJECT) | (world.type == GROUND)) \
+            & torch.isfinite(X_w).all(1)
+        kind = (world.type == GROUND).long()
         dyn = world.type == DYNAMIC_OBJECT
         vel_meas = torch.where(dyn[:, None], world.motion.to(dtype) @ Rwc.T / max(dt_pair, 1e-6),
                                torch.zeros(N, 3, dtype=dtype))
@@ -311,11 +342,15 @@ class Tracks:
             vel_meas = _group_median(vel_meas, object_groups(world, prm.group_depth_ratio))
         fx = float(world.K[0, 0])
         lateral_std = X_cam[:, 2].abs() * (world.column_width / fx) / 2 + 0.05
+        # Closing rate eta = -v_rel,z / Z (1/s) of this pair alone: depth and speeds share the monocular
+        # scale, so their ratio does not (TTC = 1 / eta is scale-free; the paper's "time to contact").
+        v_cam = torch.zeros(3, dtype=dtype) if camera_velocity is None else camera_velocity.to(dtype)
+        eta_meas = -(vel_meas @ Rwc - v_cam[None])[:, 2] / X_cam[:, 2].clamp_min(1e-3)
 
         # --- association: the tracks' predicted points, seen from this camera
         parent = torch.full((N,), -1, dtype=torch.long)  # row of the track a stixel continues
         if self.ids.numel() and bool(obj.any()):
-            parent = self._associate(world, obj, time, Rwc, o, X_w, lateral_std, dyn, vel_meas, degenerate)
+            parent = self._associate(world, obj, kind, time, Rwc, o, X_w, lateral_std, dyn, vel_meas, degenerate)
         keeps_id = parent >= 0
         rows_all = torch.nonzero(obj).squeeze(1)
         out_id = torch.full((N,), -1, dtype=torch.long)
@@ -338,6 +373,12 @@ class Tracks:
         if bool(has.any()):
             x_pred[has], P_pred[has] = self._predict(c[has], time)
             prior_measured[has] = self.measured[c[has]]
+            if motion is not None and bool((has & dyn[rows_all]).any()):
+                # A mover's flow fixes g = p (t - R Δ), not Δ: with its track's depth instead of this
+                # pair's ground contact, Δ = R^T (t - g / p) loses most of the contact's error.
+                vel_meas = self._velocity_at_track_depth(world, rows_all, has, x_pred, X_cam, Rwc, o, motion,
+                                                         dt_pair, vel_meas)
+                z[:, 2:] = vel_meas[rows_all][:, [0, 2]]
         # Noise scaled by the prediction, not by the measurement: a measurement-scaled noise would give
         # the too-far and too-fast readings less weight and bias the filter low.
         Rm = self._measurement(x_pred[:, :2], x_pred[:, 2:], dyn[rows_all], o[[0, 2]], lateral_std[rows_all])
@@ -353,6 +394,21 @@ class Tracks:
             x_new[upd] = x_pred[upd] + (Kg @ (z[upd] - x_pred[upd])[:, :, None])[..., 0]
             P_new[upd] = (torch.eye(4, dtype=dtype) - Kg) @ P_pred[upd]
         carried[rows_all[hold]] = True
+        # Ground: what is filtered is the stixel plane's distance d = 1/p, the camera's height above the
+        # road under it (a scalar, static; it does not change as the camera turns, and is the same
+        # wherever on a flat road the stixel's middle row falls as the stixel changes from frame to frame).
+        ground = kind[rows_all] == 1
+        d_m = 1.0 / world.inverse_depth.double()[rows_all].clamp_min(1e-6)
+        r_d = (prm.ground_height_std_rel * d_m) ** 2
+        gy, gy_var = d_m.clone(), r_d.clone()
+        gh = has & ground
+        if bool(gh.any()):
+            rows_g = c[gh]
+            v_pred = self.gy_var[rows_g] + prm.ground_height_process_std ** 2 * (time - self.time[rows_g]).clamp_min(0.0)
+            k = torch.where(hold[gh], torch.zeros_like(v_pred), v_pred / (v_pred + r_d[gh]))
+            gy[gh] = self.gy[rows_g] + k * (d_m[gh] - self.gy[rows_g])
+            gy_var[gh] = (1.0 - k) * v_pred
+        x_new[ground], P_new[ground] = z[ground], Rm[ground]
 
         ids = torch.empty(n, dtype=torch.long)
         ids[keeps] = self.ids[c[keeps]]
@@ -360,6 +416,7 @@ class Tracks:
         ids[~keeps] = torch.arange(self.next_id, self.next_id + n_new)
         self.next_id += n_new
         measured_now = prior_measured | dyn[rows_all] | (not degenerate)
+        eta_new, eta_var_new = self._filter_eta(c, has, eta_meas[rows_all], time, degenerate & ~dyn[rows_all])
 
         # Replace the continued tracks, append the new ones (splits included), drop the stale.
         keep = torch.ones(self.ids.numel(), dtype=torch.bool)
@@ -371,21 +428,90 @@ class Tracks:
         self.last_frame = torch.cat([self.last_frame[keep], torch.full((n,), int(frame), dtype=torch.long)])
         self.measured = torch.cat([self.measured[keep], measured_now])
         self.y = torch.cat([self.y[keep], X_w[rows_all][:, 1]])
+        self.kind = torch.cat([self.kind[keep], kind[rows_all]])
+        self.gy = torch.cat([self.gy[keep], gy])
+        self.gy_var = torch.cat([self.gy_var[keep], gy_var])
+        self.eta = torch.cat([self.eta[keep], eta_new])
+        self.eta_var = torch.cat([self.eta_var[keep], eta_var_new])
         self._drop_old(frame)
 
         out_id[rows_all] = ids
+        # The filtered point on the stixel's own ray (it stays in its column): the ray's scale whose
+        # horizontal position is nearest the filtered one.
+        r_w = X_cam[rows_all] @ Rwc.T
+        a = r_w[:, [0, 2]]
+        b = x_new[:, :2] - o[[0, 2]]
+        lam = (a * b).sum(1) / (a * a).sum(1).clamp_min(1e-12)
+        # Ground: where the ray meets the plane at the filtered distance (the measured point is on d_m).
+        lam = torch.where(ground, gy / d_m, lam)
+        out_cam = torch.full((N, 3), math.nan, dtype=dtype)
+        out_cam[rows_all] = lam[:, None] * X_cam[rows_all]
         y = X_w[rows_all][:, 1]
         out_pos[rows_all] = torch.stack([x_new[:, 0], y, x_new[:, 1]], 1)
         out_vel[rows_all] = torch.stack([x_new[:, 2], torch.zeros_like(y), x_new[:, 3]], 1)
-        return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried}
+        out_ttc = torch.full((N,), math.inf, dtype=dtype)
+        out_ttc[rows_all] = torch.where(eta_new > 1e-6, 1.0 / eta_new.clamp_min(1e-6), torch.full_like(eta_new, math.inf))
+        return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried, "ttc": out_ttc,
+                "point_cam": out_cam}
+
+    def _velocity_at_track_depth(self, world: StixelWorld, rows_all: torch.Tensor, has: torch.Tensor,
+                                 x_pred: torch.Tensor, X_cam: torch.Tensor, Rwc: torch.Tensor, o: torch.Tensor,
+                                 motion: Motion, dt_pair: float, vel_meas: torch.Tensor) -> torch.Tensor:
+        """World velocities (N, 3) with each tracked dynamic stixel's motion recomputed at its predicted depth
+        (the object's median again where grouping is on)."""
+        dyn = world.type == DYNAMIC_OBJECT
+        sel = has & dyn[rows_all]
+        rows = rows_all[sel]
+        r_w = X_cam[rows] @ Rwc.T
+        a, b = r_w[:, [0, 2]], x_pred[sel, :2] - o[[0, 2]]
+        lam = ((a * b).sum(1) / (a * a).sum(1).clamp_min(1e-12)).clamp(0.5, 2.0)  # at most a factor 2 off
+        n = world.normals()[rows]
+        p_track = 1.0 / ((lam[:, None] * X_cam[rows]) * n).sum(1).clamp_min(1e-3)
+        R, t = motion.R.double(), motion.t.double()
+        g = world.tau.double()[rows] @ ground_basis(world.ground_normal.double()).T  # (n, 3): B tau
+        delta = (t[None] - g / p_track[:, None]) @ R  # R^T (t - g / p) as rows
+        out = vel_meas.clone()
+        out[rows] = delta @ Rwc.T / max(dt_pair, 1e-6)
+        if self.params.group_depth_ratio > 0:
+            out = _group_median(torch.where(dyn[:, None], out, torch.zeros_like(out)),
+                                object_groups(world, self.params.group_depth_ratio))
+        return out
+
+    def _filter_eta(self, parent: torch.Tensor, has: torch.Tensor, eta_meas: torch.Tensor, time: float,
+                    hold: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Filtered closing rates (n,) 1/s and their variances of the stixels continuing tracks ``parent``
+        (``has``) or starting new ones (at their measurement).
+
+        At constant relative velocity ``d eta / dt = eta^2``: the prediction is ``eta / (1 - eta dt)``
+        (its variance scaled by the square of that map's slope), plus a random walk of
+        ``eta_process_std`` per square-root second. ``hold``: no measurement (a static stixel without
+        baseline), the prediction stands.
+        """
+        prm = self.params
+        r = (prm.eta_std_rel * eta_meas.abs() + prm.eta_std_abs) ** 2
+        eta, var = eta_meas.clone(), r.clone()
+        if bool(has.any()):
+            rows = parent[has]
+            dt = (time - self.time[rows]).clamp_min(0.0)
+            e0 = self.eta[rows]
+            den = (1.0 - e0 * dt).clamp_min(0.2)  # past the predicted contact: no faster than 5x
+            e_pred = e0 / den
+            v_pred = self.eta_var[rows] / den**4 + prm.eta_process_std**2 * dt
+            # Noise from the prediction's size (a measurement-scaled noise would favour small rates).
+            r_h = (prm.eta_std_rel * e_pred.abs() + prm.eta_std_abs) ** 2
+            k = torch.where(hold[has], torch.zeros_like(v_pred), v_pred / (v_pred + r_h))
+            eta[has] = e_pred + k * (eta_meas[has] - e_pred)
+            var[has] = (1.0 - k) * v_pred
+        return eta, var
 
     def _drop_old(self, frame: int) -> None:
         keep = (frame - self.last_frame) <= self.params.max_age_frames
         if not bool(keep.all()):
-            for k in ("x", "P", "ids", "time", "last_frame", "measured", "y"):
+            for k in ("x", "P", "ids", "time", "last_frame", "measured", "y", "kind", "gy", "gy_var", "eta", "eta_var"):
                 setattr(self, k, getattr(self, k)[keep])
 
-    def _associate(self, world: StixelWorld, obj: torch.Tensor, time: float, Rwc: torch.Tensor, o: torch.Tensor,
+    def _associate(self, world: StixelWorld, obj: torch.Tensor, kind: torch.Tensor, time: float, Rwc: torch.Tensor,
+                   o: torch.Tensor,
                    X_w: torch.Tensor, lateral_std: torch.Tensor, dyn: torch.Tensor, vel_meas: torch.Tensor,
                    degenerate: bool) -> torch.Tensor:
         """Row (N,) of the track each stixel continues (-1: none).
@@ -415,7 +541,7 @@ class Tracks:
         if cand.numel() == 0:
             return parent
         sc = s_of[cand]
-        ok = obj[sc]
+        ok = obj[sc] & (kind[sc] == self.kind[cand])
         cand, sc = cand[ok], sc[ok]
         if cand.numel() == 0:
             return parent
@@ -428,6 +554,7 @@ class Tracks:
         gate = d2 < _CHI2_4DOF_999
         if degenerate:
             gate |= ~dyn[sc]
+        gate |= kind[sc] == 1  # a ground track's point follows its stixel's middle row: no position gate
         cand, sc, d2 = cand[gate], sc[gate], d2[gate]
         if cand.numel() == 0:
             return parent

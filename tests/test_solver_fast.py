@@ -134,3 +134,146 @@ def test_cell_sums_identical_to_torch(dtype):
     # The partial top cell and last column sum the pixels they have (no averaging, no dropping).
     ones = torch.ones(1, 1, 7, 9, dtype=dtype)
     assert solver_mod._block_sum(ones, 3, 4, use_cpp=True)[0, 0].tolist() == [[12, 12, 3]] * 2 + [[4, 4, 1]]
+
+
+# ------------------------------------------------------------ preparation in the kernel (same bits)
+def _cast(prob, dtype: torch.dtype):
+    return _as_dtype(prob, dtype) if dtype != torch.float64 else prob
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("seed", range(12))
+def test_cpp_preparation_identical_to_torch(seed, dtype):
+    """Per-cell geometry, hypothesis sets (with g = K B tau) and semantic prefix: the kernel's bits."""
+    prob, prm, cfg = random_problem(700 + seed, H=11 + seed, W=9 + 2 * seed, sem=seed % 4 != 0,
+                                    degenerate=seed % 5 == 0)
+    prob = _cast(prob, dtype)
+    cfg = _with(cfg, dtype="float64" if dtype == torch.float64 else "float32", standing_hypotheses=seed % 3 != 0)
+    geo_t, geo_c = solver_mod._geometry(prob), solver_mod._geometry(prob, cpp=True)
+    for k in ("ray", "a", "cK", "s_g", "s_o", "q"):
+        assert torch.equal(getattr(geo_t, k), getattr(geo_c, k)), k
+    hyp_t = solver_mod._hypotheses(prob, _with(cfg, backend="eager"), geo_t)
+    hyp_c = solver_mod._hypotheses(prob, _with(cfg, backend="cpp"), geo_c)
+    for k in ("p_ground", "p_object", "tau", "B"):
+        assert torch.equal(getattr(hyp_t, k), getattr(hyp_c, k)), k
+    g_t = solver_mod._flow_geometry(prob, hyp_t, geo_t)[-1]
+    assert hyp_t.g is None and torch.equal(g_t, hyp_c.g)
+    # Cells without a fit were replaced (reference ground, farthest depth, tau = 0): repeats exist.
+    assert len(set(hyp_c.p_ground[0].tolist())) < hyp_c.p_ground.shape[1]
+    prm_t = prm.as_tensors(dtype)
+    for margin in (5.0, math.inf):
+        L_t, cls_t = solver_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_t)
+        L_c, cls_c = solver_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_c, cpp=True)
+        assert cls_t == cls_c and torch.equal(L_t, L_c), margin
+
+
+def test_fit_threshold_is_geometrys():
+    import inspect
+
+    from monostixels.geometry import solve_dynamic_dof, solve_static_dof
+
+    for f in (solve_static_dof, solve_dynamic_dof):
+        assert inspect.signature(f).parameters["eps"].default == solver_mod._FIT_EPS
+
+
+@needs_kernel
+@pytest.mark.parametrize("semantic", [True, False], ids=["sem", "nosem"])
+def test_cpp_identical_on_flat_scene_with_ties(semantic):
+    """Zero flow, uniform scores, no structural priors: most hypotheses repeat and many energies tie."""
+    prob, prm, cfg = random_problem(31, H=16, W=10, sem=semantic, zero_structure=True)
+    prob = dataclasses.replace(prob, flow=torch.zeros_like(prob.flow),
+                               nll=None if prob.nll is None else torch.full_like(prob.nll, math.log(10)))
+    eager = solve_columns(prob, prm, _with(cfg, backend="eager"))
+    fast = solve_columns(prob, prm, _with(cfg, backend="cpp"))
+    for k in SOLUTION_FIELDS:
+        assert torch.equal(getattr(eager, k), getattr(fast, k)), k
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cell_means_layouts_and_value_checks(dtype):
+    """Planar and per-pixel-interleaved inputs give _block_sum's bits divided by the count, in
+    (B, C, n, ch) memory; the same pass catches one bad value anywhere (whole vectors and the rest)."""
+    g = torch.Generator().manual_seed(1)
+    B, H, W, r, w = 2, 23, 41, 3, 5  # W % 16 and W % 8 != 0: the pixels after the last whole vector
+    n, C = -(-H // r), -(-W // w)
+    count = (torch.clamp(H - torch.arange(n) * r, max=r)[:, None] * torch.clamp(W - torch.arange(C) * w, max=w)).to(dtype)
+    planar = torch.rand(B, 10, H, W, generator=g).to(dtype)
+    a = torch.randn(B, H, W, 2, 2, generator=g).to(dtype)
+    cov = a @ a.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=dtype)  # positive definite
+    inter = cov.permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
+    pairs = torch.randn(B, H, W, 2, generator=g).to(dtype).permute(0, 3, 1, 2)  # 2 interleaved channels
+    for x, check in [(planar, _dp_cpp.CHECK_NONNEGATIVE), (inter, _dp_cpp.CHECK_POSITIVE_DEFINITE),
+                     (pairs, _dp_cpp.CHECK_FINITE)]:
+        means, ok = _dp_cpp.cell_means_checked(x, r, w, count, check)
+        ref = solver_mod._block_sum(x.contiguous(), r, w) / count
+        assert ok and means.shape == (B, C, n, x.shape[1]) and means.is_contiguous()
+        assert torch.equal(means, ref.permute(0, 3, 2, 1))
+    for (b, v, u) in [(0, 0, 0), (1, 22, 40), (1, 7, 33), (0, 11, 17)]:
+        bad = planar.clone()
+        bad[b, 4, v, u] = -1e-6
+        assert not _dp_cpp.cell_means_checked(bad, r, w, count, _dp_cpp.CHECK_NONNEGATIVE)[1]
+        for i, j, val in [(0, 0, -0.5), (1, 1, 0.0), (0, 1, 1e3)]:
+            c = cov.clone()
+            c[b, v, u, i, j] = val
+            if i != j:
+                c[b, v, u, j, i] = val  # symmetric, det < 0
+            x = c.permute(0, 3, 4, 1, 2).reshape(B, 4, H, W)
+            assert not _dp_cpp.cell_means_checked(x, r, w, count, _dp_cpp.CHECK_POSITIVE_DEFINITE)[1], (b, v, u, i, j)
+        p = pairs.clone()
+        p[b, 1, v, u] = float("nan")
+        assert not _dp_cpp.cell_means_checked(p, r, w, count, _dp_cpp.CHECK_FINITE)[1]
+
+
+@pytest.mark.parametrize("backend", ["eager", "cpp"])
+def test_bad_values_named_on_both_backends(backend):
+    """The value checks run after the cell sums now; the errors are the same as before, on both paths."""
+    if backend == "cpp" and not _dp_cpp.available():
+        pytest.skip(f"C++ kernel not built: {_dp_cpp.build_error()}")
+    from monostixels._checks import InputError
+
+    from tests.test_solver import _good
+
+    flow, cov, sc, cam, mot = _good()
+    cfg, prm = SolverConfig.from_yaml(cell_rows=2, backend=backend), PriorParams.from_yaml()
+    cases = []
+    f = flow.clone()
+    f[1, 11, 9] = float("inf")
+    cases.append(((f, cov, sc), "flow: 1 non-finite"))
+    c = cov.clone()
+    c[5, 9, 0, 1] = c[5, 9, 1, 0] = 2.0
+    cases.append(((flow, c, sc), "positive definite"))
+    s = sc.clone()
+    s[3, 0, 0] = -0.01
+    cases.append(((flow, cov, s), "non-negative"))
+    s = sc.clone()
+    s[9, 11, 9] = float("nan")
+    cases.append(((flow, cov, s), "semantic scores: 1 non-finite"))
+    for (fl, cv, scores), msg in cases:
+        with pytest.raises(InputError, match=msg):
+            solve(fl, cv, scores, cam, mot, prm, cfg)
+    # Finite values whose cell sum overflows fail the fast check only: the full check passes them.
+    f = flow.clone()
+    f[0, 0, :2] = 3e38
+    assert len(solve(f, cov, sc, cam, mot, prm, cfg)) > 0
+
+
+@needs_kernel
+def test_cpp_batch_of_frames_identical_to_eager_and_single_frames():
+    """Three frames in one batch (the cell means read image after image): the same worlds as
+    solving each frame alone, and as the eager path."""
+    pairs = [render_pair(s, scale=0.25) for s in (1, 2, 3)]
+    H, W = pairs[0].size
+    flows = [p.gt.flow.float() for p in pairs]
+    covs = [(0.5**2) * torch.eye(2).expand(H, W, 2, 2).contiguous() for _ in pairs]
+    scores = [gt_scores(p.gt.labels, confidence=0.9) for p in pairs]
+    cams, mots, prior = [p.camera for p in pairs], [p.motion for p in pairs], PriorParams.from_yaml()
+    worlds = {b: solver_mod.solve_batch(flows, covs, scores, cams, mots, prior, SolverConfig.from_yaml(cell_rows=2, backend=b))
+              for b in ("eager", "cpp")}
+    cfg = SolverConfig.from_yaml(cell_rows=2, backend="cpp")
+    for k in range(len(pairs)):
+        alone = solve(flows[k], covs[k], scores[k], cams[k], mots[k], prior, cfg)
+        for f in WORLD_FIELDS:
+            assert torch.equal(getattr(worlds["cpp"][k], f), getattr(alone, f)), (k, f)
+            assert torch.equal(getattr(worlds["cpp"][k], f), getattr(worlds["eager"][k], f)), (k, f)

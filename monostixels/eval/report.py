@@ -97,7 +97,11 @@ def _extra_sections(report: dict) -> list[tuple[str, list[str], list[list[str]]]
                  _num(sm.get("moving_share"), 100.0, 2)]]
         if "static_moving_share" in sm:
             rows.append(["of ground-truth static pixels [%]", _num(sm.get("static_moving_share"), 100.0, 2)])
-        if "moving_recall" in sm:
+        if "moving_recall_mask" in sm:
+            rows.append([f"of ground-truth movers faster than {_num(sm.get('speed_mps'), 1.0, 1)} m/s [%]",
+                         _num(sm.get("moving_recall"), 100.0, 2)])
+            rows.append(["of all ground-truth moving pixels [%]", _num(sm.get("moving_recall_mask"), 100.0, 2)])
+        elif "moving_recall" in sm:
             rows.append(["of ground-truth moving pixels [%]", _num(sm.get("moving_recall"), 100.0, 2)])
         out.append(("Stixel motion", ["metric", "value"], rows))
     tmp = report.get("temporal")
