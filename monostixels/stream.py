@@ -20,6 +20,13 @@ A pair is continued when its earlier frame (``meta["frame_prev"]``) is a kept fr
 frames back are continued too. Any other pair (independent pairs, the first pair of a clip, a pair
 after a failed one) starts cold, exactly as :meth:`Pipeline.run` without a state.
 
+With ``stream.overlap`` the state also overlaps consecutive pairs: the sequence layer reads its source
+through :meth:`StreamState.lookahead`, and once a pair's camera motion is known (all the next pair
+starts from), :meth:`StreamState.start_next` reads the next pair (the next frame, paired as far back as
+this one) and computes its flow and semantics in a second thread while this pair is solved; the
+pipeline takes them (:meth:`StreamState.take_inputs`) if that is the pair asked for next and the state
+has not changed since, else computes them itself. The results are the same either way.
+
 Convention (SPEC section 2): flow ``x_prev = x + f(x)`` from the current to the previous image, pixels;
 camera motion ``X_prev = R X_cur + t`` (metres).
 """

@@ -22,6 +22,9 @@ from __future__ import annotations
 
 import logging
 import math
+import queue
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -311,9 +314,6 @@ class LiveVideoSource:
                  hfov_deg: float | None = None, step: int = 1, start: int = 0, end: int | None = None,
                  resize: float | Sequence[int] | None = None, frames: int | None = None,
                  camera_height: float = KITTI_CAMERA_HEIGHT_M, pitch: float = 0.0, window: int = 10) -> None:
-        import queue
-        import threading
-
         if path is None or str(path) == "":
             raise InputError("video data.path: no camera, URL or video file given (data.path=0, data.path=rtsp://..., "
                              "data.path=clip.mp4)")
@@ -381,7 +381,6 @@ class LiveVideoSource:
         self._ended = False
         self._error: str | None = None
         self._stop = threading.Event()
-        self._t0: float | None = None
         # The reader starts when the consumer asks for the first frame: a file's clock (frame k arrives
         # k / fps after the first) starts then, not while the pipeline is being built.
         self._thread = threading.Thread(target=self._read, args=(cap, first), name="monostixels-video-reader", daemon=True)
@@ -402,8 +401,6 @@ class LiveVideoSource:
         return torch.from_numpy(np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).transpose(2, 0, 1)))
 
     def _read(self, cap: Any, first: np.ndarray) -> None:
-        import time
-
         t0 = time.perf_counter()
         index, img = 0, first
         try:
@@ -439,8 +436,6 @@ class LiveVideoSource:
                 self._queue.put(None)
 
     def _offer(self, frame: _Taken) -> None:
-        import queue
-
         if self.realtime:
             with self._cond:
                 if self._slot is not None:
@@ -459,8 +454,6 @@ class LiveVideoSource:
 
     def _next(self) -> _Taken | None:
         """The next frame to take (blocking), None when the stream has ended."""
-        import queue
-
         if self.realtime:
             with self._cond:
                 while self._slot is None and not self._ended:
