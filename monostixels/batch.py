@@ -272,7 +272,7 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
 
     from monostixels.data.sources import make_source
     from monostixels.pipeline import Pipeline
-    from monostixels.stream import StreamState
+    from monostixels.sequence import SequenceRunner
 
     logging.getLogger("monostixels").setLevel(str(cfg.get("log_level", "INFO")))
     torch.set_num_threads(max(1, int(threads)))
@@ -287,13 +287,13 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
         src = make_source(conf)
         if len(src) == 0:
             raise InputError(f"{clip.path}: no frame pairs")
-        pipe = Pipeline(conf, allow_motion_failure=True, sfm=False)
-        stream = StreamState.from_config(conf)  # the work run carries from frame to frame (stream group)
+        # The same frames, pairs, tracks and TTC as `monostixels run` (keyframes and the stream state).
+        runner = SequenceRunner(conf, Pipeline(conf, allow_motion_failure=True, sfm=False))
         poses = PoseChain()
         fps = getattr(src, "fps", None)
         columns: dict[str, list] = {name: [] for name, _, _ in SCHEMA_FIELDS}
-        for i, pair in enumerate(src):
-            res = pipe.run(pair, state=stream)
+        for i, step in enumerate(runner.run(src)):
+            pair, res = step.pair, step.result
             rows = frame_rows(i, pair, res, poses.update(pair, res), fps)
             for k, v in rows.items():
                 columns[k].extend(v)

@@ -123,8 +123,17 @@ def test_batch_on_ray_equals_run_and_resumes(tmp_path, ray_tmp):
     assert np.allclose(np.array(t["timestamp"], dtype=float)[clip == "a"], (frame_a + 1) / FPS)
     assert np.allclose(np.array(t["dt"], dtype=float)[clip == "a"], 1 / FPS)
     assert all(v is None for v, c in zip(t["timestamp"], t["clip"]) if c == "b")
-    # No sequence layer here: the temporal columns are there, null.
-    assert all(v is None for k in ("track_id", "velocity_x", "ttc_s") for v in t[k])
+    # The sequence layer's fields, as in run's JSON (track -1 / TTC null there: null / inf here).
+    for name in ("a", "b"):
+        rows = [s for d in sorted(x for x in (tmp_path / f"run_{name}" / "run").iterdir() if x.is_dir())
+                for s in json.loads((d / "stixels.json").read_text())["stixels"]]
+        sel = clip == name
+        track = [-1 if v is None else v for v in np.array(t["track_id"], dtype=object)[sel]]
+        assert track == [s["track_id"] for s in rows]
+        ttc = np.array(t["ttc_s"], dtype=float)[sel]
+        want = np.array([math.inf if s["ttc_s"] is None else s["ttc_s"] for s in rows])
+        assert np.array_equal(np.isinf(ttc), np.isinf(want)) and np.allclose(ttc[~np.isinf(ttc)], want[~np.isinf(want)])
+        assert np.allclose(np.array(t["velocity_x"], dtype=float)[sel], [s["velocity"][0] for s in rows])
     # World positions: the cameras stay at one height over a flat road, so the road is at y = +1.65 m
     # (the camera height; y down) in the world frame too.
     ground = (np.array(t["type"]) == "ground") & np.array([y is not None for y in t["y"]])
@@ -165,12 +174,14 @@ def _check_doc_queries(cwd: Path, t: dict[str, list]) -> None:
     assert all(m == want[(c, f)] for c, f, m, _ in ns["nearest"])
     pa_rows = ns["nearest_pa"].to_pydict()
     assert dict(zip(zip(pa_rows["clip"], pa_rows["frame"]), pa_rows["depth_min"])) == want
-    # Movers faster than 5 m/s: |motion| / dt, where the interval is known (the video clip).
-    speed = [math.hypot(x, y, z) / dt if dt else None
-             for x, y, z, dt in zip(t["motion_x"], t["motion_y"], t["motion_z"], t["dt"])]
+    # Movers faster than 5 m/s: the tracks' velocity where there is one, else |motion| / dt where the
+    # interval is known.
+    speed = [math.hypot(vx, vy, vz) if vx is not None else (math.hypot(x, y, z) / dt if dt else None)
+             for vx, vy, vz, x, y, z, dt in zip(t["velocity_x"], t["velocity_y"], t["velocity_z"], t["motion_x"],
+                                                t["motion_y"], t["motion_z"], t["dt"])]
     fast = sorted((c, f, col) for c, f, col, ty, v in zip(t["clip"], t["frame"], t["column"], typ, speed)
                   if ty == "dynamic_object" and v is not None and v > 5)
-    assert len(fast) > 0 and sorted((c, f, col) for c, f, col, *_ in ns["fast"]) == fast
+    assert sorted((c, f, col) for c, f, col, *_ in ns["fast"]) == fast
 
 
 def test_docs_list_every_column():

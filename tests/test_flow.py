@@ -270,9 +270,16 @@ def test_raft_torch_and_onnx_agree(tmp_path):
     assert f_torch.shape == (2, H, W)
     assert float(f_torch.abs().max()) > 1e-2  # random weights still give a non-trivial output
     assert torch.allclose(f_torch, f_onnx, atol=1e-3)
-    # The ONNX file is for one size: another size fails clearly.
+    # The graph takes any size (multiples of 8 after padding) and both directions as one batch.
+    c, d = _texture(141, 203, seed=4), _texture(141, 203, seed=5)
+    fwd, bwd = OnnxRaft(path).both_ways(c, d)
+    assert fwd.shape == (2, 141, 203)
+    assert torch.allclose(fwd, TorchRaft(net)(c, d), atol=1e-3) and torch.allclose(bwd, TorchRaft(net)(d, c), atol=1e-3)
+    # A graph traced for one size refuses a larger image clearly.
+    fixed = export_onnx(net, tmp_path / "fixed.onnx", H, W, dynamic=False)
+    assert torch.allclose(OnnxRaft(fixed)(a, b), f_torch, atol=1e-3)
     with pytest.raises(InputError, match="exported for 128x160"):
-        OnnxRaft(path)(_texture(136, 160), _texture(136, 160))
+        OnnxRaft(fixed)(_texture(136, 160), _texture(136, 160))
     # The state dict round-trips through load_raft_weights and the flow backend.
     wpath = tmp_path / "w.pt"
     torch.save({"model": net.raft.state_dict()}, wpath)

@@ -343,10 +343,8 @@ def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
-def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
-          grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
-    """RAFT current -> previous (``cfg.runtime`` torch | onnx); it reads the RGB images, not ``grey``,
-    and starts from zero (``init`` is not used)."""
+def _raft_net(cfg: Any) -> Any:
+    """The RAFT runner of ``cfg`` (``cfg.runtime`` torch | onnx), loaded once per file."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
     runtime = str(_get(cfg, "runtime", "torch"))
@@ -354,15 +352,40 @@ def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
         weights = _get(cfg, "weights", None)
         if weights is None:
             raise InputError("flow.weights: the raft backend needs a weights file (flow.weights=PATH)")
-        net = cached_torch_raft(resolve_path(weights), str(_get(cfg, "size", "small")), int(_get(cfg, "iters", 12)))
-    elif runtime == "onnx":
+        return cached_torch_raft(resolve_path(weights), str(_get(cfg, "size", "small")), int(_get(cfg, "iters", 12)))
+    if runtime == "onnx":
         onnx = _get(cfg, "onnx", None)
         if onnx is None:
             raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
-        net = cached_onnx_raft(resolve_path(onnx))
+        return cached_onnx_raft(resolve_path(onnx), int(_get(cfg, "threads", 0)))
+    raise InputError(f"flow.runtime: must be torch or onnx, got {runtime!r}")
+
+
+def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+          grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
+    """RAFT current -> previous (``cfg.runtime`` torch | onnx); it reads the RGB images, not ``grey``,
+    and starts from zero (``init`` is not used)."""
+    return _raft_net(cfg)(cur, prev)
+
+
+def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """RAFT's flows current -> previous and previous -> current as one batch, at ``cfg.scale`` and refined
+    as :func:`compute_flow` does each (the forward-backward check without twice the network's time)."""
+    net = _raft_net(cfg)
+    scale = flow_scale(cfg)
+    H, W = image_cur.shape[-2:]
+    if scale == 1.0:
+        fwd, bwd = net.both_ways(image_cur.float(), image_prev.float())
     else:
-        raise InputError(f"flow.runtime: must be torch or onnx, got {runtime!r}")
-    return net(cur, prev)
+        size = _scaled_size(H, W, scale)
+        fwd, bwd = net.both_ways(_downscale(image_cur, size), _downscale(image_prev, size))
+        fwd, bwd = _upsample_flow(fwd, (H, W)), _upsample_flow(bwd, (H, W))
+    for f in (fwd, bwd):
+        check_finite_fast(f, "flow from backend raft")
+    if _refine_enabled(cfg):
+        g_cur, g_prev = _gray_u8(image_cur.float()), _gray_u8(image_prev.float())
+        fwd, bwd = _refine((g_cur, g_prev), fwd), _refine((g_prev, g_cur), bwd)
+    return fwd, bwd
 
 
 #: Image backends: (current, previous, cfg, grey images or None, start flow or None) -> flow (2, H, W).
@@ -460,11 +483,14 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
     if grey_prev is not None and grey_prev.shape != tuple(pair.size):
         raise InputError(f"flow: grey_prev of shape {grey_prev.shape} for images of size {tuple(pair.size)}")
     if bool(_get(cfg, "fb_consistency", False)):
-        flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
-        # The backward flow starts from zero: the carried flow is a forward one.
-        back, _ = _flow_of_checked_images(pair.image_prev, pair.image, cfg, None, grey)
-        fb_err = fb_consistency_error(flow, back)
-        return flow, _covariance(pair.image, cfg, params, fb_err), grey
+        if str(_get(cfg, "name", "")) == "raft":
+            flow, back = _raft_both_ways(pair.image, pair.image_prev, cfg)  # RAFT starts from zero
+            grey = None
+        else:
+            flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
+            # The backward flow starts from zero: the carried flow is a forward one.
+            back, _ = _flow_of_checked_images(pair.image_prev, pair.image, cfg, None, grey)
+        return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey
     with ThreadPoolExecutor(max_workers=1) as pool:
         cov = pool.submit(_covariance, pair.image, cfg, params, None)
         flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)

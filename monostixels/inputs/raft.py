@@ -13,10 +13,10 @@ Input sizes: RAFT needs H and W divisible by 8; its 4-level correlation pyramid 
 resolution needs at least 16 cells per side, so inputs are padded (edge replication) to
 multiples of 8 and at least 128 pixels, and the flow is cropped back.
 
-ONNX: :func:`export_onnx` traces :class:`RaftFlow` for one padded input size (the traced
-coordinate grid fixes it); :class:`OnnxRaft` runs such a file with ONNX Runtime: smaller images
-are padded up to the exported size, a larger one is an :class:`InputError` naming the file and
-the size (and the command that exports a file for it).
+ONNX: :func:`export_onnx` exports :class:`RaftFlow` with a free batch and size (``torch.export``);
+:class:`OnnxRaft` runs it with ONNX Runtime, both directions of a pair as one batch of two. A graph
+of one fixed size (the legacy tracer, ``dynamic=False``) still works: smaller images are padded up
+to it, a larger one is an :class:`InputError` naming the file and the size.
 """
 from __future__ import annotations
 
@@ -38,6 +38,7 @@ __all__ = [
     "RAFT_MULTIPLE",
     "RAFT_MIN_SIZE",
     "ONNX_OPSET",
+    "ONNX_MAX_SIZE",
     "build_raft",
     "load_raft_weights",
     "RaftFlow",
@@ -150,26 +151,46 @@ def pad_images(*images: torch.Tensor, size: tuple[int, int] | None = None) -> tu
 
 
 class TorchRaft:
-    """RAFT inference in torch on (3, H, W) images; pads and crops."""
+    """RAFT inference in torch on (3, H, W) images; pads and crops (on CUDA when a GPU is present)."""
 
-    def __init__(self, module: RaftFlow) -> None:
-        self.module = module.eval()
+    def __init__(self, module: RaftFlow, device: str = "auto") -> None:
+        # On a machine with a GPU torch runs there (the fast path); everything else stays on the CPU.
+        self.device = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
+                                   ("cpu" if device == "auto" else device))
+        self.module = module.eval().to(self.device)
 
     def __call__(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> torch.Tensor:
         """Flow (2, H, W) current -> previous, pixels."""
         check_image_pair(image_cur, image_prev)
         (a, b), (H, W) = pad_images(image_cur[None].float(), image_prev[None].float())
         with torch.inference_mode():
-            flow = self.module(a, b)
+            flow = self.module(a.to(self.device), b.to(self.device)).cpu()
         return flow[0, :, :H, :W].contiguous()
 
+    def both_ways(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flows (2, H, W) current -> previous and previous -> current, as one batch of two."""
+        check_image_pair(image_cur, image_prev)
+        (a, b), (H, W) = pad_images(image_cur[None].float(), image_prev[None].float())
+        with torch.inference_mode():
+            flow = self.module(torch.cat([a, b]).to(self.device), torch.cat([b, a]).to(self.device)).cpu()
+        return flow[0, :, :H, :W].contiguous(), flow[1, :, :H, :W].contiguous()
 
-def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int, width: int, opset: int = ONNX_OPSET) -> Path:
-    """Export :class:`RaftFlow` to ONNX for images of ``height`` x ``width`` (padded size used).
 
-    The traced graph has inputs ``image_cur``, ``image_prev`` (1, 3, Hp, Wp) in [0, 1] and the
-    output ``flow`` (1, 2, Hp, Wp); ``(Hp, Wp) = padded_size(height, width)`` is stored in the
-    graph, so :class:`OnnxRaft` knows which images the file accepts.
+#: Largest padded input side (pixels) an exported ONNX graph accepts (its dynamic dimensions' bound).
+ONNX_MAX_SIZE = 4096
+
+
+def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MIN_SIZE, width: int = RAFT_MIN_SIZE,
+                opset: int = ONNX_OPSET, dynamic: bool = True) -> Path:
+    """Export :class:`RaftFlow` to ONNX.
+
+    The graph has inputs ``image_cur``, ``image_prev`` (B, 3, Hp, Wp) in [0, 1] and the output ``flow``
+    (B, 2, Hp, Wp). With ``dynamic`` (default; ``torch.export`` through onnxscript) the size is free:
+    any ``Hp, Wp`` that are multiples of 8 from :data:`RAFT_MIN_SIZE` to :data:`ONNX_MAX_SIZE`
+    (``height``, ``width`` only size the example input), and ``B = 2``: a pair both ways, the
+    forward-backward check in one run (a free batch does not export; one batch of two takes 0.87x the
+    time of two runs of one). Without it the legacy tracer fixes ``(Hp, Wp) = padded_size(height,
+    width)`` and ``B = 1``.
     """
     Hp, Wp = padded_size(height, width)
     path = Path(path)
@@ -178,14 +199,22 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int, width: i
     a = torch.rand(1, 3, Hp, Wp, generator=gen)
     b = torch.rand(1, 3, Hp, Wp, generator=gen)
     module = module.eval()
-    # The tracer warns about every shape check in RAFT's forward; the size is fixed on purpose.
+    # The exporters warn about every shape check in RAFT's forward; they are satisfied by construction.
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(
-            module, (a, b), str(path), input_names=["image_cur", "image_prev"], output_names=["flow"],
-            opset_version=opset, dynamo=False, do_constant_folding=True,
-        )
-    logger.info("exported RAFT (%d flow updates) at %dx%d to %s", module.num_flow_updates, Hp, Wp, path)
+        if dynamic:
+            lo, hi = RAFT_MIN_SIZE // RAFT_MULTIPLE, ONNX_MAX_SIZE // RAFT_MULTIPLE
+            h8, w8 = torch.export.Dim("h8", min=lo, max=hi), torch.export.Dim("w8", min=lo, max=hi)
+            dims = {2: RAFT_MULTIPLE * h8, 3: RAFT_MULTIPLE * w8}
+            a2, b2 = torch.cat([a, b]), torch.cat([b, a])
+            torch.onnx.export(module, (a2, b2), str(path), input_names=["image_cur", "image_prev"],
+                              output_names=["flow"], opset_version=max(opset, 18), dynamo=True,
+                              dynamic_shapes={"image_cur": dims, "image_prev": dims}, external_data=False)
+        else:
+            torch.onnx.export(module, (a, b), str(path), input_names=["image_cur", "image_prev"],
+                              output_names=["flow"], opset_version=opset, dynamo=False, do_constant_folding=True)
+    logger.info("exported RAFT (%d flow updates, %s) to %s", module.num_flow_updates,
+                "any size" if dynamic else f"{Hp}x{Wp}", path)
     return path
 
 
@@ -193,10 +222,12 @@ class OnnxRaft:
     """RAFT inference through ONNX Runtime (CPU) on (3, H, W) images; same output as :class:`TorchRaft`.
 
     Args:
-        path: an ONNX file written by :func:`export_onnx`.
+        path: an ONNX file written by :func:`export_onnx`: of any size (dynamic), or of one size, to which
+            smaller images are padded (a larger one is an :class:`InputError` naming the file).
+        threads: ONNX Runtime's intra-op threads (0 = its default, one per core).
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, threads: int = 0) -> None:
         import onnxruntime as ort  # imported here: only the `onnx` runtime needs it
 
         p = Path(path)
@@ -204,30 +235,50 @@ class OnnxRaft:
             raise InputError(f"flow.onnx: RAFT ONNX file not found: {str(p)!r} (export one with `python -m train.flow export_only=true`)")
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
+        if threads:
+            opts.intra_op_num_threads = int(threads)
         try:
             self.session = ort.InferenceSession(str(p), sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for bad files.
             raise InputError(f"flow.onnx: cannot load RAFT ONNX file {str(p)!r}: {exc}") from exc
         shape = self.session.get_inputs()[0].shape
         self.path = p
-        self.size = (int(shape[2]), int(shape[3]))
+        # A dynamic graph names its dimensions (strings); a fixed one has numbers.
+        self.size = None if not all(isinstance(d, int) for d in shape[2:]) else (int(shape[2]), int(shape[3]))
+        self.batch = int(shape[0]) if isinstance(shape[0], int) else 1
+
+    def _run(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        out = self.session.run(["flow"], {"image_cur": a.numpy(), "image_prev": b.numpy()})[0]
+        return torch.from_numpy(out)
+
+    def _pad(self, *images: torch.Tensor) -> tuple[list[torch.Tensor], tuple[int, int]]:
+        H, W = images[0].shape[-2:]
+        Hp, Wp = padded_size(H, W)
+        if self.size is not None and (Hp > self.size[0] or Wp > self.size[1]):
+            raise InputError(
+                f"flow.onnx: {str(self.path)!r} was exported for {self.size[0]}x{self.size[1]} inputs, the images are "
+                f"{H}x{W} (padded {Hp}x{Wp}); export it for any size with `python -m train.flow export_only=true`"
+            )
+        # A fixed-size graph: smaller images are padded up to it (edge replication, as for torch); the flow
+        # then differs slightly from the torch path, which pads only to a multiple of 8.
+        return pad_images(*(im[None].float() for im in images), size=self.size)
 
     def __call__(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> torch.Tensor:
         """Flow (2, H, W) current -> previous, pixels."""
         check_image_pair(image_cur, image_prev)
-        H, W = image_cur.shape[-2:]
-        Hp, Wp = padded_size(H, W)
-        if Hp > self.size[0] or Wp > self.size[1]:
-            raise InputError(
-                f"flow.onnx: {str(self.path)!r} was exported for {self.size[0]}x{self.size[1]} inputs, the images are "
-                f"{H}x{W} (padded {Hp}x{Wp}); export it for this size with "
-                f"`python -m train.flow export_only=true export.height={H} export.width={W} export.onnx=OUT.onnx`"
-            )
-        # Smaller images are padded up to the exported size (edge replication, as for torch); the
-        # flow then differs slightly from the torch path, which pads only to a multiple of 8.
-        (a, b), _ = pad_images(image_cur[None].float(), image_prev[None].float(), size=self.size)
-        out = self.session.run(["flow"], {"image_cur": a.numpy(), "image_prev": b.numpy()})[0]
-        return torch.from_numpy(out[0, :, :H, :W]).contiguous()
+        if self.batch == 2:
+            return self.both_ways(image_cur, image_prev)[0]
+        (a, b), (H, W) = self._pad(image_cur, image_prev)
+        return self._run(a, b)[0, :, :H, :W].contiguous()
+
+    def both_ways(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flows (2, H, W) current -> previous and previous -> current, in one batched run where the graph allows."""
+        check_image_pair(image_cur, image_prev)
+        (a, b), (H, W) = self._pad(image_cur, image_prev)
+        if self.batch == 2:
+            out = self._run(torch.cat([a, b]), torch.cat([b, a]))
+            return out[0, :, :H, :W].contiguous(), out[1, :, :H, :W].contiguous()
+        return self._run(a, b)[0, :, :H, :W].contiguous(), self._run(b, a)[0, :, :H, :W].contiguous()
 
 
 def _file_key(path: str | os.PathLike) -> tuple[str, float]:
@@ -241,8 +292,8 @@ def _torch_raft(key: tuple[str, float], size: str, num_flow_updates: int) -> Tor
 
 
 @lru_cache(maxsize=4)
-def _onnx_raft(key: tuple[str, float]) -> OnnxRaft:
-    return OnnxRaft(key[0])
+def _onnx_raft(key: tuple[str, float], threads: int = 0) -> OnnxRaft:
+    return OnnxRaft(key[0], threads)
 
 
 def cached_torch_raft(path: str | os.PathLike, size: str, num_flow_updates: int) -> TorchRaft:
@@ -252,8 +303,8 @@ def cached_torch_raft(path: str | os.PathLike, size: str, num_flow_updates: int)
     return _torch_raft(_file_key(path), size, int(num_flow_updates))
 
 
-def cached_onnx_raft(path: str | os.PathLike) -> OnnxRaft:
-    """An :class:`OnnxRaft` for an ONNX file, loaded once per (file, modification time)."""
+def cached_onnx_raft(path: str | os.PathLike, threads: int = 0) -> OnnxRaft:
+    """An :class:`OnnxRaft` for an ONNX file, loaded once per (file, modification time, threads)."""
     if not Path(path).is_file():
         OnnxRaft(path)  # raises the InputError naming the file
-    return _onnx_raft(_file_key(path))
+    return _onnx_raft(_file_key(path), int(threads))
