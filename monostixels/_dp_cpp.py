@@ -5,13 +5,23 @@ and cached in torch's extension directory (``$TORCH_EXTENSIONS_DIR``, default
 ``~/.cache/torch_extensions``); later processes load the cached library in milliseconds.
 Nothing is downloaded. Without a compiler, or when the build fails, :func:`available` returns
 False after logging ONE warning, and the solver falls back to its eager path.
+
+Builds are serialised with an ``flock`` on the build folder, which the kernel releases when a
+process dies. torch's own ``lock`` file is not released that way: a build that was killed (a
+timeout, a stopped machine) leaves it behind, and every later process would wait for it forever.
+Found while holding our lock, it can only be such a leftover and is removed.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import logging
+import os
 import platform
+import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
@@ -53,20 +63,48 @@ def _cpu_tag() -> str:
     return hashlib.sha1(f"{platform.machine()}|{model}|{flags}".encode()).hexdigest()[:8]
 
 
+def _extensions_root() -> Path:
+    """torch's extension folder (``$TORCH_EXTENSIONS_DIR``, else ``~/.cache/torch_extensions/py<ver>_cpu``)."""
+    root = os.environ.get("TORCH_EXTENSIONS_DIR")
+    if root:
+        return Path(root)
+    return Path.home() / ".cache" / "torch_extensions" / f"py{sys.version_info.major}{sys.version_info.minor}_cpu"
+
+
+@contextlib.contextmanager
+def build_lock(build_dir: Path) -> Iterator[None]:
+    """Hold the build folder's flock; a torch ``lock`` file found meanwhile is a killed build's leftover."""
+    build_dir.mkdir(parents=True, exist_ok=True)
+    with open(build_dir / ".monostixels.flock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # waits for a live builder only; a dead one's flock is gone
+        try:
+            stale = build_dir / "lock"
+            if stale.exists():
+                logger.warning("solver: removing %s, left by a C++ kernel build that did not finish", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def _build() -> None:
     from torch.utils import cpp_extension
 
     # The name carries the source's hash and the CPU tag, so an edited kernel or another CPU
     # gets its own cached build instead of a stale or illegal-instruction one.
     src_hash = hashlib.sha1(_SOURCE.read_bytes() + " ".join(_CFLAGS + _LDFLAGS).encode()).hexdigest()[:8]
-    cpp_extension.load(
-        name=f"monostixels_column_dp_{src_hash}_{_cpu_tag()}",
-        sources=[str(_SOURCE)],
-        extra_cflags=_CFLAGS,
-        extra_ldflags=_LDFLAGS,
-        is_python_module=False,
-        verbose=False,
-    )
+    name = f"monostixels_column_dp_{src_hash}_{_cpu_tag()}"
+    build_dir = _extensions_root() / name
+    with build_lock(build_dir):
+        cpp_extension.load(
+            name=name,
+            sources=[str(_SOURCE)],
+            extra_cflags=_CFLAGS,
+            extra_ldflags=_LDFLAGS,
+            build_directory=str(build_dir),
+            is_python_module=False,
+            verbose=False,
+        )
 
 
 def available() -> bool:

@@ -100,6 +100,8 @@ def _check(words: list[str]) -> None:
         flags = [a for a in words[2:] if a.startswith("-")]
         assert set(flags) <= {"--multirun", "--cfg", "-m"}, flags
         given = _overrides([a for a in words[2:] if a not in ("--cfg", "job")])
+        if {"--multirun", "-m"} & set(words):  # a sweep composes as its first point
+            given = tuple(re.sub(r"^([^=]+=)([^,\[\]]+),.*$", r"\1\2", o) for o in given)
         keys = {o.split("=", 1)[0].lstrip("+~") for o in given}
         defaults = tuple(d for d in _COMMAND_DEFAULTS.get(words[1], ()) if d.split("=")[0] not in keys)
         _compose("config", defaults + given + (f"command={words[1]}",))  # as the command composes it

@@ -112,6 +112,32 @@ def test_build_failure_falls_back_with_one_warning(monkeypatch, caplog):
         solve_columns(prob, prm, _with(cfg, backend="cpp"))
 
 
+def test_killed_build_leaves_no_lock_that_blocks(tmp_path, caplog):
+    """A build killed mid-way (torch's ``lock`` file left behind) does not make later builds wait forever."""
+    import signal
+    import subprocess
+    import sys
+
+    build_dir = tmp_path / "monostixels_column_dp_x"
+    # A process that holds the build lock, writes torch's baton file as a build does, and is killed.
+    code = ("import sys, time; from pathlib import Path; from monostixels._dp_cpp import build_lock\n"
+            "d = Path(sys.argv[1])\n"
+            "with build_lock(d):\n"
+            "    (d / 'lock').touch(); print('building', flush=True); time.sleep(600)\n")
+    p = subprocess.Popen([sys.executable, "-c", code, str(build_dir)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "building"
+        p.send_signal(signal.SIGKILL)
+        p.wait(timeout=30)
+    finally:
+        p.kill()
+    assert (build_dir / "lock").exists()
+    with caplog.at_level(logging.WARNING, logger="monostixels._dp_cpp"):
+        with _dp_cpp.build_lock(build_dir):
+            assert not (build_dir / "lock").exists()
+    assert any("did not finish" in r.getMessage() for r in caplog.records)
+
+
 def test_backend_setting_is_checked():
     from monostixels._checks import InputError
 
