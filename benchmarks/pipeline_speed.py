@@ -1,20 +1,32 @@
-"""Seconds per stage of ``monostixels run``'s default configuration on the shared KITTI raw frames.
+"""Sustained seconds per frame of ``monostixels run`` over the shared KITTI raw drives, per preset and stage.
 
-Composes the config exactly as ``monostixels run`` does (its default inputs, with the same
-fallback where a default model file is missing), builds the pipeline as ``run`` does (no SfM
-baseline, which only ``eval`` reads) and times every stage of ``Pipeline.run`` plus the dense
-depth map ``run`` writes, on full-size frames of each data root. The first ``--warmup`` frames of
-each root are not counted (model loading, kernel loading, caches); the table gives the median
-over the other frames. ``total`` is the pair's own clock (with the default overlap, the flow and
-the semantics run side by side, so it is less than the sum of the stages).
+Composes the config as ``monostixels run`` does (``preset=fast`` is its default; ``preset=accurate`` the
+most accurate inputs; with the same fallback where a default model file is missing), builds the
+pipeline and the sequence layer as ``run`` does (no SfM baseline, which only ``eval`` reads) and runs
+each drive in order, frame by frame: keyframes, the stream state carried from frame to frame
+(``stream``), tracks. The first ``--warmup`` frames of each drive are not counted (model loading,
+kernel loading, and the stream has nothing to carry yet); the table gives the median over the others.
+
+Stages: each stage's own time within ``Pipeline.run`` (flow and semantics may run side by side, and
+with ``stream.overlap`` they run for the next pair while this one is solved), the dense depth map
+``run`` turns into its outputs, ``waiting`` (for the next pair's inputs computed ahead: where the flow
+is the longer of the two chains) and ``sequence`` (reading the images, keyframes, tracks, time to
+collision: the rest of a step of the sequence layer). ``total`` is the step's own clock from one frame
+to the next, depth map included: what a stream of frames sustains. ``cpu`` is the CPU time of the
+whole process over that step (every thread) and ``main_thread_cpu`` that of the sequence layer's
+thread alone: on a shared machine, where the wall clock measures the other jobs too,
+``max(cpu / cores, main_thread_cpu)`` bounds what an idle machine with that many cores would take
+(from below: waiting is not counted).
 
 Usage::
 
-    python benchmarks/pipeline_speed.py --json p.json
-    python benchmarks/pipeline_speed.py --set flow=dis --json p_dis.json        # any config override
-    python benchmarks/pipeline_speed.py --set semantic=fcn8s --frames 4 --roots ../shared/data/kitti_raw
+    python benchmarks/pipeline_speed.py --json p.json                       # both presets, both drives
+    python benchmarks/pipeline_speed.py --presets fast --set flow=dis --json p_dis.json   # any override
+    python benchmarks/pipeline_speed.py --clock cpu --frames 6 --roots ../shared/data/kitti_raw
 
-Measured numbers: docs/results.md ("Speed") and docs/benchmarks.md.
+The JSON's ``median_seconds`` (SPEC section 4) is that of the first preset measured (``fast``, what
+``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each preset's. Measured numbers:
+docs/results.md ("Speed") and docs/benchmarks.md.
 """
 from __future__ import annotations
 
@@ -31,44 +43,84 @@ import statistics  # noqa: E402
 import time  # noqa: E402
 import types  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 import torch  # noqa: E402
 
 from monostixels import cli  # noqa: E402
 from monostixels import pipeline as pipeline_mod  # noqa: E402
 from monostixels.pipeline import Pipeline, load_config  # noqa: E402
+from monostixels.sequence import SequenceRunner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 #: The shared development frames (SPEC section 4: data/ beside SPEC.md): a labelled drive and a LiDAR drive.
 DEFAULT_ROOTS = (REPO.parent / "shared/data/kitti_raw", REPO.parent / "shared/data/kitti_raw_lidar")
+#: The presets measured by default: run's own first.
+PRESETS = ("fast", "accurate")
 
 
-def run_overrides(sets: list[str]) -> list[str]:
-    """``monostixels run``'s default inputs (with its missing-model fallback), then ``sets``."""
-    given = {s.split("=", 1)[0] for s in sets}
-    defaults = [d for d in cli._RUN_DEFAULTS if d.split("=")[0] not in given]
-    for d in list(defaults):
-        if d in cli._DEFAULT_MODELS and not cli._model_available(cli._DEFAULT_MODELS[d]):
-            logging.warning("run: %s not found; using %s (as monostixels run does)", cli._DEFAULT_MODELS[d],
-                            cli._MODEL_FALLBACK["run"])
-            defaults[defaults.index(d)] = cli._MODEL_FALLBACK["run"]
-    return defaults + sets
+def run_overrides(preset: str, sets: list[str]) -> list[str]:
+    """What ``monostixels run preset=PRESET SETS...`` composes (its defaults and missing-model fallback)."""
+    return cli.command_overrides("run", [f"preset={preset}", *sets])
+
+
+def time_preset(preset: str, roots: list[str], sets: list[str], frames: int | None, warmup: int, overlap: bool,
+                clock: Any) -> tuple[list[dict[str, float]], Any, list[str], list[int]]:
+    """Per-frame stage times of one preset over the drives, in order (warm-up frames left out)."""
+    overrides = run_overrides(preset, sets)
+    out: list[dict[str, float]] = []
+    cfg, size = None, []
+    for root in roots:
+        cfg = load_config(["data=kitti_raw", f"data.root={root}", *([f"data.frames={frames}"] if frames else []),
+                           *overrides])
+        src = cli._source(cfg)
+        pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, overlap=overlap)  # as `monostixels run` builds it
+        runner = SequenceRunner(cfg, pipe)
+        last, cpu_last, main_last, waited_last = clock(), time.process_time(), time.thread_time(), 0.0
+        for k, step in enumerate(runner.run(src)):
+            res = step.result
+            t0 = clock()
+            res.stixels.depth_map()  # what `run` turns into its depth outputs
+            now = clock()
+            sec = {k2: v for k2, v in res.seconds.items() if k2 not in ("wall", "inputs", "inputs_ahead")}
+            sec["depth_map"] = now - t0
+            # From the last frame's end to this one's: the images read, the pair solved, tracks, depth map.
+            sec["total"] = now - last
+            # The pipeline's own clock on this step (inputs computed ahead ran during the last one).
+            own = res.seconds["wall"] - res.seconds.get("inputs_ahead", 0.0)
+            # Waiting for the pair ahead (stream.overlap): its flow and semantics are not done yet.
+            waited = runner.stream.waited_s
+            sec["waiting"], waited_last = waited - waited_last, waited
+            sec["sequence"] = max(sec["total"] - sec["depth_map"] - own - sec["waiting"], 0.0)
+            # CPU seconds of the step: all threads of the process, and this (the sequence layer's) thread.
+            cpu, main = time.process_time(), time.thread_time()
+            sec["cpu"], sec["main_thread_cpu"] = cpu - cpu_last, main - main_last
+            last, cpu_last, main_last = now, cpu, main
+            size = list(step.pair.size)
+            print(f"{preset} {Path(root).name}/{step.pair.name}: " + " ".join(f"{k2} {v:.3f}" for k2, v in sec.items())
+                  + ("  (warm-up)" if k < warmup else ""), flush=True)
+            if k >= warmup:
+                out.append(sec)
+    return out, cfg, overrides, size
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--presets", nargs="+", default=list(PRESETS), help="presets to time (the first one's medians "
+                    "are the JSON's median_seconds)")
     ap.add_argument("--roots", nargs="+", default=[str(r) for r in DEFAULT_ROOTS], help="kitti_raw data roots")
-    ap.add_argument("--frames", type=int, default=6, help="frame pairs per root (the first --warmup not counted)")
-    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--frames", type=int, default=None, help="frame pairs per root (default: all; the first --warmup "
+                    "not counted)")
+    ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--set", dest="sets", nargs="*", default=[], metavar="KEY=VALUE",
-                    help="config overrides after run's defaults, e.g. flow=dis semantic=fcn8s")
+                    help="config overrides after the preset, e.g. flow=dis stream.semantic_every=3")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
                     help="cpu: stage times in CPU seconds of the process (all threads), which other jobs on a "
                          "shared machine inflate far less than wall time")
     ap.add_argument("--no-overlap", action="store_true",
                     help="semantics after the flow instead of beside it (Pipeline(overlap=False)); implied by --clock cpu, "
-                         "where the stages' CPU seconds would otherwise mix")
+                         "where the stages' CPU seconds would otherwise mix (as would stream.overlap's, also off then)")
     ap.add_argument("--json", type=str, default=None, help="write the per-stage medians and all frame times here")
     args = ap.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
@@ -78,48 +130,48 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.threads:
         torch.set_num_threads(args.threads)
-    overrides = run_overrides(list(args.sets))
-    frames: list[dict[str, float]] = []
-    cfg = None
+    overlap = not (args.no_overlap or args.clock == "cpu")
     load0 = os.getloadavg()
-    for root in args.roots:
-        cfg = load_config(["data=kitti_raw", f"data.root={root}", f"data.frames={args.frames}", *overrides])
-        src = cli._source(cfg)
-        overlap = not (args.no_overlap or args.clock == "cpu")
-        pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, overlap=overlap)  # as `monostixels run` builds it
-        for k, pair in enumerate(src):
-            res = pipe.run(pair)
-            t0 = clock()
-            res.stixels.depth_map()  # what `run` turns into its depth outputs
-            sec = {k2: v for k2, v in res.seconds.items() if k2 != "wall"}
-            sec["depth_map"] = clock() - t0
-            # The pair's own clock: with overlap the flow and semantic stages run side by side.
-            sec["total"] = res.seconds["wall"] + sec["depth_map"]
-            print(f"{Path(root).name}/{pair.name}: " + " ".join(f"{k2} {v:.3f}" for k2, v in sec.items())
-                  + ("  (warm-up)" if k < args.warmup else ""), flush=True)
-            if k >= args.warmup:
-                frames.append(sec)
-    if not frames:
-        raise SystemExit("no frames timed: raise --frames above --warmup")
-    assert cfg is not None
-    stages = list(dict.fromkeys(k for f in frames for k in f))
-    med = {k: statistics.median(f.get(k, 0.0) for f in frames) for k in stages}
-    H, W = pair.size
-    print(f"\nmonostixels run, {W}x{H}, {len(frames)} frames after warm-up, {args.clock} clock, "
-          f"torch threads {torch.get_num_threads()}, "
-          f"load average {load0[0]:.2f} -> {os.getloadavg()[0]:.2f}")
-    print(f"config: flow={cfg.flow.name} (scale {cfg.flow.get('scale', 1.0)}, refine {cfg.flow.get('refine', False)}) "
-          f"semantic={cfg.semantic.name} motion={cfg.motion.name} solver.cell_rows={cfg.solver.cell_rows} "
-          f"solver.backend={cfg.solver.backend}; semantics beside the flow: {overlap}")
-    print(f"| stage | {args.clock} s / frame (median) |\n| --- | ---: |")
+    results: dict[str, dict[str, Any]] = {}
+    size: list[int] = []
+    for preset in args.presets:
+        # The CPU clock counts every thread: stages must then run one after the other (no pair ahead).
+        sets = list(args.sets) + (["stream.overlap=false"] if args.clock == "cpu" else [])
+        frames, cfg, overrides, size = time_preset(preset, args.roots, sets, args.frames, args.warmup, overlap, clock)
+        if not frames:
+            raise SystemExit("no frames timed: raise --frames above --warmup")
+        stages = list(dict.fromkeys(k for f in frames for k in f))
+        med = {k: statistics.median(f.get(k, 0.0) for f in frames) for k in stages}
+        results[preset] = {
+            "config": {"flow": str(cfg.flow.name), "flow_preset": cfg.flow.get("preset"), "flow_scale": cfg.flow.get("scale"),
+                       "semantic": str(cfg.semantic.name), "motion": str(cfg.motion.name),
+                       "stream": dict(cfg.stream), "overrides": overrides, "overlap": overlap},
+            "frames": len(frames), "median_seconds": med, "per_frame": frames}
+    load1 = os.getloadavg()
+    print(f"\nmonostixels run, {args.clock} clock, medians over the frames after {args.warmup} warm-up frame(s) of each "
+          f"drive, torch threads {torch.get_num_threads()}, load average {load0[0]:.2f} -> {load1[0]:.2f}")
+    names = list(results)
+    stages = list(dict.fromkeys(k for r in results.values() for k in r["median_seconds"]))
+    print("| stage | " + " | ".join(f"`preset={n}` ({results[n]['frames']} frames)" for n in names) + " |")
+    print("| --- |" + " ---: |" * len(names))
     for k in stages:
-        print(f"| {k} | {med[k]:.3f} |")
-    out = {"config": {"flow": str(cfg.flow.name), "semantic": str(cfg.semantic.name), "motion": str(cfg.motion.name),
-                      "overrides": overrides, "overlap": overlap}, "image_size": [H, W], "frames": len(frames),
-           "clock": args.clock, "torch_threads": torch.get_num_threads(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-           "loadavg": {"before": load0, "after": os.getloadavg()},
-           "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-           "median_seconds": med, "per_frame": frames}
+        print(f"| {k} | " + " | ".join(f"{results[n]['median_seconds'].get(k, 0.0):.3f}" for n in names) + " |")
+    cores = os.cpu_count() or 1
+    for n in names:
+        m = results[n]["median_seconds"]
+        if args.clock == "wall":  # with the pair ahead computed in a second thread
+            bound = max(m["cpu"] / cores, m["main_thread_cpu"])
+            results[n]["idle_bound_seconds"] = bound
+            print(f"{n}: idle {cores}-core bound max(cpu / {cores}, main thread) = {bound:.3f} s per frame")
+    for n in names:
+        c = results[n]["config"]
+        print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) semantic={c['semantic']} "
+              f"motion={c['motion']} stream={c['stream']}")
+    out = {"presets": results, "median_seconds": results[names[0]]["median_seconds"], "preset": names[0],
+           "clock": args.clock, "torch_threads": torch.get_num_threads(),
+           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "loadavg": {"before": load0, "after": load1},
+           "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "roots": args.roots}
+    out["image_size"] = size
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

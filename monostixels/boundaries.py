@@ -84,9 +84,6 @@ def refine_object_tops(world: StixelWorld, scores: torch.Tensor, rows: int, dept
     check_shape(scores, (NUM_CLASSES, H, W), "semantic scores")
     if rows == 0 or len(world) < 2:
         return world
-    cost = row_class_cost(scores, world.column_width, alpha_L)
-    # prefix[c, v, col]: cost of class c over rows 0 .. v - 1.
-    prefix = torch.cat([torch.zeros(NUM_CLASSES, 1, cost.shape[2], dtype=cost.dtype), cost.cumsum(1)], 1)
     col, typ, cls, p = world.column, world.type, world.cls, world.inverse_depth.double()
     top, bot = world.v_top.clone(), world.v_bottom.clone()
     # Stixels are sorted by column, bottom to top: k + 1 is the one above k in the same column.
@@ -111,10 +108,14 @@ def refine_object_tops(world: StixelWorld, scores: torch.Tensor, rows: int, dept
     ok = (cand >= first[:, None]) & (cand <= last[:, None])
     # Cost over the window [b - rows, b + rows]: the upper class above the candidate, the lower below.
     w0, w1 = (b - rows).clamp(0, H), (b + rows + 1).clamp(0, H)
-    c, cu, cl = col[lo], cls[up], cls[lo]
+    c, cu, cl = col[lo].long(), cls[up].long(), cls[lo].long()
     cc = cand.clamp(0, H)
-    above = prefix[cu[:, None], cc, c[:, None]] - prefix[cu, w0, c][:, None]
-    below = prefix[cl, w1, c][:, None] - prefix[cl[:, None], cc, c[:, None]]
+    # prefix[k, v]: cost of class/column pair k over rows 0 .. v - 1, for the pairs read only.
+    pairs, inv = torch.unique(torch.cat([cu * world.num_columns + c, cl * world.num_columns + c]), return_inverse=True)
+    prefix = _prefix_costs(scores, pairs // world.num_columns, pairs % world.num_columns, world.column_width, alpha_L)
+    ku, kl = inv[: len(c)], inv[len(c):]
+    above = prefix[ku[:, None], cc] - prefix[ku, w0][:, None]
+    below = prefix[kl, w1][:, None] - prefix[kl[:, None], cc]
     total = torch.where(ok, above + below, torch.full_like(above, float("inf")))
     total = torch.where(offsets[None, :] == 0, total - 1e-9, total)
     best = cand.gather(1, total.argmin(1, keepdim=True))[:, 0]
@@ -122,3 +123,22 @@ def refine_object_tops(world: StixelWorld, scores: torch.Tensor, rows: int, dept
     top[lo] = new_b
     bot[up] = new_b - 1
     return dataclasses.replace(world, v_top=top, v_bottom=bot)
+
+
+def _prefix_costs(scores: torch.Tensor, classes: torch.Tensor, columns: torch.Tensor, column_width: int,
+                  alpha_L: float) -> torch.Tensor:
+    """Prefix sums over rows (K, H + 1) float64 of :func:`row_class_cost` for K (class, column) pairs only.
+
+    Bit-identical to the rows of ``row_class_cost(...).cumsum(1)``: each column's mean adds its pixels
+    left to right in float64 as ``index_add_`` does, and a cumulative sum runs row by row either way.
+    """
+    _, H, W = scores.shape
+    c0 = columns * column_width
+    n = (torch.clamp(c0 + column_width, max=W) - c0).double()  # a last, narrower column
+    summed = torch.zeros(len(classes), H, dtype=torch.float64)
+    for j in range(column_width):
+        u = c0 + j
+        inside = u < W
+        summed += torch.where(inside[:, None], scores[classes, :, u.clamp(max=W - 1)].double(), 0.0)
+    cost = (-(summed / n[:, None]).clamp(min=1e-12).log()).clamp(max=float(alpha_L))
+    return torch.cat([torch.zeros(len(classes), 1, dtype=torch.float64), cost.cumsum(1)], 1)

@@ -7,6 +7,9 @@ Usage::
     monostixels run data=frames data.root=my_frames    # stixels of a user's own images
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90   # a dashcam video
     monostixels run data=video data.path=clip.mp4 data.hfov_deg=90 output.rerun=true  # + a 3D recording
+    monostixels run data=video data.path=0 data.hfov_deg=90 data.realtime=true   # camera 0, frames dropped while solving
+    monostixels run data=kitti_raw data.root=drives preset=accurate   # the best inputs instead of preset=fast
+    monostixels eval data=kitti_raw data.root=drives preset=fast      # measures exactly what `run` does
     monostixels batch batch.inputs='clips/*.mp4' batch.output=fleet data.hfov_deg=90  # many clips on Ray
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """
@@ -32,28 +35,62 @@ COMMANDS = {
     "batch": "many clips (batch.inputs=DIR_OR_GLOB) in parallel on Ray into batch.output/stixels.parquet",
 }
 
-#: Inputs of `monostixels demo` unless given on the command line: the best the package has for its
-#: synthetic scene (DeepFlow guided by DIS matches, the most accurate flow there; the semantic net
-#: of our renders).
-_DEMO_DEFAULTS = ("flow=deepflow", "semantic=fcn8s_synthetic", "motion=mono")
-#: Inputs of `monostixels run` unless given: what a user's own frames allow (no ground truth; our
-#: real-image semantic net; DeepFlow's variational stage at half size: a few times faster at nearly
-#: the same accuracy, docs/results.md "Speed").
-_RUN_DEFAULTS = ("flow=deepflow_fast", "semantic=fcn8s", "motion=mono")
-#: `monostixels batch`: run's inputs; data=video so that data.hfov_deg & co. can be given for every clip.
-_BATCH_DEFAULTS = (*_RUN_DEFAULTS, "data=video")
-_COMMAND_DEFAULTS = {"demo": _DEMO_DEFAULTS, "run": _RUN_DEFAULTS, "batch": _BATCH_DEFAULTS}
+#: The preset (conf/preset/) each command starts from unless ``preset=...`` is given: ``fast`` keeps up
+#: with a camera (work carried from frame to frame), ``accurate`` is the best the package has. A preset
+#: chooses the flow, semantic, motion, solver and stream options; a group given on the command line
+#: (``flow=dis``) overrides its choice. ``eval`` has none (the oracle inputs of conf/config.yaml):
+#: ``monostixels eval preset=fast ...`` measures exactly what ``run`` does by default.
+_COMMAND_PRESETS = {"demo": "accurate", "run": "fast", "batch": "fast"}
+#: Per-command defaults that are no preset's business: the demo's scene is one of our renders, read by
+#: the net of our renders (the presets' net is the real-image one); batch reads video clips, so that
+#: data.hfov_deg & co. can be given for every clip.
+_COMMAND_EXTRAS = {"demo": ("semantic=fcn8s_synthetic",), "batch": ("data=video",)}
+_COMMAND_DEFAULTS = {cmd: (f"preset={name}", *_COMMAND_EXTRAS.get(cmd, ())) for cmd, name in _COMMAND_PRESETS.items()}
 #: Shipped model of a default semantic option (installed with the package, editable or not), and
 #: what a command falls back to where the file is missing (a checkout without its models): ground
 #: truth on the synthetic scene, no semantics on a user's frames.
-_DEFAULT_MODELS = {"semantic=fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "semantic=fcn8s": "models/fcn8s_real.onnx"}
-_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none", "batch": "semantic=none"}
+_DEFAULT_MODELS = {"fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "fcn8s": "models/fcn8s_real.onnx"}
+_MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none", "batch": "semantic=none", "eval": "semantic=none"}
+
+
+def preset_choice(preset: str, group: str) -> str | None:
+    """The option of config group ``group`` that preset ``preset`` chooses (conf/preset/PRESET.yaml),
+    None where it chooses none or there is no such preset (Hydra then names the unknown option)."""
+    from omegaconf import OmegaConf
+
+    import monostixels.conf
+
+    path = Path(monostixels.conf.__file__).parent / "preset" / f"{preset}.yaml"
+    if not path.is_file():
+        return None
+    for entry in OmegaConf.to_container(OmegaConf.load(path)).get("defaults", []):
+        if isinstance(entry, dict):
+            for key, value in entry.items():
+                if key.replace("override", "").strip().lstrip("/") == group:
+                    return str(value)
+    return None
+
+
+def command_overrides(cmd: str, args: list[str]) -> list[str]:
+    """The overrides a command composes: its defaults (:data:`_COMMAND_DEFAULTS`) that ``args`` do not
+    give, then ``args``. A default semantic net whose model file is missing falls back to
+    :data:`_MODEL_FALLBACK` (with a warning) unless ``args`` name the semantic option."""
+    given = {a.split("=", 1)[0].lstrip("+~") for a in args if "=" in a}
+    defaults = [d for d in _COMMAND_DEFAULTS.get(cmd, ()) if d.split("=")[0] not in given]
+    if "semantic" not in given and cmd in _MODEL_FALLBACK:
+        chosen = [d.split("=", 1)[1] for d in defaults if d.startswith("semantic=")]
+        preset = next((a.split("=", 1)[1] for a in [*args, *defaults] if a.startswith("preset=")), None)
+        semantic = chosen[0] if chosen else (preset_choice(preset, "semantic") if preset else None)
+        if semantic in _DEFAULT_MODELS and not _model_available(_DEFAULT_MODELS[semantic]):
+            logger.warning("%s: %s not found; using %s", cmd, _DEFAULT_MODELS[semantic], _MODEL_FALLBACK[cmd])
+            defaults = [d for d in defaults if not d.startswith("semantic=")] + [_MODEL_FALLBACK[cmd]]
+    return defaults + list(args)
 
 
 def _usage() -> str:
     lines = ["usage: monostixels COMMAND [key=value ...] [hydra flags]", "", "commands:"]
     lines += [f"  {k:<5} {v}" for k, v in COMMANDS.items()]
-    lines += ["", "Config groups: camera prior solver data flow semantic motion eval output batch (see conf/).",
+    lines += ["", "Config groups: preset camera prior solver data flow semantic motion stream eval output batch (see conf/).",
               "Show the composed config: monostixels eval --cfg job"]
     return "\n".join(lines)
 
@@ -78,15 +115,7 @@ def main() -> None:
     if cmd not in COMMANDS:
         print(f"monostixels: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
         sys.exit(2)
-    if cmd in _COMMAND_DEFAULTS:
-        given = {a.split("=", 1)[0].lstrip("+~") for a in rest if "=" in a}
-        defaults = [d for d in _COMMAND_DEFAULTS[cmd] if d.split("=")[0] not in given]
-        for d in list(defaults):
-            if d in _DEFAULT_MODELS and not _model_available(_DEFAULT_MODELS[d]):
-                logger.warning("%s: %s not found; using %s", cmd, _DEFAULT_MODELS[d],
-                               _MODEL_FALLBACK[cmd])
-                defaults[defaults.index(d)] = _MODEL_FALLBACK[cmd]
-        rest = defaults + rest
+    rest = command_overrides(cmd, rest)
     # Hydra flags (--cfg job, --multirun) first, then every key=value override: Hydra's argparse
     # cannot take overrides on both sides of a flag.
     overrides = [a for a in rest if "=" in a and not a.startswith("-")]
@@ -209,6 +238,12 @@ def _eval(cfg: DictConfig) -> float:
     if str(cfg.data.name) == "camvid":
         return _eval_semantics(cfg)
     src = _source(cfg)
+    if hasattr(src, "indices"):
+        from monostixels._checks import InputError
+
+        src.close()
+        raise InputError("eval: a camera, a URL or data.realtime=true has no ground truth to score; "
+                         "evaluate a recorded file (data.realtime=false) or use monostixels run")
     report = evaluate(cfg, src, dataset=str(cfg.data.name))
     print(format_table(report))
     if report.get("failed_frames"):
@@ -265,7 +300,8 @@ def _run(cfg: DictConfig) -> None:
     from monostixels.viz import depth_colormap, side_by_side, stixel_depth_overlay
 
     src = _source(cfg)
-    if len(src) == 0:
+    live = hasattr(src, "indices")  # a camera, a URL or data.realtime: frames as they come, no length
+    if not live and len(src) == 0:
         raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
     pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False)  # the SfM baseline is for eval/demo only
     runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences
@@ -274,7 +310,7 @@ def _run(cfg: DictConfig) -> None:
     videos: dict[str, Any] = {}
     written = 0
     recorder = open_recorder(cfg, out, src)  # output.rerun=true: a 3D recording, else a no-op
-    bar = tqdm(total=len(src), desc="run", unit="frame")
+    bar = tqdm(total=None if live else len(src), desc="run", unit="frame")
     for step in runner.run(src, progress=bar):
         pair, res = step.pair, step.result
         recorder.log_frame(written, pair, res)
@@ -294,7 +330,7 @@ def _run(cfg: DictConfig) -> None:
         st.save_npz(d / "stixels.npz")
         pts, cols = depth_to_points(finite, pair.camera.K, pair.image, max_depth=hi)
         write_ply(d / "points.ply", pts, cols)
-        if len(src) > 1 or str(cfg.data.name) == "video":
+        if str(cfg.data.name) == "video" or len(src) > 1:
             # video.mp4: the overlay above the depth map; bev.mp4: the bird's-eye view.
             for name, rgb in (("video.mp4", np.concatenate([overlay, dcol], axis=0)), ("bev.mp4", bev)):
                 if name not in videos:
@@ -311,9 +347,22 @@ def _run(cfg: DictConfig) -> None:
     for v in videos.values():
         v.release()
     recording = recorder.close()
+    stream = None
+    if live:
+        # Which frames were processed (and how many dropped): SPEC section 4, data.realtime.
+        import json
+
+        stream = out / "stream.json"
+        out.mkdir(parents=True, exist_ok=True)
+        summary = src.summary()
+        stream.write_text(json.dumps(summary, indent=2))
+        if summary["realtime"]:
+            print(f"run: {summary['frames_taken']} of {summary['frames_read']} frames taken, "
+                  f"{summary['frames_dropped']} dropped while solving (realtime); {stream}")
     print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png bev.png figure.png depth.png depth16.png "
           f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else "")
-          + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else ""))
+          + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else "")
+          + (f"; processed frames {stream}" if stream else ""))
 
 
 if __name__ == "__main__":

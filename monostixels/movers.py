@@ -289,21 +289,25 @@ def _contact_row(K: torch.Tensor, n_obj: torch.Tensor, n_g: torch.Tensor, d: tor
 
 def _segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
     """Per-segment lower median (S,) of ``values`` (N,) with non-decreasing segment ids ``seg`` (N,)
-    and segment sizes ``counts`` (S,); NaN where a segment holds a NaN (as ``torch.median``) or is empty."""
+    and segment sizes ``counts`` (S,); NaN where a segment holds a NaN (as ``torch.median``) or is empty.
+
+    The segments are laid out as the rows of an (S, max count) array padded with ``+inf`` and sorted
+    along the rows (about half the time of sorting all values and then the segment ids): the
+    order statistics, and so the medians, are the same.
+    """
     S = counts.numel()
     out = torch.full((S,), math.nan, dtype=values.dtype)
     if values.numel() == 0:
         return out
-    order = torch.argsort(values, stable=True)  # NaN last
-    order = order[torch.argsort(seg[order], stable=True)]
-    srt = values[order]
     start = torch.cumsum(counts, 0) - counts
-    has = counts > 0
-    med = srt[(start + torch.div(counts - 1, 2, rounding_mode="floor")).clamp(min=0)[has]]
-    # A NaN sorts last within its segment: the segment's last value tells.
-    nan_in = torch.isnan(srt[(start + counts - 1)[has]])
-    out[has] = torch.where(nan_in, torch.full_like(med, math.nan), med)
-    return out
+    nan = torch.isnan(values)
+    rows = torch.full((S, int(counts.max())), math.inf, dtype=values.dtype)
+    rows[seg, torch.arange(values.numel()) - start[seg]] = values.masked_fill(nan, math.inf)
+    srt = rows.sort(dim=1).values
+    med = srt[torch.arange(S), torch.div(counts - 1, 2, rounding_mode="floor").clamp(min=0)]
+    nan_in = torch.zeros(S, dtype=torch.bool)
+    nan_in[seg[nan]] = True
+    return torch.where((counts > 0) & ~nan_in, med, out)
 
 
 def _midpoint_depth(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,

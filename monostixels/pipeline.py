@@ -37,6 +37,7 @@ from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers
 from monostixels.solver import SolverConfig, solve
 from monostixels.stixels import StixelWorld
+from monostixels.stream import Carried, StreamState, warp_scores
 
 __all__ = ["MotionEstimationError", "PipelineResult", "Pipeline", "load_config"]
 
@@ -67,7 +68,9 @@ class PipelineResult:
         scores or None. motion: the camera motion used (``X_prev = R X_cur + t``) and how it was
         obtained. stixels: the result. sfm_depth: (H, W) depth of the triangulation baseline
         (metres; invalid = negative or inf), None from a pipeline made with ``sfm=False``.
-        seconds: wall time of each stage (flow and semantic may overlap) and of the pair (``wall``).
+        seconds: wall time of each stage (flow and semantic may overlap; ``inputs`` both together) and of
+            the pair (``wall``); ``inputs_ahead``: the inputs' time where a stream computed them while
+            the last pair was solved (``stream.overlap``; part of ``wall`` all the same).
         pose: (4, 4) camera-to-world of the current frame on sequences (world = the first camera;
         :mod:`monostixels.sequence`), else None.
     """
@@ -121,8 +124,13 @@ class Pipeline:
         self.motion_track = (MotionTrack.from_config(cfg.motion)
                              if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)) else None)
 
-    def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None) -> MotionEstimate:
+    def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None,
+                   prior: MotionEstimate | None = None, interval_ratio: float = 1.0) -> MotionEstimate:
         """Camera motion of the pair from the ``motion`` config group.
+
+        ``prior``: the last pair's estimate of a stream (``stream.motion_warm_start``) and the ratio of
+        this pair's time interval to its (``interval_ratio``): the start of the monocular estimate
+        (:func:`monostixels.inputs.motion.estimate_mono`).
 
         A degenerate estimate (standing still, pure rotation) keeps its rotation (identity if
         none) with zero translation: the solver then flags the frame and takes depths from the
@@ -131,7 +139,8 @@ class Pipeline:
         ``allow_motion_failure=True`` (``monostixels run``): then the frame is treated as degenerate,
         flagged, with a warning.
         """
-        est = estimate_motion(pair, flow, self.cfg.motion, semantic)
+        warm = {} if prior is None else {"prior": prior, "interval_ratio": interval_ratio}
+        est = estimate_motion(pair, flow, self.cfg.motion, semantic, **warm)
         if self.motion_track is not None:
             est = self.motion_track.update(pair, est)
         if est.motion is None:
@@ -161,11 +170,34 @@ class Pipeline:
         n = motion.ground_normal.to(pair.camera.ground_normal.dtype)
         return dataclasses.replace(pair.camera, ground_normal=n)
 
-    def run(self, pair: FramePair) -> PipelineResult:
-        """Run every stage on one frame pair."""
+    def run(self, pair: FramePair, state: StreamState | None = None) -> PipelineResult:
+        """Run every stage on one frame pair.
+
+        Args:
+            pair: the frame pair.
+            state: the stream state of a sequence (:mod:`monostixels.stream`): what the last pair of
+                the stream computed for this pair's previous frame (grey image, flow, semantic scores,
+                camera motion, as the config group ``stream`` says), and where this pair's is kept;
+                with ``stream.overlap`` it also holds this pair's flow and semantics, computed while the
+                last pair was solved. None, or a pair that does not continue the stream: every stage
+                from scratch.
+        """
         sec: dict[str, float] = {}
         start = time.perf_counter()
+        try:
+            return self._run(pair, state, sec, start)
+        except Exception:
+            if state is not None:
+                state.drop()  # the next pair starts cold
+            raise
 
+    def inputs(self, pair: FramePair, carried: Carried) -> tuple[FlowResult, torch.Tensor | None, dict[str, float]]:
+        """The pair's flow and semantic scores (``carried``: what a stream gives it) and each one's wall time.
+
+        With ``overlap`` the semantic net runs in a second thread beside the flow; scores carried by the
+        stream (``stream.semantic_every``) follow the flow instead.
+        """
+        sec: dict[str, float] = {}
         # Beside an image flow backend, one ONNX Runtime thread: its default pool (one spinning
         # thread per core) took the cores of DeepFlow's strips. Same scores either way; the
         # ground-truth flow is quick, and the semantics are then the longer of the two.
@@ -175,15 +207,43 @@ class Pipeline:
             t = time.perf_counter()
             return estimate_semantics(pair, self.cfg.semantic, threads=ort_threads), time.perf_counter() - t
 
-        with ThreadPoolExecutor(max_workers=1) if self.overlap else nullcontext() as pool:
+        fresh = carried.semantic is None
+        t_in = time.perf_counter()
+        with ThreadPoolExecutor(max_workers=1) if self.overlap and fresh else nullcontext() as pool:
             future = pool.submit(semantics) if pool is not None else None
             t0 = time.perf_counter()
-            flow = estimate_flow(pair, self.cfg.flow)
+            kept = {k: v for k, v in (("init", carried.flow_init), ("grey_prev", carried.grey_prev)) if v is not None}
+            flow = estimate_flow(pair, self.cfg.flow, **kept)
             sec["flow"] = time.perf_counter() - t0
-            semantic, sec["semantic"] = future.result() if future is not None else semantics()
+            if future is not None:
+                semantic, sec["semantic"] = future.result()
+            elif fresh:
+                semantic, sec["semantic"] = semantics()
+            else:
+                t0 = time.perf_counter()
+                semantic = warp_scores(carried.semantic, flow.flow)
+                sec["semantic"] = time.perf_counter() - t0
+        sec["inputs"] = time.perf_counter() - t_in
+        return flow, semantic, sec
+
+    def _run(self, pair: FramePair, state: StreamState | None, sec: dict[str, float], start: float) -> PipelineResult:
+        carried = state.carried(pair) if state is not None else Carried()
+        ready = state.take_inputs(pair) if state is not None else None
+        flow, semantic, input_sec = ready if ready is not None else self.inputs(pair, carried)
+        sec.update(input_sec)
+        if ready is not None:
+            # Computed ahead, while the last pair was solved: counted in this pair's wall time all the same.
+            sec["inputs_ahead"] = sec["inputs"]
+            start -= sec["inputs"]
         t0 = time.perf_counter()
-        motion = self.motion_for(pair, flow, semantic)
+        motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio)
         sec["motion"] = time.perf_counter() - t0
+        if state is not None:
+            # What the next pair starts from is known now; with stream.overlap its flow and semantics
+            # start in the background while this pair is solved.
+            state.update(pair, grey=flow.grey, flow=flow.flow, semantic=semantic, semantic_fresh=carried.semantic is None,
+                         motion=None if motion.degenerate else motion, carried=carried)
+            state.start_next(self.inputs)
         t0 = time.perf_counter()
         with torch.inference_mode():
             stixels = solve(flow.flow, flow.cov, semantic, self.camera_for(pair, motion), motion.motion, self.prior,
@@ -196,14 +256,22 @@ class Pipeline:
             sec["movers"] = time.perf_counter() - t0
         if self.solver_cfg.top_refine_rows and semantic is not None:
             # Moving objects' tops from cell edges to pixel rows (monostixels.boundaries).
+            t0 = time.perf_counter()
             stixels = refine_object_tops(stixels, semantic, self.solver_cfg.top_refine_rows,
                                          self.solver_cfg.top_refine_depth_ratio, float(self.prior.alpha_L),
                                          self.solver_cfg.top_refine_objects)
+            sec["tops"] = time.perf_counter() - t0
         if motion.degenerate and not stixels.flags.get("degenerate_motion"):
             stixels.flags["degenerate_motion"] = True
         if stixels.flags.get("degenerate_motion"):
             stixels.flags["reason"] = f"{motion.reason}; {stixels.flags.get('reason', '')}".strip("; ")
             logger.warning("%s: %s", pair.name, stixels.flags["reason"])
+        if "capture_time_s" in pair.meta:
+            # A live source (monostixels.data.video.LiveVideoSource): which frames this pair is made of.
+            stixels.flags["stream"] = {k: pair.meta.get(m) for k, m in (
+                ("frame", "frame"), ("capture_time_s", "capture_time_s"), ("previous_frame", "frame_prev"),
+                ("previous_capture_time_s", "capture_time_prev_s"), ("dropped_before", "dropped_before"),
+                ("realtime", "realtime"))}
         sfm = None
         if self.sfm:
             t0 = time.perf_counter()

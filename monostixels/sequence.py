@@ -43,6 +43,7 @@ from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.geometry import Motion
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
 from monostixels.stixels import StixelWorld
+from monostixels.stream import StreamState
 from monostixels.tracking import Tracks, TrackParams, TtcParams, critical, stixel_points, time_to_collision
 
 __all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
@@ -160,6 +161,8 @@ class SequenceRunner:
         self.use_gt_distance = str(cfg.motion.get("name", "")) in ("gt", "file")
         self.standing_m = float(self.pipeline.solver_cfg.min_translation)
         self.default_dt = float(cfg.eval.get("frame_interval_s", 0.1)) if "eval" in cfg else 0.1
+        # Work carried from frame to frame (config group stream; monostixels.stream).
+        self.stream = StreamState.from_config(cfg)
         self.reset()
 
     def reset(self) -> None:
@@ -169,12 +172,16 @@ class SequenceRunner:
         self.tracks = Tracks(self.track_params)
         self.speed: float | None = None
         self.count = 0
+        self.stream.reset()
 
     # ------------------------------------------------------------------ driving a source
     def run(self, source: Sequence[FramePair], progress: Any = None) -> Iterator[SequenceStep]:
         """Process every pair of ``source`` in order; yields one :class:`SequenceStep` per pair."""
         sequential = hasattr(source, "sequence_key") and hasattr(source, "pair_back")
-        for i in range(len(source)):
+        source = self.stream.lookahead(source)  # stream.overlap: the next pair read (and its inputs started) ahead
+        # A live source (a camera: monostixels.data.video.LiveVideoSource) has no length: it yields its
+        # pairs' indices as frames arrive.
+        for i in (source.indices() if hasattr(source, "indices") else range(len(source))):
             key = source.sequence_key(i) if sequential else None
             if key is None:
                 self.reset()
@@ -197,7 +204,7 @@ class SequenceRunner:
     # ------------------------------------------------------------------ one frame
     def _solve(self, index: int, pair: FramePair, back: int | None, driven: float | None) -> SequenceStep:
         try:
-            res = self.pipeline.run(pair)
+            res = self.pipeline.run(pair, state=self.stream)
         except MotionEstimationError as err:
             self.reset() if back is None else None
             return SequenceStep(index, pair, None, str(err))

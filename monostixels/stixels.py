@@ -147,15 +147,21 @@ class StixelWorld:
         H, W = self.image_size
         idx = self.index_map()
         K = self.K.double()
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-        ray = pixel_rays(K, u, v)  # H x W x 3
+        # The viewing ray K^-1 (u, v, 1) (geometry.pixel_rays, z = 1) dotted with the stixel's normal,
+        # written out per component (x n_x + y n_y + n_z): the same float64 numbers as the (H, W, 3)
+        # product summed over its last axis, without building it.
+        fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+        u = torch.arange(W, dtype=torch.float64)
+        y = ((torch.arange(H, dtype=torch.float64) - cy) / fy)[:, None]  # H x 1
+        x = (u[None, :] - cx - skew * y) / fx  # H x W
         ng = self.ground_normal.double()
-        n_obj = object_normals(K, ng, u[0])  # W x 3: every pixel uses its own column direction
+        n_obj = object_normals(K, ng, u)  # W x 3: every pixel uses its own column direction
         safe = idx.clamp(min=0)
         typ = self.type[safe]
         p = self.inverse_depth.double()[safe]
-        n = torch.where((typ == 0)[..., None], ng.expand(H, W, 3), n_obj[None].expand(H, W, 3))
-        z = 1.0 / (p * (ray * n).sum(-1))
+        ground = typ == 0
+        nx, ny, nz = (torch.where(ground, ng[i], n_obj[None, :, i]) for i in range(3))
+        z = 1.0 / (p * (x * nx + y * ny + nz))
         z = torch.where(typ == SKY, torch.full_like(z, float("inf")), z)
         z = torch.where(idx < 0, torch.full_like(z, float("nan")), z)
         return z.float()

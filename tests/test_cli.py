@@ -83,8 +83,8 @@ def test_run_on_a_folder_of_frames(tmp_path):
         cv2.imwrite(str(frames / f"{k:04d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     K = pair0.camera.K
     (frames / "intrinsics.yaml").write_text(f"fx: {float(K[0, 0])}\nfy: {float(K[1, 1])}\ncx: {float(K[0, 2])}\ncy: {float(K[1, 2])}\n")
-    # run's own input defaults (deepflow_fast, the real-image semantic net, monocular ego-motion): no ground
-    # truth needed.
+    # run's own input defaults (preset=fast: DIS refined, the real-image semantic net, monocular ego-motion,
+    # work carried from frame to frame): no ground truth needed.
     p = _cli(["run", "data=frames", f"data.root={frames}"], tmp_path)
     out = tmp_path / "outputs" / "run"
     dirs = sorted(d for d in out.iterdir() if d.is_dir())

@@ -531,3 +531,35 @@ def test_threaded_photometric_search_equals_the_sequential_one(monkeypatch):
         assert est[workers].reason == est[1].reason
         assert torch.equal(est[workers].motion.t, est[1].motion.t) and torch.equal(est[workers].motion.R, est[1].motion.R)
         assert torch.equal(est[workers].ground_normal, est[1].ground_normal)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_depth_map_equals_the_ray_plane_formula(seed):
+    """StixelWorld.depth_map (the dot product written out per component) is bit for bit the (H, W, 3)
+    ray-plane formula, with skew, a tilted ground normal, sky and uncovered pixels."""
+    from monostixels.classes import SKY
+    from monostixels.geometry import object_normals
+
+    st, _ = _random_scene(seed)
+    n_g = torch.tensor([0.02, 0.995, -0.05], dtype=torch.float64)
+    Ks = K.clone()
+    Ks[0, 1] = 0.7  # skew
+    types = st.type.clone()
+    types[::7] = SKY
+    keep = torch.arange(len(types)) % 11 != 3  # some pixels without a stixel
+    st = StixelWorld(**{**st.__dict__, "K": Ks, "ground_normal": n_g / n_g.norm(), "type": types})
+    st = StixelWorld(**{**st.__dict__, **{k: getattr(st, k)[keep] for k in ("column", "v_top", "v_bottom", "type", "cls",
+                                                                          "inverse_depth", "motion", "cost", "tau")}})
+    idx = st.index_map()
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(Ks.double(), u, v)
+    ng = st.ground_normal.double()
+    safe = idx.clamp(min=0)
+    typ, p = st.type[safe], st.inverse_depth.double()[safe]
+    n = torch.where((typ == 0)[..., None], ng.expand(H, W, 3), object_normals(Ks.double(), ng, u[0])[None].expand(H, W, 3))
+    ref = 1.0 / (p * (ray * n).sum(-1))
+    ref = torch.where(typ == SKY, torch.full_like(ref, math.inf), ref)
+    ref = torch.where(idx < 0, torch.full_like(ref, math.nan), ref).float()
+    got = st.depth_map()
+    assert bool((idx < 0).any()) and bool((typ == SKY).any())
+    assert torch.equal(torch.nan_to_num(got, nan=-1.0), torch.nan_to_num(ref, nan=-1.0))

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import math
+import threading
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
@@ -80,9 +82,7 @@ def read_rgb(path: str | Path) -> torch.Tensor:
         InputError: the file is missing or OpenCV cannot decode it.
     """
     p = require_file(path, "image")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None or img.size == 0:
-        raise InputError(f"image: cannot read {p} (not an image file OpenCV can decode, or corrupt)")
+    img = _decoded(p)
     if img.dtype == np.uint8:
         scale = _MAX_U8
     elif img.dtype == np.uint16:
@@ -98,6 +98,34 @@ def read_rgb(path: str | Path) -> torch.Tensor:
     else:
         raise InputError(f"image: {p} has {img.shape[2]} channels (expected 1, 3 or 4)")
     return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float() / scale
+
+
+#: Decoded images kept (a sequence's frame is the current image of one pair and the previous image of
+#: the next, or of the next few with keyframes): not decoded twice.
+_DECODED_KEPT = 4
+_decoded_cache: "OrderedDict[tuple[str, int, int], np.ndarray]" = OrderedDict()
+_decoded_lock = threading.Lock()
+
+
+def _decoded(p: Path) -> np.ndarray:
+    """``cv2.imread(p, IMREAD_UNCHANGED)`` of an existing file, from the last few decoded ones when its
+    path, size and modification time are the same (the array is not handed out: callers convert it)."""
+    st = p.stat()
+    key = (str(p.resolve()), st.st_mtime_ns, st.st_size)
+    with _decoded_lock:
+        img = _decoded_cache.get(key)
+        if img is not None:
+            _decoded_cache.move_to_end(key)
+            return img
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise InputError(f"image: cannot read {p} (not an image file OpenCV can decode, or corrupt)")
+    img.flags.writeable = False
+    with _decoded_lock:
+        _decoded_cache[key] = img
+        while len(_decoded_cache) > _DECODED_KEPT:
+            _decoded_cache.popitem(last=False)
+    return img
 
 
 def read_image_pair(path_cur: str | Path, path_prev: str | Path) -> tuple[torch.Tensor, torch.Tensor]:

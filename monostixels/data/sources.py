@@ -136,13 +136,30 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
     )
 
 
-def _video(data: Any, camera: Any) -> Sequence[FramePair]:
-    from monostixels.data.video import VideoSource
+def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
+    from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
     height, pitch = _camera_mount(data, camera)
     intr, hfov, end, resize = (_get(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize"))
     if resize is not None and not isinstance(resize, (int, float)):
         resize = list(resize)
+    realtime = _get(data, "realtime", False)
+    if not isinstance(realtime, bool):
+        raise InputError(f"data.realtime: true or false, got {realtime!r}")
+    path = _get(data, "path")
+    if realtime or is_live_path(path):
+        # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).
+        return LiveVideoSource(  # type: ignore[return-value]
+            path, realtime=realtime,
+            intrinsics=None if intr is None else Path(str(intr)),
+            hfov_deg=None if hfov is None else float(hfov),
+            step=int(_get(data, "step", 1)),
+            start=int(_get(data, "start", 0)),
+            end=None if end is None else int(end),
+            resize=resize,
+            frames=_frames(data),
+            camera_height=height, pitch=pitch, window=window,
+        )
     return VideoSource(
         _get(data, "path"),
         intrinsics=None if intr is None else Path(str(intr)),
@@ -200,4 +217,11 @@ def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | 
     name = _get(data, "name")
     if name not in _FACTORIES:
         raise InputError(f"data.name: unknown data source {name!r}; choose one of {', '.join(SOURCE_NAMES)}")
+    if name != "video" and _get(data, "realtime") is not None:
+        raise InputError(f"data.realtime: only data=video reads frames as they come (a camera, a URL, a video file "
+                         f"at its frame rate); data={name} is read from disk frame by frame")
+    if name == "video":
+        # A live source keeps as many frames as keyframe pairs may reach back.
+        window = _get(_get(cfg, "keyframes"), "window", 10) if data is not cfg else 10
+        return _video(data, camera, int(window))
     return _FACTORIES[name](data, camera)

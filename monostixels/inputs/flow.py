@@ -87,12 +87,15 @@ class FlowResult:
         cov: (H, W, 2, 2) float32 covariance of the flow, pixels^2 (positive definite).
         seconds: wall time of the estimate (flow and covariance), seconds.
         backend: the backend name (``cfg.name``).
+        grey: (H, W) uint8 grey of the current image where the backend made one (OpenCV backends at
+            full size), else None: a stream keeps it for the pair whose previous image it becomes.
     """
 
     flow: torch.Tensor
     cov: torch.Tensor
     seconds: float
     backend: str
+    grey: np.ndarray | None = None
 
 
 def _get(cfg: Any, key: str, default: Any) -> Any:
@@ -269,7 +272,7 @@ def _in_bands(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarra
 
 
 def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
-              grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
+              grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
     """DeepFlow current -> previous.
 
     DeepFlow is a variational energy plus a matching term fed by DeepMatching, which is what lets
@@ -281,7 +284,8 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     as is. ``cfg.scale < 1``: the matches stay at full resolution, the residual (or, without
     matches, the whole DeepFlow) is solved on the downscaled images. ``cfg.bands > 1``: that
     variational solve runs on as many overlapping vertical strips in parallel threads. ``grey``:
-    the images' :func:`_gray_u8`, when the caller has them.
+    the images' :func:`_gray_u8`, when the caller has them; ``init``: (H, W, 2) start of the DIS
+    matches (:func:`_dis_calc`).
     """
     a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
     scale = flow_scale(cfg)
@@ -297,7 +301,7 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
         preset = str(_get(cfg, "matches_preset", "medium"))
         if preset not in _DIS_PRESETS:
             raise InputError(f"flow.matches_preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
-        f0 = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset]).calc(a, b, None)
+        f0 = _dis_calc(_DIS_PRESETS[preset], a, b, init)
         r = np.ascontiguousarray(_at_scale(variational, a, _remap(b, f0), scale))
         f = r + _remap(f0, r)
     else:
@@ -314,14 +318,28 @@ def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor) -> torch.Te
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1)))
 
 
+def _dis_calc(preset: int, a: np.ndarray, b: np.ndarray, init: np.ndarray | None) -> np.ndarray:
+    """DIS flow (H, W, 2) of grey images ``a`` -> ``b``; ``init`` (H, W, 2) float32 pixels: its start.
+
+    OpenCV's DIS takes a given flow as the start of its coarsest level (downscaled) instead of zero;
+    every level still runs, so the result is DIS's, seeded (a stream's previous flow: the matches of
+    large displacements then come from it rather than from the coarsest patches alone).
+    """
+    algo = cv2.DISOpticalFlow_create(preset)
+    if init is None:
+        return algo.calc(a, b, None)
+    if init.shape != (*a.shape, 2):
+        raise InputError(f"flow init: shape {init.shape} for {a.shape[1]}x{a.shape[0]} images, expected (H, W, 2)")
+    return algo.calc(a, b, np.array(init, dtype=np.float32, order="C"))
+
+
 def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
-         grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
+         grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
     preset = str(_get(cfg, "preset", "medium"))
     if preset not in _DIS_PRESETS:
         raise InputError(f"flow.preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
-    algo = cv2.DISOpticalFlow_create(_DIS_PRESETS[preset])
     a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
-    f = algo.calc(a, b, None)
+    f = _dis_calc(_DIS_PRESETS[preset], a, b, init)
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
@@ -344,8 +362,9 @@ def _raft_net(cfg: Any) -> Any:
 
 
 def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
-          grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
-    """RAFT current -> previous (``cfg.runtime`` torch | onnx); it reads the RGB images, not ``grey``."""
+          grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
+    """RAFT current -> previous (``cfg.runtime`` torch | onnx); it reads the RGB images, not ``grey``,
+    and starts from zero (``init`` is not used)."""
     return _raft_net(cfg)(cur, prev)
 
 
@@ -369,7 +388,7 @@ def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any)
     return fwd, bwd
 
 
-#: Image backends: (current, previous, cfg, grey images or None) -> flow (2, H, W).
+#: Image backends: (current, previous, cfg, grey images or None, start flow or None) -> flow (2, H, W).
 _BACKENDS: dict[str, Callable[..., torch.Tensor]] = {
     "deepflow": _deepflow,
     "dis": _dis,
@@ -378,9 +397,10 @@ _BACKENDS: dict[str, Callable[..., torch.Tensor]] = {
 
 
 def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
-             grey: tuple[np.ndarray, np.ndarray] | None = None) -> torch.Tensor:
-    """The backend's flow on the images as given (no resampling); ``grey``: their :func:`_gray_u8`."""
-    flow = _BACKENDS[name](image_cur.float(), image_prev.float(), cfg, grey)
+             grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
+    """The backend's flow on the images as given (no resampling); ``grey``: their :func:`_gray_u8`;
+    ``init``: (H, W, 2) start of the flow at their size, or None."""
+    flow = _BACKENDS[name](image_cur.float(), image_prev.float(), cfg, grey, init)
     check_finite_fast(flow, f"flow from backend {name}")
     return flow
 
@@ -404,11 +424,17 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
     if name not in _BACKENDS:
         raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
     check_image_pair(image_cur, image_prev)
-    return _flow_of_checked_images(image_cur, image_prev, cfg)
+    return _flow_of_checked_images(image_cur, image_prev, cfg)[0]
 
 
-def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> torch.Tensor:
-    """:func:`compute_flow` on images that passed :func:`monostixels._checks.check_image_pair`, backend name known."""
+def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any, init: np.ndarray | None = None,
+                            grey_prev: np.ndarray | None = None) -> tuple[torch.Tensor, np.ndarray | None]:
+    """:func:`compute_flow` on images that passed :func:`monostixels._checks.check_image_pair`, backend name known.
+
+    ``init``: (H, W, 2) start of the flow (full-size pixels), or None; ``grey_prev``: the
+    :func:`_gray_u8` of ``image_prev`` where the caller kept it. Returns the flow and the full-size
+    grey of ``image_cur`` where one was made (else None).
+    """
     name = str(_get(cfg, "name", ""))
     scale = flow_scale(cfg)
     refine = _refine_enabled(cfg)
@@ -416,17 +442,22 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
     # The full-size grey images once, for the backend and the refinement alike.
     grey = None
     if refine or (full_size and name in _GREY_BACKENDS):
-        grey = (_gray_u8(image_cur.float()), _gray_u8(image_prev.float()))
+        grey = (_gray_u8(image_cur.float()), grey_prev if grey_prev is not None else _gray_u8(image_prev.float()))
     if full_size:
-        flow = _backend(name, image_cur, image_prev, cfg, grey)
+        flow = _backend(name, image_cur, image_prev, cfg, grey, init)
     else:
         H, W = image_cur.shape[-2:]
         size = _scaled_size(H, W, scale)
-        flow = _upsample_flow(_backend(name, _downscale(image_cur, size), _downscale(image_prev, size), cfg), (H, W))
+        small_init = None
+        if init is not None:  # to the grid and pixels of the downscaled images
+            small_init = cv2.resize(init, (size[1], size[0]), interpolation=cv2.INTER_AREA) * np.float32(
+                [size[1] / W, size[0] / H])
+        flow = _upsample_flow(_backend(name, _downscale(image_cur, size), _downscale(image_prev, size), cfg,
+                                       None, small_init), (H, W))
     if refine:
         flow = _refine(grey, flow)
         check_finite_fast(flow, f"flow from backend {name} after flow.refine")
-    return flow
+    return flow, (grey[0] if grey is not None else None)
 
 
 def _refine_enabled(cfg: Any) -> bool:
@@ -436,8 +467,10 @@ def _refine_enabled(cfg: Any) -> bool:
     return val
 
 
-def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
-    """Flow and covariance of an image backend; the covariance on the grid of the last stage (module docstring).
+def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.ndarray | None = None,
+                grey_prev: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None]:
+    """Flow, covariance and current grey image (or None) of an image backend; the covariance on the
+    grid of the last stage (module docstring). ``init``, ``grey_prev``: see :func:`estimate_flow`.
 
     Without the forward-backward check the covariance depends on the image only: it is computed
     in a second thread while the backend runs (the same numbers; a core DeepFlow leaves idle).
@@ -445,17 +478,23 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams) -> tuple[to
     check_image_pair(pair.image, pair.image_prev)
     _refine_enabled(cfg)
     flow_scale(cfg)
+    if init is not None:
+        check_shape(torch.from_numpy(init), [*pair.size, 2], "flow init (H, W, 2)")
+    if grey_prev is not None and grey_prev.shape != tuple(pair.size):
+        raise InputError(f"flow: grey_prev of shape {grey_prev.shape} for images of size {tuple(pair.size)}")
     if bool(_get(cfg, "fb_consistency", False)):
         if str(_get(cfg, "name", "")) == "raft":
-            flow, back = _raft_both_ways(pair.image, pair.image_prev, cfg)
+            flow, back = _raft_both_ways(pair.image, pair.image_prev, cfg)  # RAFT starts from zero
+            grey = None
         else:
-            flow = _flow_of_checked_images(pair.image, pair.image_prev, cfg)
-            back = _flow_of_checked_images(pair.image_prev, pair.image, cfg)
-        return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back))
+            flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
+            # The backward flow starts from zero: the carried flow is a forward one.
+            back, _ = _flow_of_checked_images(pair.image_prev, pair.image, cfg, None, grey)
+        return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey
     with ThreadPoolExecutor(max_workers=1) as pool:
         cov = pool.submit(_covariance, pair.image, cfg, params, None)
-        flow = _flow_of_checked_images(pair.image, pair.image_prev, cfg)
-        return flow, cov.result()
+        flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
+        return flow, cov.result(), grey
 
 
 def _covariance(image: torch.Tensor, cfg: Any, params: ConfidenceParams, fb_err: torch.Tensor | None) -> torch.Tensor:
@@ -498,7 +537,8 @@ def _gt_flow(pair: FramePair, params: ConfidenceParams) -> tuple[torch.Tensor, t
     return flow, cov
 
 
-def estimate_flow(pair: FramePair, cfg: Any) -> FlowResult:
+def estimate_flow(pair: FramePair, cfg: Any, *, init: np.ndarray | None = None,
+                  grey_prev: np.ndarray | None = None) -> FlowResult:
     """Flow current -> previous and its covariance for a frame pair.
 
     Args:
@@ -509,6 +549,11 @@ def estimate_flow(pair: FramePair, cfg: Any) -> FlowResult:
             the backend runs at, in (0, 1], and a full-resolution refinement; ``gt`` ignores both)
             and backend keys (``preset``; ``size``, ``weights``,
             ``onnx``, ``runtime``, ``iters``).
+        init: (H, W, 2) float32 start of the flow (pixels, current -> previous), e.g. a stream's last
+            flow (:mod:`monostixels.stream`); taken by the backends with a DIS stage (``dis``, and
+            ``deepflow``'s DIS matches), ignored by ``raft`` and ``gt``. None = start from zero.
+        grey_prev: (H, W) uint8 grey of ``pair.image_prev`` (``FlowResult.grey`` of the pair it was the
+            current image of), or None: converted here. The same values either way.
 
     Returns:
         A :class:`FlowResult`: flow (2, H, W) pixels, covariance (H, W, 2, 2) pixels^2.
@@ -522,13 +567,14 @@ def estimate_flow(pair: FramePair, cfg: Any) -> FlowResult:
         raise InputError(f"flow.name: unknown flow backend {name!r}, expected one of {FLOW_BACKENDS}")
     params = confidence_params(cfg)
     t0 = time.perf_counter()
+    grey = None
     if name == "gt":
         flow, cov = _gt_flow(pair, params)
     else:
-        flow, cov = _image_flow(pair, cfg, params)
+        flow, cov, grey = _image_flow(pair, cfg, params, init, grey_prev)
     seconds = time.perf_counter() - t0
     logger.debug("flow %s on %s: %.2f s", name, pair.name, seconds)
-    return FlowResult(flow=flow.contiguous(), cov=cov.contiguous(), seconds=seconds, backend=name)
+    return FlowResult(flow=flow.contiguous(), cov=cov.contiguous(), seconds=seconds, backend=name, grey=grey)
 
 
 def flow_metrics(flow: torch.Tensor, gt_flow: torch.Tensor, valid: torch.Tensor | None = None) -> dict[str, float]:

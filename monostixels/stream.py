@@ -1,0 +1,392 @@
+"""The stream state: work carried from one frame of a sequence to the next (config group ``stream``).
+
+A :class:`StreamState` lives beside the keyframes and tracks of a
+:class:`~monostixels.sequence.SequenceRunner` (one object per stream, reset with it) and is handed to
+:meth:`monostixels.pipeline.Pipeline.run` with every pair. It keeps what the last solved pair computed
+for its *current* frame, which becomes the *previous* frame of the next pair:
+
+- per frame (the last few): its 8-bit grey image (the flow backends' input), so that a frame is not
+  converted twice, and its semantic scores: with ``stream.semantic_every = k`` the net runs on every
+  k-th frame only, and in between a pair takes the scores of its earlier frame carried through the
+  flow (each pixel takes the scores of the pixel it came from, ``x + f(x)`` in the previous image);
+- of the last pair: its flow, the start of the next pair's flow (``stream.flow_init``: DIS starts its
+  coarsest level from it instead of from zero; with a constant velocity the flow at a pixel changes
+  little from pair to pair), scaled by the ratio of the two pairs' time intervals; and its camera
+  motion, the prediction the ego-motion starts from (``stream.motion_warm_start``, see
+  :func:`monostixels.inputs.motion.estimate_mono`'s ``prior``).
+
+A pair is continued when its earlier frame (``meta["frame_prev"]``) is a kept frame of the same
+``meta["sequence"]`` (and image size) and it comes after the last pair; keyframe pairs that reach two
+frames back are continued too. Any other pair (independent pairs, the first pair of a clip, a pair
+after a failed one) starts cold, exactly as :meth:`Pipeline.run` without a state.
+
+With ``stream.overlap`` the state also overlaps consecutive pairs: the sequence layer reads its source
+through :meth:`StreamState.lookahead`, and once a pair's camera motion is known (all the next pair
+starts from), :meth:`StreamState.start_next` reads the next pair (the next frame, paired as far back as
+this one) and computes its flow and semantics in a second thread while this pair is solved; the
+pipeline takes them (:meth:`StreamState.take_inputs`) if that is the pair asked for next and the state
+has not changed since, else computes them itself. The results are the same either way.
+
+Convention (SPEC section 2): flow ``x_prev = x + f(x)`` from the current to the previous image, pixels;
+camera motion ``X_prev = R X_cur + t`` (metres).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+import torch
+
+from monostixels._checks import InputError
+from monostixels.data.base import FramePair
+
+__all__ = ["StreamParams", "StreamState", "Carried", "warp_scores"]
+
+#: Ratio of two pairs' time intervals beyond which the last flow is no start for the next one (a run of
+#: dropped frames, a keyframe that reaches back much further): the flow scales with the interval only
+#: roughly, and DIS's coarse levels then do better from zero.
+_MAX_INTERVAL_RATIO = 2.0
+#: Frames whose grey image and scores are kept: a keyframe pair may pair with any of them (the paper's
+#: 0.5 m at 5 m/s reaches two frames back at 10 Hz); one reaching further starts cold.
+_HISTORY_FRAMES = 4
+
+
+@dataclass
+class StreamParams:
+    """What a stream carries from frame to frame (config group ``stream``).
+
+    Attributes:
+        flow_init: start each pair's flow from the last pair's flow (image backends with a DIS stage).
+        semantic_every: run the semantic net on every k-th frame of a stream (1 = every frame); the
+            frames between take the scores of their pair's earlier frame carried through the flow.
+        motion_warm_start: start the monocular ego-motion from the last pair's motion (constant velocity).
+        overlap: compute the next pair's flow and semantics in a second thread while this pair is solved
+            (sources read from disk; the same results either way).
+    """
+
+    flow_init: bool = False
+    semantic_every: int = 1
+    motion_warm_start: bool = False
+    overlap: bool = False
+
+    def __post_init__(self) -> None:
+        for key in ("flow_init", "motion_warm_start", "overlap"):
+            if not isinstance(getattr(self, key), bool):
+                raise InputError(f"stream.{key}: true or false, got {getattr(self, key)!r}")
+        k = self.semantic_every
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise InputError(f"stream.semantic_every: a whole number >= 1 (1 = the net on every frame), got {k!r}")
+
+    @staticmethod
+    def from_config(cfg: Any) -> "StreamParams":
+        """From the ``stream`` config node (None: nothing carried)."""
+        d = StreamParams()
+        if cfg is None:
+            return d
+        known = set(d.__dataclass_fields__)
+        extra = [k for k in cfg.keys() if k not in known]
+        if extra:
+            raise InputError(f"stream: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known))}")
+        return StreamParams(**{k: cfg.get(k, getattr(d, k)) for k in known})
+
+
+@dataclass
+class Carried:
+    """What the stream hands to a pair (fields None where nothing is carried).
+
+    Attributes:
+        grey_prev: (H, W) uint8 grey of the pair's previous image.
+        flow_init: (H, W, 2) float32 start of the flow, pixels (current -> previous).
+        semantic: (10, H, W) scores of the pair's previous frame, to carry through the flow; None = run the net.
+        motion: the last pair's camera-motion estimate (:class:`~monostixels.inputs.motion.MotionEstimate`).
+        interval_ratio: this pair's time interval over the last pair's (1 where unknown).
+    """
+
+    grey_prev: np.ndarray | None = None
+    flow_init: np.ndarray | None = None
+    semantic: torch.Tensor | None = None
+    motion: Any = None
+    interval_ratio: float = 1.0
+
+    @property
+    def anything(self) -> bool:
+        """Whether anything is carried (else the pair runs exactly as on its own)."""
+        return any(x is not None for x in (self.grey_prev, self.flow_init, self.semantic, self.motion))
+
+
+@dataclass
+class _Frame:
+    """What the stream keeps of a frame that was the current frame of a solved pair."""
+
+    grey: np.ndarray | None          # (H, W) uint8
+    semantic: torch.Tensor | None    # (10, H, W)
+    semantic_age: int                # frames since the net ran (0 = on this frame)
+
+
+@dataclass
+class _Pair:
+    """What the stream keeps of the last solved pair."""
+
+    frame: Any
+    dt: float | None
+    flow: np.ndarray | None          # (H, W, 2) float32
+    motion: Any
+
+
+class StreamState:
+    """The stream state of one sequence (module docstring).
+
+    Args:
+        params: what to carry (:class:`StreamParams`).
+    """
+
+    def __init__(self, params: StreamParams | None = None) -> None:
+        self.params = params or StreamParams()
+        self._lock = threading.Lock()
+        self._generation = 0
+        self._lookahead: _Lookahead | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._ready: Future | None = None
+        self.reset()
+
+    @staticmethod
+    def from_config(cfg: Any) -> "StreamState":
+        """The state of the ``stream`` group of a composed config (nothing carried where it has none)."""
+        return StreamState(StreamParams.from_config(cfg.get("stream") if hasattr(cfg, "get") else None))
+
+    def reset(self) -> None:
+        """Forget the stream (a new clip, a failed pair); work started ahead is dropped."""
+        with self._lock:
+            self._generation += 1
+            self._key: tuple[Any, tuple[int, int]] | None = None   # (sequence, image size)
+            self._frames: dict[Any, _Frame] = {}
+            self._last: _Pair | None = None
+            self._ready = None
+        if self._lookahead is not None:
+            self._lookahead.pending = None
+        #: Pairs that started from carried work / from scratch since the last reset (logs, tests).
+        self.continued = 0
+        self.cold = 0
+        #: Pairs whose inputs were computed ahead (``stream.overlap``).
+        self.ahead = 0
+
+    # ------------------------------------------------------------------ overlap (stream.overlap)
+    def lookahead(self, source: Any) -> Any:
+        """``source`` as the sequence layer should read it: with ``stream.overlap``, a view that reads the
+        next pair ahead (its images, then its flow and semantics, see :meth:`start_next`); a live source
+        (frames as they come) or a source of independent pairs as it is."""
+        if not self.params.overlap or hasattr(source, "indices") or not hasattr(source, "pair_back"):
+            self._lookahead = None
+            return source
+        self._lookahead = _Lookahead(source)
+        return self._lookahead
+
+    def start_next(self, inputs: Callable[[FramePair, Carried], Any]) -> None:
+        """Start the next pair's ``inputs(pair, carried)`` (the pipeline's flow and semantics) in the
+        background: the pair the sequence layer will most likely ask for next (the next frame, paired
+        as far back as this one). Called once the state holds what that pair starts from."""
+        la = self._lookahead
+        if la is None:
+            return
+        key = la.guess()
+        if key is None:
+            return
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="monostixels-next-pair")
+        generation = self._generation
+
+        def work() -> tuple[FramePair, Any]:
+            pair = la.load(key)
+            with self._lock:
+                carried = self.carried(pair) if generation == self._generation else None
+            if carried is None:
+                return pair, None
+            try:
+                return pair, (generation, inputs(pair, carried), None)
+            except Exception as err:  # noqa: BLE001 — raised where the pipeline would have raised it
+                return pair, (generation, None, err)
+
+        future = self._pool.submit(work)
+        la.pending = (key, future)
+        self._ready = future
+
+    @property
+    def waited_s(self) -> float:
+        """Seconds the sequence layer has waited for pairs read ahead and their inputs (``stream.overlap``)."""
+        return self._lookahead.waited_s if self._lookahead is not None else 0.0
+
+    def take_inputs(self, pair: FramePair) -> Any:
+        """The inputs computed ahead for ``pair`` (the very pair object read ahead, with the state as it is
+        now), or None: then the pipeline computes them."""
+        future, self._ready = self._ready, None
+        if future is None or not future.done() or future.exception() is not None:
+            return None  # not this pair's, or its reading failed (the source raised that where it was asked)
+        ahead, out = future.result()
+        if ahead is not pair or out is None or out[0] != self._generation:
+            return None
+        if out[2] is not None:
+            raise out[2]
+        self.ahead += 1
+        return out[1]
+
+    # ------------------------------------------------------------------ before a pair
+    def _continues(self, pair: FramePair) -> bool:
+        seq, cur, prev = (pair.meta.get(k) for k in ("sequence", "frame", "frame_prev"))
+        return (seq is not None and cur is not None and prev is not None and self._last is not None
+                and self._key == (seq, tuple(pair.size)) and prev in self._frames and prev < cur
+                and self._last.frame < cur)
+
+    def carried(self, pair: FramePair) -> Carried:
+        """What the stream gives ``pair``: nothing unless its earlier frame was the current frame of a
+        kept pair of the same sequence (and image size) and it comes after the last pair."""
+        if not self._continues(pair):
+            return Carried()
+        last = self._last
+        assert last is not None
+        prev = self._frames[pair.meta["frame_prev"]]
+        dt = pair.meta.get("dt")
+        ratio = float(dt) / last.dt if dt and last.dt else 1.0
+        p = self.params
+        init = None
+        if p.flow_init and last.flow is not None and 1.0 / _MAX_INTERVAL_RATIO <= ratio <= _MAX_INTERVAL_RATIO:
+            # The flow at a pixel scales with the time between the frames (constant velocity).
+            init = last.flow if ratio == 1.0 else last.flow * np.float32(ratio)
+        semantic = None
+        if p.semantic_every > 1 and prev.semantic is not None and prev.semantic_age + 1 < p.semantic_every:
+            semantic = prev.semantic
+        motion = last.motion if p.motion_warm_start else None
+        return Carried(grey_prev=prev.grey, flow_init=init, semantic=semantic, motion=motion, interval_ratio=ratio)
+
+    # ------------------------------------------------------------------ after a pair
+    def update(self, pair: FramePair, *, grey: np.ndarray | None, flow: torch.Tensor | None,
+               semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried) -> None:
+        """Keep what ``pair`` computed for its current frame.
+
+        Args:
+            pair: the solved pair (``meta`` ``sequence``, ``frame``, ``frame_prev``, ``dt``).
+            grey: (H, W) uint8 grey of its current image, or None.
+            flow: (2, H, W) its flow. semantic: (10, H, W) its scores, or None.
+            semantic_fresh: the net ran on this pair (else its scores were carried).
+            motion: its camera-motion estimate, None where it is degenerate.
+            carried: what :meth:`carried` gave it.
+        """
+        seq, frame = pair.meta.get("sequence"), pair.meta.get("frame")
+        if seq is None or frame is None:
+            self.reset()  # an independent pair: nothing to carry
+            return
+        key = (seq, tuple(pair.size))
+        if key != self._key:
+            self.reset()
+            self._key = key
+        with self._lock:  # a pair read ahead in vain may still be reading the state
+            self._update(pair, grey, flow, semantic, semantic_fresh, motion, carried)
+
+    def _update(self, pair: FramePair, grey: np.ndarray | None, flow: torch.Tensor | None,
+                semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried) -> None:
+        frame = pair.meta["frame"]
+        self._generation += 1
+        self.continued += int(carried.anything)
+        self.cold += int(not carried.anything)
+        p = self.params
+        prev = self._frames.get(pair.meta.get("frame_prev"))
+        age = 0 if semantic_fresh or prev is None else prev.semantic_age + 1
+        self._frames[frame] = _Frame(grey=grey, semantic=semantic if p.semantic_every > 1 else None, semantic_age=age)
+        for f in sorted(self._frames)[:-_HISTORY_FRAMES]:
+            del self._frames[f]
+        dt = pair.meta.get("dt")
+        keep_flow = p.flow_init and flow is not None
+        self._last = _Pair(frame=frame, dt=float(dt) if dt else None,
+                           flow=np.ascontiguousarray(flow.permute(1, 2, 0).numpy()) if keep_flow else None,
+                           motion=motion if p.motion_warm_start else None)
+
+    def drop(self) -> None:
+        """The pair failed: the next one starts cold."""
+        self.reset()
+
+
+def warp_scores(scores: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """Scores of the previous image carried to the current one through the flow.
+
+    Each current pixel ``x`` takes the scores at ``x + f(x)`` in the previous image (bilinear; the
+    border replicated where the flow leaves the image). Bilinear weights are a convex combination, so
+    scores that sum to 1 per pixel still do (to float rounding, ~1e-6).
+
+    Args:
+        scores: (C, H, W) float32 class scores of the previous image.
+        flow: (2, H, W) current -> previous, pixels.
+
+    Returns:
+        (C, H, W) float32 scores of the current image.
+    """
+    C, H, W = scores.shape
+    if tuple(flow.shape) != (2, H, W):
+        raise InputError(f"warp_scores: flow of shape {tuple(flow.shape)} for scores of shape {tuple(scores.shape)}")
+    f = flow.float().numpy()
+    mx = f[0] + np.arange(W, dtype=np.float32)[None, :]
+    my = f[1] + np.arange(H, dtype=np.float32)[:, None]
+    src = np.ascontiguousarray(scores.float().numpy())
+    out = np.empty_like(src)
+    # One plane at a time: no interleaving of the channels (OpenCV remaps at most 4 at once).
+    for c in range(C):
+        cv2.remap(src[c], mx, my, cv2.INTER_LINEAR, dst=out[c], borderMode=cv2.BORDER_REPLICATE)
+    return torch.from_numpy(out)
+
+
+class _Lookahead:
+    """A sequence source whose next pair is read ahead (:meth:`StreamState.lookahead`).
+
+    Everything but the pairs goes to the source. The pair asked for is the one read ahead when its
+    index and frames back are the ones guessed (then the very object the background thread computed
+    the inputs of), else read as usual.
+    """
+
+    def __init__(self, source: Any) -> None:
+        self._source = source
+        self._next: tuple[int, int] | None = None
+        self.pending: tuple[tuple[int, int], Future] | None = None
+        #: Seconds the reader of the pairs spent waiting for pairs read ahead (and their inputs).
+        self.waited_s = 0.0
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._source, name)
+
+    def __len__(self) -> int:
+        return len(self._source)
+
+    def __getitem__(self, index: int) -> FramePair:
+        return self._get(index, 1)
+
+    def pair_back(self, index: int, back: int) -> FramePair:
+        return self._get(index, int(back))
+
+    def load(self, key: tuple[int, int]) -> FramePair:
+        index, back = key
+        return self._source[index] if back == 1 else self._source.pair_back(index, back)
+
+    def _get(self, index: int, back: int) -> FramePair:
+        pending, self.pending = self.pending, None
+        self._next = (index, back)
+        if pending is not None and pending[0] == (index, back):
+            t0 = time.perf_counter()
+            pair = pending[1].result()[0]  # waits for its inputs too: the pipeline needs them next
+            self.waited_s += time.perf_counter() - t0
+            return pair
+        return self.load((index, back))
+
+    def guess(self) -> tuple[int, int] | None:
+        """(index, frames back) of the pair most likely asked for next: the next frame of the same clip,
+        paired as far back as the last one (keyframes change rarely from frame to frame)."""
+        if self._next is None:
+            return None
+        index, back = self._next
+        nxt = index + 1
+        if nxt >= len(self._source) or self._source.sequence_key(nxt) != self._source.sequence_key(index):
+            return None
+        if back > 1 and len(self._source.previous_frames(nxt, back)) < back:
+            back = 1
+        return nxt, back
