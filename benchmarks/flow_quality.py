@@ -5,8 +5,7 @@ true flow) over pixels with valid ground-truth flow, and seconds per frame of th
 computation alone (the covariance, shared by all backends, is timed separately), on synthetic
 evaluation source seed 0 at full KITTI resolution 1242x375.
 
-Command (repository root; the RAFT rows need models/raft_small_synthetic.pt / .onnx from
-``python -m train.flow``):
+Command (repository root; the RAFT rows read models/raft_small.pt / .onnx, conf/flow/raft.yaml):
 
     nice -n 10 python -m benchmarks.flow_quality --frames 20
 
@@ -75,9 +74,9 @@ def main() -> None:
 
     cfgs = {}
     for b in args.backends.split(","):
-        if b == "raft_onnx":
+        if b in ("raft", "raft_onnx"):  # the same weights in torch and in ONNX Runtime
             cfg = OmegaConf.load(CONF / "raft.yaml")
-            cfg.runtime = "onnx"
+            cfg.runtime = "onnx" if b == "raft_onnx" else "torch"
         else:
             cfg = OmegaConf.load(CONF / f"{b}.yaml")
         if cfg.name == "raft":

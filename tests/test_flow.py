@@ -259,6 +259,23 @@ def test_raft_missing_and_wrong_weights(tmp_path):
         load_raft_weights(garbage)
 
 
+def test_raft_onnx_with_float16_weights_is_half_the_file_and_the_same_flow(tmp_path):
+    torch.manual_seed(1)
+    net = RaftFlow(build_raft("small"), num_flow_updates=2).eval()
+    # The shipped state dict is float16: the torch path computes with float16-rounded weights.
+    net.raft.load_state_dict({k: v.half().float() if v.is_floating_point() else v
+                              for k, v in net.raft.state_dict().items()})
+    H, W = 128, 160
+    full = export_onnx(net, tmp_path / "full.onnx", H, W)
+    half = export_onnx(net, tmp_path / "half.onnx", H, W, half_weights=True)
+    assert half.stat().st_size < 0.6 * full.stat().st_size
+    a, b = _texture(H, W, seed=6), _texture(H, W, seed=7)
+    f_torch = TorchRaft(net)(a, b)
+    assert float(f_torch.abs().max()) > 1e-2
+    assert torch.allclose(OnnxRaft(half)(a, b), f_torch, atol=1e-3)
+    assert torch.allclose(OnnxRaft(half)(a, b), OnnxRaft(full)(a, b), atol=1e-4)
+
+
 def test_raft_torch_and_onnx_agree(tmp_path):
     torch.manual_seed(0)
     net = RaftFlow(build_raft("small"), num_flow_updates=3).eval()

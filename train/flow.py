@@ -306,7 +306,7 @@ def export(cfg: DictConfig) -> None:
     """Export ``cfg.out_weights`` to ONNX (``cfg.export``)."""
     model = load_raft_weights(cfg.out_weights, cfg.size)
     path = export_onnx(RaftFlow(model, int(cfg.export.updates)), cfg.export.onnx, int(cfg.export.height),
-                       int(cfg.export.width))
+                       int(cfg.export.width), half_weights=bool(cfg.export.get("half_weights", False)))
     logger.info("ONNX written: %s (%.1f MB)", path, path.stat().st_size / 1e6)
 
 

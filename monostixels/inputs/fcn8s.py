@@ -387,7 +387,7 @@ def export_onnx(
     if metadata or half_weights:
         proto = onnx.load(str(path))
         if half_weights:
-            _store_half(proto)
+            store_half_weights(proto)
         for key, value in (metadata or {}).items():
             entry = proto.metadata_props.add()
             entry.key, entry.value = str(key), str(value)
@@ -401,8 +401,9 @@ def export_onnx(
 _HALF_MIN_SIZE = 1024
 
 
-def _store_half(proto) -> None:
-    """Replace each large float32 initializer by a float16 one and a Cast back to float32."""
+def store_half_weights(proto) -> None:
+    """Replace each large float32 initializer of an ONNX ``ModelProto`` by a float16 one and a Cast back
+    to float32 (ONNX Runtime folds the casts at load): half the file, float16-rounded weights."""
     from onnx import TensorProto, helper, numpy_helper
 
     graph = proto.graph

@@ -181,7 +181,7 @@ ONNX_MAX_SIZE = 4096
 
 
 def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MIN_SIZE, width: int = RAFT_MIN_SIZE,
-                opset: int = ONNX_OPSET, dynamic: bool = True) -> Path:
+                opset: int = ONNX_OPSET, dynamic: bool = True, half_weights: bool = False) -> Path:
     """Export :class:`RaftFlow` to ONNX.
 
     The graph has inputs ``image_cur``, ``image_prev`` (B, 3, Hp, Wp) in [0, 1] and the output ``flow``
@@ -190,7 +190,8 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MI
     (``height``, ``width`` only size the example input), and ``B = 2``: a pair both ways, the
     forward-backward check in one run (a free batch does not export; one batch of two takes 0.87x the
     time of two runs of one). Without it the legacy tracer fixes ``(Hp, Wp) = padded_size(height,
-    width)`` and ``B = 1``.
+    width)`` and ``B = 1``. ``half_weights`` stores the weights as float16 (each cast back to float32
+    in the graph): half the file, the same flow as weights loaded from a float16 state dict.
     """
     Hp, Wp = padded_size(height, width)
     path = Path(path)
@@ -213,6 +214,14 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MI
         else:
             torch.onnx.export(module, (a, b), str(path), input_names=["image_cur", "image_prev"],
                               output_names=["flow"], opset_version=opset, dynamo=False, do_constant_folding=True)
+    if half_weights:
+        import onnx
+
+        from monostixels.inputs.fcn8s import store_half_weights
+
+        proto = onnx.load(str(path))
+        store_half_weights(proto)
+        onnx.save(proto, str(path))
     logger.info("exported RAFT (%d flow updates, %s) to %s", module.num_flow_updates,
                 "any size" if dynamic else f"{Hp}x{Wp}", path)
     return path
