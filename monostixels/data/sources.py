@@ -147,21 +147,7 @@ def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
     if not isinstance(realtime, bool):
         raise InputError(f"data.realtime: true or false, got {realtime!r}")
     path = _get(data, "path")
-    if realtime or is_live_path(path):
-        # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).
-        return LiveVideoSource(  # type: ignore[return-value]
-            path, realtime=realtime,
-            intrinsics=None if intr is None else Path(str(intr)),
-            hfov_deg=None if hfov is None else float(hfov),
-            step=int(_get(data, "step", 1)),
-            start=int(_get(data, "start", 0)),
-            end=None if end is None else int(end),
-            resize=resize,
-            frames=_frames(data),
-            camera_height=height, pitch=pitch, window=window,
-        )
-    return VideoSource(
-        _get(data, "path"),
+    common = dict(
         intrinsics=None if intr is None else Path(str(intr)),
         hfov_deg=None if hfov is None else float(hfov),
         step=int(_get(data, "step", 1)),
@@ -171,6 +157,10 @@ def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
         frames=_frames(data),
         camera_height=height, pitch=pitch,
     )
+    if realtime or is_live_path(path):
+        # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).
+        return LiveVideoSource(path, realtime=realtime, window=window, **common)  # type: ignore[return-value]
+    return VideoSource(path, **common)
 
 
 def _camvid(data: Any, camera: Any) -> Sequence[FramePair]:

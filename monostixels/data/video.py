@@ -134,21 +134,8 @@ class VideoSource(LazySource):
             )
         self.size_in = (H0, W0)
         self.size = self._out_size(resize, W0, H0)
-        sx, sy = self.size[1] / W0, self.size[0] / H0
-        if intrinsics is not None:
-            self.intrinsics_source = str(intrinsics)
-            fx, fy, cx, cy = read_intrinsics_file(intrinsics)
-        elif hfov_deg is not None:
-            self.intrinsics_source = f"hfov {float(hfov_deg):g} deg (approximate)"
-            fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
-            logger.warning("video: intrinsics from a horizontal field of view of %g deg: approximate (principal "
-                           "point at the centre, no distortion); depths scale with the focal length", float(hfov_deg))
-        else:
-            raise InputError("video: no intrinsics: set data.intrinsics=FILE (fx fy cx cy) or data.hfov_deg=DEGREES "
-                             "(horizontal field of view, approximate)")
-        # Pixel centres at integers: u' + 0.5 = s (u + 0.5).
-        self.camera: Camera = make_camera(fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5,
-                                          camera_height, pitch)
+        self.camera, self.intrinsics_source = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
+                                                            camera_height, pitch)
         items = [_Pair(used[k], used[k - 1]) for k in range(1, len(used))]
         self._items = limit_frames(items, frames, f"video {self.path}")
         self._cap: Any = None
@@ -247,6 +234,28 @@ class VideoSource(LazySource):
 
 # ------------------------------------------------------------------------------------------------
 # Frames as they come: a camera, a URL, or a video file read at its frame rate.
+
+
+def _video_camera(intrinsics: Path | None, hfov_deg: float | None, size_in: tuple[int, int],
+                  size: tuple[int, int], camera_height: float, pitch: float) -> tuple[Camera, str]:
+    """The camera of a video's frames resized from ``size_in`` to ``size`` (H, W) pixels, and where its
+    intrinsics came from: an intrinsics file (fx fy cx cy of the stored frames) or, approximate, a
+    horizontal field of view (degrees)."""
+    H0, W0 = size_in
+    if intrinsics is not None:
+        source = str(intrinsics)
+        fx, fy, cx, cy = read_intrinsics_file(intrinsics)
+    elif hfov_deg is not None:
+        source = f"hfov {float(hfov_deg):g} deg (approximate)"
+        fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
+        logger.warning("video: intrinsics from a horizontal field of view of %g deg: approximate (principal "
+                       "point at the centre, no distortion); depths scale with the focal length", float(hfov_deg))
+    else:
+        raise InputError("video: no intrinsics: set data.intrinsics=FILE (fx fy cx cy) or data.hfov_deg=DEGREES "
+                         "(horizontal field of view, approximate)")
+    sx, sy = size[1] / W0, size[0] / H0
+    # Pixel centres at integers: u' + 0.5 = s (u + 0.5).
+    return make_camera(fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, camera_height, pitch), source
 
 
 def is_live_path(path: Any) -> bool:
@@ -354,19 +363,12 @@ class LiveVideoSource:
         H0, W0 = first.shape[:2]
         self.size_in = (H0, W0)
         self.size = VideoSource._out_size(resize, W0, H0)
-        sx, sy = self.size[1] / W0, self.size[0] / H0
-        if intrinsics is not None:
-            self.intrinsics_source = str(intrinsics)
-            fx, fy, cx, cy = read_intrinsics_file(intrinsics)
-        elif hfov_deg is not None:
-            self.intrinsics_source = f"hfov {float(hfov_deg):g} deg (approximate)"
-            fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
-        else:
+        try:
+            self.camera, self.intrinsics_source = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
+                                                                camera_height, pitch)
+        except InputError:
             cap.release()
-            raise InputError("video: no intrinsics: set data.intrinsics=FILE (fx fy cx cy) or data.hfov_deg=DEGREES "
-                             "(horizontal field of view, approximate)")
-        self.camera: Camera = make_camera(fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5,
-                                          camera_height, pitch)
+            raise
         self._key = f"stream/{self.path}"
         self._taken: list[_Taken] = []        # the last `window + 1` taken frames, oldest first
         self._count = 0                       # frames taken so far
