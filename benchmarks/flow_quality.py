@@ -9,36 +9,21 @@ Command (repository root; the RAFT rows read models/raft_small.pt / .onnx, conf/
 
     nice -n 10 python -m benchmarks.flow_quality --frames 20
 
-Results (2026-11-22), ``--frames 20`` at 1242x375. DeepFlow as shipped (guided by DIS matches,
-``flow.matches=dis``) and DIS, ``--backends deepflow,dis``, one training job beside it:
-
-    | backend  | EPE (px) | Fl-all (%) | seconds / frame |
-    |----------|---------:|-----------:|----------------:|
-    | deepflow |     1.31 |        6.0 |            0.94 |
-    | dis      |     1.42 |        6.7 |            0.04 |
-    structure-tensor covariance: 0.09 s / frame
-
-Earlier, on a CPU shared with five other jobs (load 4-10, timings are upper bounds), with
-OpenCV's DeepFlow alone (today ``flow.matches=none``) and the RAFT weights:
+Results (2026-12-02), ``--frames 20`` at 1242x375, the backends as configured in conf/flow/ (RAFT:
+half size and one full-size refinement), one training job beside it; ``--cache`` lets the backends
+run in separate calls (``--backends deepflow,dis`` then ``--backends raft,raft_onnx``):
 
     | backend   | EPE (px) | Fl-all (%) | seconds / frame |
     |-----------|---------:|-----------:|----------------:|
-    | deepflow  |    10.02 |       21.7 |            7.38 |
-    | raft      |    28.31 |       96.9 |           23.98 |
-    | raft_onnx |    28.31 |       96.9 |           11.58 |
+    | deepflow  |     1.31 |        6.0 |            1.05 |
+    | dis       |     1.42 |        6.7 |            0.06 |
+    | raft      |     1.40 |        9.5 |            0.27 |
+    | raft_onnx |     1.40 |        9.5 |            0.85 |
+    structure-tensor covariance: 0.03 s / frame
 
-``--frames 20 --scale 0.35`` (435x131, the scale RAFT was trained at):
-
-    | deepflow | 3.97 | 22.8 | 0.39 |
-    | dis      | 1.14 |  8.1 | 0.09 |
-    | raft     | 4.70 | 59.2 | 2.83 |
-
-RAFT = models/raft_small_synthetic.pt from ``nice -n 10 python -m train.flow`` (conf/train_flow.yaml:
-330 steps, batch 2, 128x256 crops at scale 0.35, stopped by max_minutes=30; training EPE 4.1 px):
-far too short to learn full-resolution displacements (up to ~110 px); the number is real, not good.
-OpenCV's DeepFlow is the variational part without DeepMatching, which is why on its own it loses
-the large near-field displacements of the road at full resolution; guided by DIS's matches it
-keeps them.
+RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: 5000 steps of ``python -m train.flow``).
+``deepflow`` is guided by DIS's matches (``flow.matches=dis``): OpenCV's DeepFlow alone is the
+variational part without DeepMatching and loses the large near-field displacements of the road.
 """
 from __future__ import annotations
 
