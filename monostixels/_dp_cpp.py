@@ -64,11 +64,15 @@ def _cpu_tag() -> str:
 
 
 def _extensions_root() -> Path:
-    """torch's extension folder (``$TORCH_EXTENSIONS_DIR``, else ``~/.cache/torch_extensions/py<ver>_cpu``)."""
+    """torch's extension folder: ``$TORCH_EXTENSIONS_DIR``, else torch's default (``~/.cache/torch_extensions``
+    with a ``py<ver>_<cpu|cuXY>`` folder), where :func:`torch.utils.cpp_extension.load` itself would build."""
+    from torch.utils import cpp_extension
+
     root = os.environ.get("TORCH_EXTENSIONS_DIR")
     if root:
         return Path(root)
-    return Path.home() / ".cache" / "torch_extensions" / f"py{sys.version_info.major}{sys.version_info.minor}_cpu"
+    accel = f"cu{torch.version.cuda.replace('.', '')}" if torch.version.cuda else "cpu"
+    return Path(cpp_extension.get_default_build_root()) / f"py{sys.version_info.major}{sys.version_info.minor}_{accel}"
 
 
 @contextlib.contextmanager
