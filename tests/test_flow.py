@@ -322,3 +322,22 @@ def test_flow_metrics_hand_computed():
     m = flow_metrics(est, gt, valid)
     assert m["epe"] == pytest.approx((4 + 4 + 2) / 3)
     assert m["fl_all"] == pytest.approx(1 / 3)
+
+
+def test_raft_forward_backward_refined_hands_on_its_grey_image(tmp_path):
+    """With the forward-backward check and the refinement, RAFT returns the current image's grey (the
+    next pair's previous one), and a grey handed in changes nothing."""
+    from monostixels.inputs.flow import _gray_u8
+
+    torch.manual_seed(2)
+    net = RaftFlow(build_raft("small"), num_flow_updates=2).eval()
+    wpath = tmp_path / "w.pt"
+    torch.save({"model": net.raft.state_dict()}, wpath)
+    H, W = 128, 160
+    a, b = _texture(H, W, seed=8), _texture(H, W, seed=9)
+    pair = FramePair(image=a, image_prev=b, camera=_camera(H, W), name="p")
+    cfg = OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 2, "refine": True, "fb_consistency": True})
+    cold = estimate_flow(pair, cfg)
+    assert cold.grey is not None and np.array_equal(cold.grey, _gray_u8(a.float()))
+    warm = estimate_flow(pair, cfg, grey_prev=_gray_u8(b.float()))
+    assert torch.equal(warm.flow, cold.flow) and torch.equal(warm.cov, cold.cov)

@@ -368,9 +368,12 @@ def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     return _raft_net(cfg)(cur, prev)
 
 
-def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) -> tuple[torch.Tensor, torch.Tensor]:
+def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any, grey_prev: np.ndarray | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None]:
     """RAFT's flows current -> previous and previous -> current as one batch, at ``cfg.scale`` and refined
-    as :func:`compute_flow` does each (the forward-backward check without twice the network's time)."""
+    as :func:`compute_flow` does each (the forward-backward check without twice the network's time).
+    Returns both flows and, where the refinement made it, the full-size grey of ``image_cur`` (as
+    :func:`_flow_of_checked_images`; ``grey_prev`` is the caller's grey of ``image_prev``, or None)."""
     net = _raft_net(cfg)
     scale = flow_scale(cfg)
     H, W = image_cur.shape[-2:]
@@ -382,10 +385,14 @@ def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any)
         fwd, bwd = _upsample_flow(fwd, (H, W)), _upsample_flow(bwd, (H, W))
     for f in (fwd, bwd):
         check_finite_fast(f, "flow from backend raft")
-    if _refine_enabled(cfg):
-        g_cur, g_prev = _gray_u8(image_cur.float()), _gray_u8(image_prev.float())
-        fwd, bwd = _refine((g_cur, g_prev), fwd), _refine((g_prev, g_cur), bwd)
-    return fwd, bwd
+    if not _refine_enabled(cfg):
+        return fwd, bwd, None
+    g_cur = _gray_u8(image_cur.float())
+    g_prev = grey_prev if grey_prev is not None else _gray_u8(image_prev.float())
+    fwd, bwd = _refine((g_cur, g_prev), fwd), _refine((g_prev, g_cur), bwd)
+    for f in (fwd, bwd):
+        check_finite_fast(f, "flow from backend raft after flow.refine")
+    return fwd, bwd, g_cur
 
 
 #: Image backends: (current, previous, cfg, grey images or None, start flow or None) -> flow (2, H, W).
@@ -484,8 +491,7 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
         raise InputError(f"flow: grey_prev of shape {grey_prev.shape} for images of size {tuple(pair.size)}")
     if bool(_get(cfg, "fb_consistency", False)):
         if str(_get(cfg, "name", "")) == "raft":
-            flow, back = _raft_both_ways(pair.image, pair.image_prev, cfg)  # RAFT starts from zero
-            grey = None
+            flow, back, grey = _raft_both_ways(pair.image, pair.image_prev, cfg, grey_prev)  # RAFT starts from zero
         else:
             flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
             # The backward flow starts from zero: the carried flow is a forward one.
