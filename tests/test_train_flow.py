@@ -91,3 +91,41 @@ def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path):
     assert p.returncode == 0, p.stderr[-3000:]
     ck2 = torch.load(tmp_path / "ckpt.pt", weights_only=False)
     assert ck2["step"] == 64 and len(ck2["history"]) == 64 and ck2["history"][:60] == ck["history"]
+
+
+def test_the_convex_upsampler_alone_trains_on_a_frozen_body(tmp_path):
+    """trainable=mask_predictor on a trained body without the head (the shipped RAFT-small's): the head
+    starts from scratch and learns (validation EPE below the untrained head's), every other tensor is
+    the initial weights' bit for bit, and the weights written load as RAFT-small with the head."""
+    from monostixels.inputs.raft import build_raft, load_raft_weights, mask_hidden_of
+    from train.flow import validate
+
+    shipped = load_raft_weights(REPO / "models" / "raft_small.pt").state_dict()
+    init = {k: v for k, v in shipped.items() if not k.startswith("mask_predictor.")}
+    torch.save(init, tmp_path / "init.pt")
+    args = [sys.executable, "-m", "train.flow", f"run_dir={tmp_path}", "synthetic.pairs=4", "synthetic.shard=2",
+            "synthetic.scale=0.35", "crop=[128,256]", "batch_size=2", "train_updates=3", "val.pairs=1", "val.every=100",
+            "val.updates=3", "val.source_seed=20", "ckpt_every=10", "threads=1", "augment.colour=0",
+            "augment.eraser_prob=0", "augment.scale_log2=[0,0]", "stages=[{steps: 40, lr: 2e-3, warmup: 2, real_fraction: 0.0}]",
+            "mask_hidden=16", "trainable=mask_predictor", f"init_weights={tmp_path / 'init.pt'}",
+            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "max_minutes=null"]
+    p = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "convex upsampler from scratch" in p.stdout + p.stderr
+    ck = torch.load(tmp_path / "ckpt.pt", weights_only=False)
+    body = {k: v for k, v in ck["model"].items() if not k.startswith("mask_predictor.")}
+    assert body.keys() == init.keys() and all(torch.equal(body[k], init[k].float()) for k in init)
+    assert mask_hidden_of(ck["model"]) == 16
+    # The untrained head (train.flow seeds torch with cfg.seed before it builds the net) on the same body.
+    torch.manual_seed(0)
+    untrained = build_raft("small", 16)
+    untrained.load_state_dict(init, strict=False)
+    pairs = torch.load(next((tmp_path / "pool").glob("val_*.pt")), weights_only=True)
+    assert ck["val_history"][-1][1] < 0.95 * validate(untrained, pairs, 3)
+    net = load_raft_weights(tmp_path / "w.pt")
+    assert net.mask_predictor is not None and mask_hidden_of(net.state_dict()) == 16
+    # Initial weights that do not fit the body are refused, not half-loaded.
+    torch.save(build_raft("large").state_dict(), tmp_path / "large.pt")
+    bad = [a if not a.startswith("init_weights=") else f"init_weights={tmp_path / 'large.pt'}" for a in args]
+    p = subprocess.run(bad + [f"run_dir={tmp_path / 'bad'}"], cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert p.returncode != 0 and "large.pt" in p.stdout + p.stderr

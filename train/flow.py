@@ -51,7 +51,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from monostixels.data.synthetic import SOURCE_SEED_STRIDE, render_pair
-from monostixels.inputs.raft import RAFT_MIN_SIZE, RAFT_MULTIPLE, RaftFlow, build_raft, export_onnx, load_raft_weights
+from monostixels.inputs.raft import RAFT_MIN_SIZE, RAFT_MULTIPLE, RaftFlow, build_raft, export_onnx, load_raft_weights, mask_hidden_of
 
 logger = logging.getLogger("train.flow")
 
@@ -341,7 +341,7 @@ def main(cfg: DictConfig) -> None:
     if cfg.export_only:
         if ckpt_path.is_file():
             ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-            model = build_raft(cfg.size)
+            model = build_raft(cfg.size, mask_hidden_of(ck["model"]))
             model.load_state_dict(ck["model"])
             write_weights(model, Path(cfg.out_weights))
         export(cfg)
@@ -355,8 +355,18 @@ def main(cfg: DictConfig) -> None:
     total = sum(int(s["steps"]) for s in stages)
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    model = build_raft(cfg.size)
-    opt = torch.optim.AdamW(model.parameters(), lr=float(stages[0]["lr"]), weight_decay=float(cfg.weight_decay),
+    model = build_raft(cfg.size, int(cfg.get("mask_hidden", 0)))
+    trainable = str(cfg.get("trainable", "all"))
+    if trainable == "mask_predictor":
+        # The convex upsampler alone, on a trained body: the 1/8-resolution flow stays what it was, and a
+        # step costs about a quarter (no backward pass through the body).
+        if getattr(model, "mask_predictor", None) is None:
+            raise ValueError("trainable=mask_predictor: the model has no convex upsampler (set mask_hidden > 0)")
+        for name, prm in model.named_parameters():
+            prm.requires_grad_(name.startswith("mask_predictor."))
+    elif trainable != "all":
+        raise ValueError(f"trainable: all or mask_predictor, got {trainable!r}")
+    opt = torch.optim.AdamW([q for q in model.parameters() if q.requires_grad], lr=float(stages[0]["lr"]), weight_decay=float(cfg.weight_decay),
                             eps=1e-8)
     step, history, val_history = 0, [], []
     if cfg.resume and ckpt_path.is_file():
@@ -367,8 +377,15 @@ def main(cfg: DictConfig) -> None:
         val_history = list(ck.get("val_history", []))
         logger.info("resumed from %s at step %d", ckpt_path, step)
     elif cfg.init_weights:
-        model.load_state_dict(load_raft_weights(cfg.init_weights, cfg.size).state_dict())
-        logger.info("initialised from %s", cfg.init_weights)
+        init = load_raft_weights(cfg.init_weights, cfg.size).state_dict()
+        missing, unexpected = model.load_state_dict(init, strict=False)
+        # Only a head the initial weights lack may start from scratch (a convex upsampler added to a
+        # bilinear RAFT-small); anything else is the wrong architecture.
+        if unexpected or any(not k.startswith("mask_predictor.") for k in missing):
+            raise ValueError(f"init_weights: {cfg.init_weights!r} does not fit the configured RAFT-{cfg.size} "
+                             f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
+        logger.info("initialised from %s%s", cfg.init_weights,
+                    f" (convex upsampler from scratch: {len(missing)} tensors)" if missing else "")
     gen = torch.Generator().manual_seed(int(cfg.seed) + step)
 
     synthetic = render_pool(cfg)
@@ -403,7 +420,7 @@ def main(cfg: DictConfig) -> None:
         loss, epe = sequence_loss(preds, f, v, float(cfg.gamma), float(cfg.max_flow))
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), float(cfg.grad_clip))
+        torch.nn.utils.clip_grad_norm_([q for q in model.parameters() if q.requires_grad], float(cfg.grad_clip))
         opt.step()
         step += 1
         ema = epe if ema is None else 0.98 * ema + 0.02 * epe

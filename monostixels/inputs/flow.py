@@ -344,10 +344,22 @@ def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
 
 
 def _raft_net(cfg: Any) -> Any:
-    """The RAFT runner of ``cfg`` (``cfg.runtime`` torch | onnx), loaded once per file."""
+    """The RAFT runner of ``cfg`` (``cfg.runtime`` auto | torch | onnx), loaded once per file."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
-    runtime = str(_get(cfg, "runtime", "torch"))
+    runtime = str(_get(cfg, "runtime", "auto"))
+    if runtime == "auto":
+        # On a CPU the exported graph runs faster in ONNX Runtime than the network in torch
+        # (docs/results.md "Flow"). The export of the weights is the .onnx file beside them (as
+        # train.flow writes both): other weights without one run in torch, and so does any on a GPU.
+        weights = _get(cfg, "weights", None)
+        beside = resolve_path(weights).with_suffix(".onnx") if weights is not None else None
+        if beside is not None and beside.is_file() and not torch.cuda.is_available():
+            net = cached_onnx_raft(beside, int(_get(cfg, "threads", 0)))
+            # Its updates are fixed at export: another flow.iters runs in torch.
+            if net.num_flow_updates == int(_get(cfg, "iters", 12)):
+                return net
+        runtime = "torch"
     if runtime == "torch":
         weights = _get(cfg, "weights", None)
         if weights is None:
@@ -358,7 +370,7 @@ def _raft_net(cfg: Any) -> Any:
         if onnx is None:
             raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
         return cached_onnx_raft(resolve_path(onnx), int(_get(cfg, "threads", 0)))
-    raise InputError(f"flow.runtime: must be torch or onnx, got {runtime!r}")
+    raise InputError(f"flow.runtime: must be auto, torch or onnx, got {runtime!r}")
 
 
 def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,

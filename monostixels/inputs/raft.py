@@ -39,7 +39,9 @@ __all__ = [
     "RAFT_MIN_SIZE",
     "ONNX_OPSET",
     "ONNX_MAX_SIZE",
+    "GatherCorrBlock",
     "build_raft",
+    "mask_hidden_of",
     "load_raft_weights",
     "RaftFlow",
     "padded_size",
@@ -63,16 +65,72 @@ RAFT_MIN_SIZE = 128
 ONNX_OPSET = 17
 
 
-def build_raft(size: str = "small") -> nn.Module:
+class GatherCorrBlock(torchvision.models.optical_flow.raft.CorrBlock):
+    """torchvision's correlation block with the pyramid lookup done by gathers instead of ``grid_sample``.
+
+    The same values (bilinear, zero outside the volume, the window's first axis the x offset as in
+    torchvision): a window of ``2r + 1`` taps around a centroid shares one fractional offset, so the
+    ``(2r + 2)^2`` integer cells under it are gathered once and blended with four weights. ONNX Runtime
+    spent about two thirds of RAFT-small's time in ``GridSample`` and the arithmetic on its
+    normalised grid (one batch item per pixel, a 7x7 grid each); the gathers take a fraction of it.
+    """
+
+    def index_pyramid(self, centroids_coords: torch.Tensor) -> torch.Tensor:
+        r = self.radius
+        side = 2 * r + 1
+        B, _, h, w = centroids_coords.shape
+        c = centroids_coords.permute(0, 2, 3, 1).reshape(B * h * w, 2)
+        offsets = torch.arange(-r, r + 2, device=c.device, dtype=c.dtype)  # 2r + 2 cells per axis
+        features = []
+        for volume in self.corr_pyramid:
+            n, _, H, W = volume.shape
+            x0, y0 = torch.floor(c[:, :1]), torch.floor(c[:, 1:])
+            fx, fy = (c[:, :1] - x0)[:, :, None], (c[:, 1:] - y0)[:, :, None]
+            xs, ys = x0 + offsets, y0 + offsets  # (n, 2r + 2)
+            inside = (((xs >= 0) & (xs <= W - 1))[:, :, None] & ((ys >= 0) & (ys <= H - 1))[:, None, :])
+            idx = ys.clamp(0, H - 1).long()[:, None, :] * W + xs.clamp(0, W - 1).long()[:, :, None]
+            cells = torch.gather(volume.reshape(n, H * W), 1, idx.reshape(n, -1)).reshape(n, side + 1, side + 1)
+            cells = cells * inside.to(cells.dtype)
+            win = ((1 - fx) * (1 - fy) * cells[:, :-1, :-1] + fx * (1 - fy) * cells[:, 1:, :-1]
+                   + (1 - fx) * fy * cells[:, :-1, 1:] + fx * fy * cells[:, 1:, 1:])
+            features.append(win.reshape(B, h, w, side * side))
+            c = c / 2
+        return torch.cat(features, dim=-1).permute(0, 3, 1, 2).contiguous()
+
+
+def _with_gather_lookup(model: nn.Module) -> nn.Module:
+    """``model`` with :class:`GatherCorrBlock` in place of its correlation block (no weights in it)."""
+    old = model.corr_block
+    model.corr_block = GatherCorrBlock(num_levels=old.num_levels, radius=old.radius)
+    return model
+
+
+def build_raft(size: str = "small", mask_hidden: int = 0) -> nn.Module:
     """A torchvision RAFT network with random weights (``weights=None``: no download).
 
     Args:
         size: ``small`` or ``large``.
+        mask_hidden: RAFT-small only: > 0 adds RAFT's convex upsampler (the mask predictor, this many
+            hidden channels) in place of torchvision's bilinear upsampling of the 1/8-resolution flow,
+            which smears motion boundaries over 8 pixels of the input. RAFT-large always has it.
     """
     if size not in RAFT_SIZES:
         raise InputError(f"flow.size: RAFT size must be one of {RAFT_SIZES}, got {size!r}")
-    builder = torchvision.models.optical_flow.raft_small if size == "small" else torchvision.models.optical_flow.raft_large
-    return builder(weights=None, progress=False)
+    if size == "large":
+        return _with_gather_lookup(torchvision.models.optical_flow.raft_large(weights=None, progress=False))
+    if mask_hidden <= 0:
+        return _with_gather_lookup(torchvision.models.optical_flow.raft_small(weights=None, progress=False))
+    from torchvision.models.optical_flow.raft import MaskPredictor
+
+    # in_channels: RAFT-small's recurrent hidden state (96 channels).
+    return _with_gather_lookup(torchvision.models.optical_flow.raft_small(
+        weights=None, progress=False, mask_predictor=MaskPredictor(in_channels=96, hidden_size=int(mask_hidden))))
+
+
+def mask_hidden_of(state: dict[str, torch.Tensor]) -> int:
+    """Hidden channels of the convex upsampler in a RAFT state dict (0: none, bilinear upsampling)."""
+    w = state.get("mask_predictor.convrelu.0.weight")
+    return int(w.shape[0]) if w is not None else 0
 
 
 def load_raft_weights(path: str | os.PathLike, size: str = "small") -> nn.Module:
@@ -99,7 +157,8 @@ def load_raft_weights(path: str | os.PathLike, size: str = "small") -> nn.Module
     state = obj.get("model", obj) if isinstance(obj, dict) else None
     if not isinstance(state, dict):
         raise InputError(f"flow.weights: {str(p)!r} holds no state dict (got {type(obj).__name__})")
-    model = build_raft(size)
+    # The file says whether RAFT-small has the convex upsampler (its mask predictor's weights).
+    model = build_raft(size, mask_hidden_of(state) if size == "small" else 0)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:
@@ -191,7 +250,8 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MI
     forward-backward check in one run (a free batch does not export; one batch of two takes 0.87x the
     time of two runs of one). Without it the legacy tracer fixes ``(Hp, Wp) = padded_size(height,
     width)`` and ``B = 1``. ``half_weights`` stores the weights as float16 (each cast back to float32
-    in the graph): half the file, the same flow as weights loaded from a float16 state dict.
+    in the graph): half the file, the same flow as weights loaded from a float16 state dict. The
+    exporter's per-node debugging metadata is dropped.
     """
     Hp, Wp = padded_size(height, width)
     path = Path(path)
@@ -214,14 +274,22 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MI
         else:
             torch.onnx.export(module, (a, b), str(path), input_names=["image_cur", "image_prev"],
                               output_names=["flow"], opset_version=opset, dynamo=False, do_constant_folding=True)
-    if half_weights:
-        import onnx
+    import onnx
 
+    proto = onnx.load(str(path))
+    # The exporter's debugging record on every node (stack traces, module scopes) is most of a dynamic
+    # graph's bytes and nothing ONNX Runtime reads.
+    for node in proto.graph.node:
+        node.doc_string = ""
+        del node.metadata_props[:]
+    if half_weights:
         from monostixels.inputs.fcn8s import store_half_weights
 
-        proto = onnx.load(str(path))
         store_half_weights(proto)
-        onnx.save(proto, str(path))
+    # The recurrent updates are fixed in the graph: recorded, so that a runner can tell.
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = "num_flow_updates", str(module.num_flow_updates)
+    onnx.save(proto, str(path))
     logger.info("exported RAFT (%d flow updates, %s) to %s", module.num_flow_updates,
                 "any size" if dynamic else f"{Hp}x{Wp}", path)
     return path
@@ -255,6 +323,9 @@ class OnnxRaft:
         # A dynamic graph names its dimensions (strings); a fixed one has numbers.
         self.size = None if not all(isinstance(d, int) for d in shape[2:]) else (int(shape[2]), int(shape[3]))
         self.batch = int(shape[0]) if isinstance(shape[0], int) else 1
+        meta = self.session.get_modelmeta().custom_metadata_map
+        #: Recurrent updates fixed in the graph (None: a file exported before they were recorded).
+        self.num_flow_updates = int(meta["num_flow_updates"]) if "num_flow_updates" in meta else None
 
     def _run(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         out = self.session.run(["flow"], {"image_cur": a.numpy(), "image_prev": b.numpy()})[0]
