@@ -10,18 +10,22 @@ Command (repository root; the RAFT rows read models/raft_small.pt / .onnx, conf/
     nice -n 10 python -m benchmarks.flow_quality --frames 20
 
 Results (2026-12-02), ``--frames 20`` at 1242x375, the backends as configured in conf/flow/ (RAFT:
-half size and one full-size refinement), one training job beside it; ``--cache`` lets the backends
-run in separate calls (``--backends deepflow,dis`` then ``--backends raft,raft_onnx``):
+0.75 of the size, convex upsampler, one full-size refinement); deepflow and dis with a training job
+beside them, the RAFT rows on an idle machine; ``--cache`` lets the backends run in separate calls
+(``--backends deepflow,dis`` then ``--backends raft,raft_onnx``):
 
     | backend   | EPE (px) | Fl-all (%) | seconds / frame |
     |-----------|---------:|-----------:|----------------:|
     | deepflow  |     1.31 |        6.0 |            1.05 |
     | dis       |     1.42 |        6.7 |            0.06 |
-    | raft      |     1.40 |        9.5 |            0.27 |
-    | raft_onnx |     1.40 |        9.5 |            0.85 |
-    structure-tensor covariance: 0.03 s / frame
+    | raft      |     1.32 |        5.6 |            0.91 |
+    | raft_onnx |     1.32 |        5.6 |            1.23 |
+    structure-tensor covariance: 0.02 s / frame
 
-RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: 5000 steps of ``python -m train.flow``).
+``raft_onnx``'s graph runs a pair both ways as one batch (the pipeline's forward-backward check);
+one direction alone costs it that time.
+
+RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: ``python -m train.flow``, 5000 steps and the upsampler's 2500).
 ``deepflow`` is guided by DIS's matches (``flow.matches=dis``): OpenCV's DeepFlow alone is the
 variational part without DeepMatching and loses the large near-field displacements of the road.
 """

@@ -332,6 +332,27 @@ def test_raft_runtime_auto_takes_the_export_beside_the_weights(tmp_path):
         _raft_net(OmegaConf.create({**cfg, "runtime": "tensorrt"}))
 
 
+def test_shipped_raft_files_agree_and_auto_runs_the_onnx_one():
+    """models/raft_small.onnx is the export of models/raft_small.pt (the same flow on a render), with
+    the shipped config's updates recorded, so that runtime=auto takes it on a CPU."""
+    from monostixels.inputs.flow import _raft_net
+    from monostixels.pipeline import load_config
+
+    cfg = load_config(["flow=raft"]).flow
+    onnx_net = _raft_net(OmegaConf.merge(cfg, {"runtime": "onnx"}))
+    assert onnx_net.num_flow_updates == int(cfg.iters)
+    if not torch.cuda.is_available():
+        assert isinstance(_raft_net(cfg), OnnxRaft)
+    torch_net = _raft_net(OmegaConf.merge(cfg, {"runtime": "torch"}))
+    assert torch_net.module.raft.mask_predictor is not None  # the shipped weights carry the convex upsampler
+    from monostixels.data.synthetic import render_pair
+
+    pair = render_pair(0, scale=0.25)
+    f_onnx, f_torch = onnx_net(pair.image, pair.image_prev), torch_net(pair.image, pair.image_prev)
+    assert float(f_torch.abs().max()) > 1.0
+    assert float((f_onnx - f_torch).abs().max()) < 0.02
+
+
 def test_gather_correlation_lookup_equals_torchvisions_grid_sample():
     """GatherCorrBlock (the lookup our RAFT uses) against torchvision's CorrBlock: the same features,
     centroids inside, between cells, and beyond the volume's edges (zeros there) alike."""

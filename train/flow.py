@@ -5,6 +5,13 @@ Run from the repository root (CPU work: be nice to other users of the machine)::
     nice -n 10 python -m train.flow                 # train (resumes run_dir/ckpt.pt), then export
     python -m train.flow export_only=true           # only export the last checkpoint to models/
 
+The shipped weights add RAFT's convex upsampler to those, trained alone on the frozen body
+(``mask_hidden``, ``trainable``; models/MODEL_CARD.md)::
+
+    nice -n 10 python -m train.flow mask_hidden=128 trainable=mask_predictor \
+        init_weights=models/raft_small.pt run_dir=runs/train_flow_convex \
+        'stages=[{steps: 2500, lr: 4.0e-4, warmup: 100, real_fraction: 0.2}]'
+
 Data:
 
 - **Synthetic** (supervised): ``synthetic.pairs`` scene pairs of the built-in renderer, source seed
