@@ -70,7 +70,7 @@ def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path):
             "synthetic.scale=0.35", "crop=[128,256]", "batch_size=2", "train_updates=3", "val.pairs=1", "val.every=60",
             "val.updates=3", "val.source_seed=20", "ckpt_every=5", "threads=1", "augment.colour=0",
             "augment.eraser_prob=0", "augment.scale_log2=[0,0]", "stages=[{steps: 60, lr: 6e-4, warmup: 2, real_fraction: 0.0}]",
-            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "max_minutes=null"]
+            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "export.updates=2", "max_minutes=null"]
     p = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     ck = torch.load(tmp_path / "ckpt.pt", weights_only=False)
@@ -108,7 +108,7 @@ def test_the_convex_upsampler_alone_trains_on_a_frozen_body(tmp_path):
             "val.updates=3", "val.source_seed=20", "ckpt_every=10", "threads=1", "augment.colour=0",
             "augment.eraser_prob=0", "augment.scale_log2=[0,0]", "stages=[{steps: 40, lr: 2e-3, warmup: 2, real_fraction: 0.0}]",
             "mask_hidden=16", "trainable=mask_predictor", f"init_weights={tmp_path / 'init.pt'}",
-            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "max_minutes=null"]
+            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "export.updates=2", "max_minutes=null"]
     p = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     assert "convex upsampler from scratch" in p.stdout + p.stderr
