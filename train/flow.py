@@ -373,8 +373,8 @@ def main(cfg: DictConfig) -> None:
             prm.requires_grad_(name.startswith("mask_predictor."))
     elif trainable != "all":
         raise ValueError(f"trainable: all or mask_predictor, got {trainable!r}")
-    opt = torch.optim.AdamW([q for q in model.parameters() if q.requires_grad], lr=float(stages[0]["lr"]), weight_decay=float(cfg.weight_decay),
-                            eps=1e-8)
+    params = [q for q in model.parameters() if q.requires_grad]
+    opt = torch.optim.AdamW(params, lr=float(stages[0]["lr"]), weight_decay=float(cfg.weight_decay), eps=1e-8)
     step, history, val_history = 0, [], []
     if cfg.resume and ckpt_path.is_file():
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
@@ -427,7 +427,7 @@ def main(cfg: DictConfig) -> None:
         loss, epe = sequence_loss(preds, f, v, float(cfg.gamma), float(cfg.max_flow))
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_([q for q in model.parameters() if q.requires_grad], float(cfg.grad_clip))
+        torch.nn.utils.clip_grad_norm_(params, float(cfg.grad_clip))
         opt.step()
         step += 1
         ema = epe if ema is None else 0.98 * ema + 0.02 * epe

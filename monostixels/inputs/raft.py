@@ -61,7 +61,7 @@ RAFT_SIZES = ("small", "large")
 RAFT_MULTIPLE = 8
 #: Smallest side (pixels): 1/8 resolution and 3 pooling levels of the correlation pyramid leave 2 cells.
 RAFT_MIN_SIZE = 128
-#: grid_sample (correlation lookup) needs ONNX opset 16.
+#: ONNX opset of the fixed-size export (the any-size export through torch.export takes at least 18).
 ONNX_OPSET = 17
 
 
@@ -118,13 +118,13 @@ def build_raft(size: str = "small", mask_hidden: int = 0) -> nn.Module:
         raise InputError(f"flow.size: RAFT size must be one of {RAFT_SIZES}, got {size!r}")
     if size == "large":
         return _with_gather_lookup(torchvision.models.optical_flow.raft_large(weights=None, progress=False))
-    if mask_hidden <= 0:
-        return _with_gather_lookup(torchvision.models.optical_flow.raft_small(weights=None, progress=False))
-    from torchvision.models.optical_flow.raft import MaskPredictor
+    extra = {}
+    if mask_hidden > 0:
+        from torchvision.models.optical_flow.raft import MaskPredictor
 
-    # in_channels: RAFT-small's recurrent hidden state (96 channels).
-    return _with_gather_lookup(torchvision.models.optical_flow.raft_small(
-        weights=None, progress=False, mask_predictor=MaskPredictor(in_channels=96, hidden_size=int(mask_hidden))))
+        # in_channels: RAFT-small's recurrent hidden state (96 channels).
+        extra["mask_predictor"] = MaskPredictor(in_channels=96, hidden_size=int(mask_hidden))
+    return _with_gather_lookup(torchvision.models.optical_flow.raft_small(weights=None, progress=False, **extra))
 
 
 def mask_hidden_of(state: dict[str, torch.Tensor]) -> int:
