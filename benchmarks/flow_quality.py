@@ -10,20 +10,23 @@ Command (repository root; the RAFT rows read models/raft_small.pt / .onnx, conf/
     nice -n 10 python -m benchmarks.flow_quality --frames 20
 
 Results (2026-12-02), ``--frames 20`` at 1242x375, the backends as configured in conf/flow/ (RAFT:
-0.75 of the size, convex upsampler, one full-size refinement); deepflow and dis with a training job
-beside them, the RAFT rows on an idle machine; ``--cache`` lets the backends run in separate calls
-(``--backends deepflow,dis`` then ``--backends raft,raft_onnx``):
+0.75 of the size, convex upsampler, 4 full-size refinement passes); deepflow and dis with a training
+job beside them, the RAFT rows on an idle machine; ``--cache`` lets the backends run in separate
+calls (``--backends deepflow,dis`` then ``--backends raft,raft_onnx``):
 
     | backend   | EPE (px) | Fl-all (%) | seconds / frame |
     |-----------|---------:|-----------:|----------------:|
     | deepflow  |     1.31 |        6.0 |            1.05 |
     | dis       |     1.42 |        6.7 |            0.06 |
-    | raft      |     1.32 |        5.6 |            0.91 |
-    | raft_onnx |     1.32 |        5.6 |            1.23 |
+    | raft      |     1.01 |        4.6 |            0.84 |
+    | raft_onnx |     1.01 |        4.6 |            1.24 |
     structure-tensor covariance: 0.02 s / frame
 
 ``raft_onnx``'s graph runs a pair both ways as one batch (the pipeline's forward-backward check);
-one direction alone costs it that time.
+one direction alone costs it that time. ``--pipeline`` adds the flow stage as the pipeline runs it
+(``estimate_flow``: both directions where ``fb_consistency`` is on, refinements, covariance);
+``--frames 6 --backends raft,raft_onnx,deepflow --pipeline``, idle machine, 2026-12-02: raft 1.98,
+raft_onnx 1.61, deepflow 1.63 s a frame.
 
 RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: ``python -m train.flow``, 5000 steps and the upsampler's 2500).
 ``deepflow`` is guided by DIS's matches (``flow.matches=dis``): OpenCV's DeepFlow alone is the
@@ -44,7 +47,7 @@ from tqdm import tqdm
 
 from monostixels.data.synthetic import SyntheticSource
 from monostixels.inputs.confidence import flow_covariance
-from monostixels.inputs.flow import compute_flow, confidence_params, flow_metrics, resolve_path
+from monostixels.inputs.flow import compute_flow, confidence_params, estimate_flow, flow_metrics, resolve_path
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "flow"
 
@@ -58,6 +61,9 @@ def main() -> None:
     ap.add_argument("--cache", default=None,
                     help="folder for rendered frames and per-backend results (lets backends run in separate calls; "
                          "the table then lists every backend measured there)")
+    ap.add_argument("--pipeline", action="store_true",
+                    help="also time the flow stage as the pipeline runs it (estimate_flow: both directions where "
+                         "the backend's fb_consistency is on, the refinement and the covariance)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -79,7 +85,7 @@ def main() -> None:
     cache = Path(args.cache) if args.cache else None
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
-    rows: dict[str, dict[str, list[float]]] = {b: {"epe": [], "fl_all": [], "seconds": []} for b in cfgs}
+    rows: dict[str, dict[str, list[float]]] = {b: {"epe": [], "fl_all": [], "seconds": [], "pipeline": []} for b in cfgs}
     cov_seconds = []
     size = None
     for i in tqdm(range(len(src)), desc="frames"):
@@ -98,6 +104,10 @@ def main() -> None:
             m = flow_metrics(flow, pair.gt.flow, pair.gt.flow_valid)
             rows[b]["epe"].append(m["epe"])
             rows[b]["fl_all"].append(m["fl_all"])
+            if args.pipeline:
+                t0 = time.perf_counter()
+                estimate_flow(pair, cfg)
+                rows[b]["pipeline"].append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         flow_covariance(pair.image, confidence_params(OmegaConf.load(CONF / "deepflow.yaml")))
         cov_seconds.append(time.perf_counter() - t0)
@@ -113,10 +123,11 @@ def main() -> None:
         cov_seconds = stored["_cov_seconds"]
     print(f"\n{len(src)} synthetic frames (source seed {args.seed}), {size[1]}x{size[0]}; "
           "EPE and Fl-all averaged over frames, seconds = flow only, median per frame\n")
-    print("| backend | EPE (px) | Fl-all (%) | seconds / frame |")
-    print("|---|---:|---:|---:|")
+    print("| backend | EPE (px) | Fl-all (%) | seconds / frame | pipeline seconds / frame |")
+    print("|---|---:|---:|---:|---:|")
     for b, r in rows.items():
-        print(f"| {b} | {np.mean(r['epe']):.2f} | {100 * np.mean(r['fl_all']):.1f} | {np.median(r['seconds']):.2f} |")
+        pipe = f"{np.median(r['pipeline']):.2f}" if r.get("pipeline") else "-"
+        print(f"| {b} | {np.mean(r['epe']):.2f} | {100 * np.mean(r['fl_all']):.1f} | {np.median(r['seconds']):.2f} | {pipe} |")
     print(f"\nstructure-tensor covariance: {np.median(cov_seconds):.2f} s / frame (all backends)")
 
 

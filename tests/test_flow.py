@@ -137,6 +137,28 @@ def test_deepflow_follows_large_displacements_with_matches():
         estimate_flow(pair, OmegaConf.create({"name": "deepflow", "matches": "sift"}))
 
 
+def test_refinement_passes_converge_towards_the_ground_truth():
+    # One variational refinement linearises around its start; each further pass warps again by the
+    # refined flow. From DIS's coarse flow on a street render, 3 passes must end nearer the ground
+    # truth than 1, on the static pixels of small displacement most of all (what the static depth needs).
+    from monostixels.data.synthetic import render_pair
+    from monostixels.inputs.flow import compute_flow
+
+    pair = render_pair(9, scale=0.5)
+    gt, valid = pair.gt.flow, pair.gt.flow_valid
+    small = valid & ~pair.gt.moving & (gt.norm(dim=0) < 4)
+    err = {}
+    for passes in (1, 3):
+        cfg = OmegaConf.create({"name": "dis", "refine": True, "refine_passes": passes})
+        e = (compute_flow(pair.image, pair.image_prev, cfg) - gt).norm(dim=0)
+        err[passes] = (float(e[valid].mean()), float(e[small].median()))
+    assert err[3][0] < err[1][0]
+    assert err[3][1] < 0.8 * err[1][1]
+    for bad in (0, -1, 1.5, True, "4"):
+        with pytest.raises(InputError, match="flow.refine_passes"):
+            compute_flow(pair.image, pair.image_prev, OmegaConf.create({"name": "dis", "refine": True, "refine_passes": bad}))
+
+
 def test_fb_consistency_marks_pixels_that_leave_the_image():
     H, W = 96, 128
     big = _texture(H + 20, W + 20, seed=4)
@@ -371,6 +393,20 @@ def test_gather_correlation_lookup_equals_torchvisions_grid_sample():
     assert got.shape == want.shape == (2, 4 * 49, 18, 30)
     assert float(want.abs().max()) > 1.0
     assert torch.allclose(got, want, atol=1e-5)
+
+
+@pytest.mark.parametrize("mask_hidden", [0, 16])
+def test_raft_flow_equals_torchvisions_last_prediction(mask_hidden):
+    """RaftFlow runs RAFT's updates itself and upsamples once, after the last: the same flow as the
+    last of torchvision's per-update predictions, bilinear and convex upsampling alike."""
+    torch.manual_seed(3)
+    raft = build_raft("small", mask_hidden=mask_hidden).eval()
+    a, b = _texture(128, 192, seed=2)[None], _texture(128, 192, seed=3)[None]
+    with torch.inference_mode():
+        want = raft(2 * a - 1, 2 * b - 1, num_flow_updates=3)[-1]
+        got = RaftFlow(raft, 3)(a, b)
+    assert float(want.abs().max()) > 0.01
+    assert torch.allclose(got, want, atol=1e-6)
 
 
 def test_raft_small_with_the_convex_upsampler_exports_and_loads(tmp_path):

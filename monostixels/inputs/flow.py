@@ -22,8 +22,9 @@ may run on the images downscaled by ``scale`` in (0, 1] (area averaging); its fl
 bilinearly to the input size and its vectors multiplied by the size ratio. DeepFlow guided by DIS
 matches keeps the matches at full resolution (cheap, and what follows large displacements) and
 runs only its variational stage, the expensive part, at ``scale``. ``refine: true`` then polishes
-the full-size flow with one variational refinement at full resolution (OpenCV's
-``VariationalRefinement``, the energy DIS uses), which restores the sub-pixel accuracy the
+the full-size flow with a variational refinement at full resolution (OpenCV's
+``VariationalRefinement``, the energy DIS uses; ``refine_passes`` times, each warping again by the
+last pass's flow), which restores the sub-pixel accuracy the
 downscaled stage gives away. The covariance is computed on the grid of the last stage: the
 full-size image after a refinement or at ``scale = 1``, else the downscaled image (its
 ``window_sigma`` in pixels of that grid, ``sigma``/``sigma_min``/``sigma_max`` in full-size
@@ -309,12 +310,18 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
-def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor) -> torch.Tensor:
-    """One full-resolution variational refinement of ``flow`` (2, H, W) on the (current, previous)
-    grey images (:func:`_gray_u8`) (OpenCV ``VariationalRefinement`` with its defaults: the energy
-    and iterations DIS uses at each of its levels)."""
+def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor, passes: int = 1) -> torch.Tensor:
+    """Full-resolution variational refinement of ``flow`` (2, H, W) on the (current, previous) grey
+    images (:func:`_gray_u8`), ``passes`` times (OpenCV ``VariationalRefinement`` with its defaults:
+    the energy and iterations DIS uses at each of its levels).
+
+    One call linearises the data term once, around the flow it starts from (the previous image
+    warped by it); a far start leaves it short of the energy's minimum. Each further pass warps
+    again by the refined flow, as the levels of a pyramid would (docs/experiments.md "Flow").
+    """
     f = np.ascontiguousarray(flow.permute(1, 2, 0).numpy(), dtype=np.float32)
-    cv2.VariationalRefinement_create().calc(grey[0], grey[1], f)
+    for _ in range(passes):
+        cv2.VariationalRefinement_create().calc(grey[0], grey[1], f)
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1)))
 
 
@@ -401,7 +408,12 @@ def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
         return fwd, bwd, None
     g_cur = _gray_u8(image_cur.float())
     g_prev = grey_prev if grey_prev is not None else _gray_u8(image_prev.float())
-    fwd, bwd = _refine((g_cur, g_prev), fwd), _refine((g_prev, g_cur), bwd)
+    passes = _refine_passes(cfg)
+    # The two directions in two threads: OpenCV's refinement leaves most of a second core idle (and
+    # releases the GIL); on two cores this halves its time.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        back = pool.submit(_refine, (g_prev, g_cur), bwd, passes)
+        fwd, bwd = _refine((g_cur, g_prev), fwd, passes), back.result()
     for f in (fwd, bwd):
         check_finite_fast(f, "flow from backend raft after flow.refine")
     return fwd, bwd, g_cur
@@ -474,7 +486,7 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
         flow = _upsample_flow(_backend(name, _downscale(image_cur, size), _downscale(image_prev, size), cfg,
                                        None, small_init), (H, W))
     if refine:
-        flow = _refine(grey, flow)
+        flow = _refine(grey, flow, _refine_passes(cfg))
         check_finite_fast(flow, f"flow from backend {name} after flow.refine")
     return flow, (grey[0] if grey is not None else None)
 
@@ -483,6 +495,14 @@ def _refine_enabled(cfg: Any) -> bool:
     val = _get(cfg, "refine", False)
     if not isinstance(val, bool):
         raise InputError(f"flow.refine: must be true or false, got {val!r}")
+    return val
+
+
+def _refine_passes(cfg: Any) -> int:
+    """``cfg.refine_passes``: how many times :func:`_refine` runs where ``refine`` is on (default 1)."""
+    val = _get(cfg, "refine_passes", 1)
+    if isinstance(val, bool) or not isinstance(val, int) or val < 1:
+        raise InputError(f"flow.refine_passes: must be an integer >= 1, got {val!r}")
     return val
 
 
@@ -496,6 +516,7 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
     """
     check_image_pair(pair.image, pair.image_prev)
     _refine_enabled(cfg)
+    _refine_passes(cfg)
     flow_scale(cfg)
     if init is not None:
         check_shape(torch.from_numpy(init), [*pair.size, 2], "flow init (H, W, 2)")
@@ -563,8 +584,9 @@ def estimate_flow(pair: FramePair, cfg: Any, *, init: np.ndarray | None = None,
         pair: the frame pair (images (3, H, W) RGB in [0, 1]).
         cfg: the ``flow`` config group node: ``name`` in gt|deepflow|dis|raft, confidence keys
             (``confidence``, ``sigma``, ``noise``, ``window_sigma``, ``sigma_min``, ``sigma_max``,
-            ``fb_consistency``, ``fb_weight``), ``scale`` and ``refine`` (image backends: resolution
-            the backend runs at, in (0, 1], and a full-resolution refinement; ``gt`` ignores both)
+            ``fb_consistency``, ``fb_weight``), ``scale``, ``refine`` and ``refine_passes`` (image
+            backends: resolution the backend runs at, in (0, 1], and a full-resolution refinement run
+            that many times, default 1; ``gt`` ignores them)
             and backend keys (``preset``; ``size``, ``weights``,
             ``onnx``, ``runtime``, ``iters``).
         init: (H, W, 2) float32 start of the flow (pixels, current -> previous), e.g. a stream's last

@@ -55,6 +55,9 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
+_coords_grid = torchvision.models.optical_flow._utils.make_coords_grid
+_upsample_flow = torchvision.models.optical_flow._utils.upsample_flow
+
 #: The two torchvision RAFT configurations.
 RAFT_SIZES = ("small", "large")
 #: RAFT works at 1/8 resolution: H and W must be multiples of 8.
@@ -184,8 +187,27 @@ class RaftFlow(nn.Module):
         self.num_flow_updates = int(num_flow_updates)
 
     def forward(self, image_cur: torch.Tensor, image_prev: torch.Tensor) -> torch.Tensor:
+        # torchvision's RAFT.forward, with the flow upsampled only after the last update: it upsamples
+        # after every update (for the training loss over all of them), which in torch at inference is
+        # a mask prediction and a full-size convex combination wasted per update.
+        raft = self.raft
         # torchvision RAFT expects images normalised to [-1, 1].
-        return self.raft(2.0 * image_cur - 1.0, 2.0 * image_prev - 1.0, num_flow_updates=self.num_flow_updates)[-1]
+        a, b = 2.0 * image_cur - 1.0, 2.0 * image_prev - 1.0
+        fmap_a, fmap_b = torch.chunk(raft.feature_encoder(torch.cat([a, b], dim=0)), chunks=2, dim=0)
+        raft.corr_block.build_pyramid(fmap_a, fmap_b)
+        context_out = raft.context_encoder(a)
+        hidden_size = raft.update_block.hidden_state_size
+        hidden, context = torch.split(context_out, [hidden_size, context_out.shape[1] - hidden_size], dim=1)
+        hidden, context = torch.tanh(hidden), F.relu(context)
+        B, _, h, w = fmap_a.shape
+        coords0 = _coords_grid(B, h, w).to(fmap_a.device)
+        coords1 = coords0.clone()
+        for _ in range(self.num_flow_updates):
+            corr = raft.corr_block.index_pyramid(centroids_coords=coords1)
+            hidden, delta = raft.update_block(hidden, context, corr, coords1 - coords0)
+            coords1 = coords1 + delta
+        up_mask = None if raft.mask_predictor is None else raft.mask_predictor(hidden)
+        return _upsample_flow(coords1 - coords0, up_mask=up_mask)
 
 
 def padded_size(height: int, width: int) -> tuple[int, int]:
