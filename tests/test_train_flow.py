@@ -129,3 +129,49 @@ def test_the_convex_upsampler_alone_trains_on_a_frozen_body(tmp_path):
     bad = [a if not a.startswith("init_weights=") else f"init_weights={tmp_path / 'large.pt'}" for a in args]
     p = subprocess.run(bad + [f"run_dir={tmp_path / 'bad'}"], cwd=REPO, capture_output=True, text=True, timeout=900)
     assert p.returncode != 0 and "large.pt" in p.stdout + p.stderr
+
+
+@pytest.mark.slow
+def test_device_chunks_stop_on_time_save_and_resume(tmp_path):
+    """train/device_prepare.sh + train/device_chunk.sh, as the accelerator machine runs them, here on the
+    CPU (device=cpu; bf16 autocast as on the GPU): each chunk stops after its minutes, its checkpoint
+    lands in $OUT, and the next chunk, prepared from it, goes on from its step. Asking for CUDA where
+    there is none is a clear error."""
+    import os
+
+    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(REPO), "OUT": str(tmp_path / "out")}
+    root = tmp_path / "root"  # the device machine's checkout: the scripts work in the current directory
+    root.mkdir()
+    tiny = ["synthetic.pairs=4", "synthetic.shard=2", "synthetic.scale=0.35", "crop=[128,256]", "batch_size=2",
+            "train_updates=2", "val.pairs=1", "val.every=100000", "val.updates=2", "val.source_seed=20", "ckpt_every=1000",
+            "threads=1", "stages=[{steps: 100000, lr: 2e-4, warmup: 2, real_fraction: 0.0}]"]
+
+    def chunk(*extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(REPO / "train" / "device_chunk.sh"), "0.1", *extra], cwd=root, env=env,
+                              capture_output=True, text=True, timeout=600)
+
+    run = tmp_path / "run"  # where this machine keeps the checkpoints that came back
+    steps = []
+    for _ in range(2):
+        p = subprocess.run(["bash", str(REPO / "train" / "device_prepare.sh"), str(run)], cwd=root, env=env,
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0, p.stderr
+        assert (root / ".device" / "site" / "hydra").is_dir() and (root / ".device" / "site" / "omegaconf").is_dir()
+        p = chunk("device=cpu", *tiny)
+        log = (tmp_path / "out" / "train.log").read_text()
+        assert p.returncode == 0, log[-3000:]
+        assert "time limit of 0.1 minutes reached" in log
+        ck = torch.load(tmp_path / "out" / "ckpt.pt", weights_only=False)
+        assert ck["config"]["amp"] == "bf16" and all(v.dtype != torch.bfloat16 for v in ck["model"].values())
+        assert all(torch.isfinite(torch.tensor(h[1])) for h in ck["history"])
+        steps.append(ck["step"])
+        if len(steps) == 2:
+            assert ck["history"][:steps[0]] == first["history"]
+        first = ck
+        run.mkdir(exist_ok=True)
+        (run / "ckpt.pt").write_bytes((tmp_path / "out" / "ckpt.pt").read_bytes())
+    assert 0 < steps[0] < steps[1]
+    # device=cuda (the script's own) on a machine without CUDA.
+    if not torch.cuda.is_available():
+        p = chunk(*tiny)
+        assert p.returncode != 0 and "torch sees no CUDA device" in (tmp_path / "out" / "train.log").read_text()

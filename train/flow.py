@@ -294,16 +294,19 @@ def validation_pairs(cfg: DictConfig) -> list[Sample]:
 
 
 def validate(model: torch.nn.Module, pairs: list[Sample], updates: int) -> float:
-    """Mean EPE (px) over the valid pixels of whole held-out images, ``updates`` recurrent steps."""
+    """Mean EPE (px) over the valid pixels of whole held-out images, ``updates`` recurrent steps (float32,
+    on the model's device)."""
     from monostixels.inputs.raft import pad_images
 
     was = model.training
     model.eval()
+    dev = next(model.parameters()).device
     errs = []
     with torch.inference_mode():
         for a, b, f, v in pairs:
             (pa, pb), (H, W) = pad_images(a[None].float() / 255, b[None].float() / 255)
-            out = model(2 * pa - 1, 2 * pb - 1, num_flow_updates=updates)[-1][0, :, :H, :W]
+            pa, pb = pa.to(dev), pb.to(dev)
+            out = model(2 * pa - 1, 2 * pb - 1, num_flow_updates=updates)[-1][0, :, :H, :W].cpu()
             errs.append(float((out - f.float()).norm(dim=0)[v].mean()))
     model.train(was)
     return float(np.mean(errs))
@@ -324,6 +327,21 @@ def _lr_factor(step: int, warmup: int, steps: int) -> float:
     return max(0.0, (steps - step) / max(1, steps - warmup))
 
 
+def _device(cfg: DictConfig) -> tuple[torch.device, bool]:
+    """The training device (``cfg.device``: cpu | cuda | auto) and whether bf16 autocast is on (``cfg.amp``)."""
+    name = str(cfg.get("device", "cpu"))
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name not in ("cpu", "cuda"):
+        raise ValueError(f"device: cpu, cuda or auto, got {name!r}")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device=cuda: torch sees no CUDA device here (device=cpu or device=auto)")
+    amp = str(cfg.get("amp", "none"))
+    if amp not in ("none", "bf16"):
+        raise ValueError(f"amp: none or bf16, got {amp!r}")
+    return torch.device(name), amp == "bf16"
+
+
 def _stage_at(stages: list[dict[str, Any]], step: int) -> tuple[int, int]:
     """(index of the stage that ``step`` belongs to, the stage's first global step); (len, total) when done."""
     start = 0
@@ -337,7 +355,7 @@ def _stage_at(stages: list[dict[str, Any]], step: int) -> tuple[int, int]:
 def write_weights(model: torch.nn.Module, out: Path) -> None:
     """The state dict as float16 (loaded back into float32 parameters): keeps shipped models small."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({k: v.half() if v.is_floating_point() else v for k, v in model.state_dict().items()}, out)
+    torch.save({k: (v.half() if v.is_floating_point() else v).cpu() for k, v in model.state_dict().items()}, out)
 
 
 @hydra.main(config_path="../conf", config_name="train_flow", version_base=None)
@@ -362,7 +380,9 @@ def main(cfg: DictConfig) -> None:
     total = sum(int(s["steps"]) for s in stages)
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    model = build_raft(cfg.size, int(cfg.get("mask_hidden", 0)))
+    dev, bf16 = _device(cfg)
+    # On the device before the optimiser is made: its state (and a resumed one) then lives there too.
+    model = build_raft(cfg.size, int(cfg.get("mask_hidden", 0))).to(dev)
     trainable = str(cfg.get("trainable", "all"))
     if trainable == "mask_predictor":
         # The convex upsampler alone, on a trained body: the 1/8-resolution flow stays what it was, and a
@@ -423,8 +443,11 @@ def main(cfg: DictConfig) -> None:
         frac = float(st.get("real_fraction", 0.0)) if real else 0.0
         a, b, f, v = sample_batch([synthetic, real] if frac > 0 else [synthetic], [1 - frac, frac] if frac > 0 else [1.0],
                                   int(cfg.batch_size), crop, gen, cfg.augment)
-        preds = model(2 * a - 1, 2 * b - 1, num_flow_updates=int(cfg.train_updates))
-        loss, epe = sequence_loss(preds, f, v, float(cfg.gamma), float(cfg.max_flow))
+        a, b, f, v = (t.to(dev, non_blocking=True) for t in (a, b, f, v))
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=bf16):
+            preds = model(2 * a - 1, 2 * b - 1, num_flow_updates=int(cfg.train_updates))
+        # The loss in float32 whatever the forward ran in (bf16 keeps 3 significant digits).
+        loss, epe = sequence_loss([q.float() for q in preds], f, v, float(cfg.gamma), float(cfg.max_flow))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, float(cfg.grad_clip))

@@ -288,6 +288,9 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     the images' :func:`_gray_u8`, when the caller has them; ``init``: (H, W, 2) start of the DIS
     matches (:func:`_dis_calc`).
     """
+    if not hasattr(cv2, "optflow"):
+        raise InputError(f"flow=deepflow: this OpenCV ({cv2.__version__}) has no cv2.optflow; DeepFlow is in "
+                         "opencv-contrib-python-headless (install it instead of the plain OpenCV wheel)")
     a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
     scale = flow_scale(cfg)
     bands = _bands(cfg)
