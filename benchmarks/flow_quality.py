@@ -9,26 +9,26 @@ Command (repository root; the RAFT rows read models/raft_small.pt / .onnx, conf/
 
     nice -n 10 python -m benchmarks.flow_quality --frames 20
 
-Results (2026-12-02), ``--frames 20`` at 1242x375, the backends as configured in conf/flow/ (RAFT:
-0.75 of the size, convex upsampler, 4 full-size refinement passes); deepflow and dis with a training
-job beside them, the RAFT rows on an idle machine; ``--cache`` lets the backends run in separate
-calls (``--backends deepflow,dis`` then ``--backends raft,raft_onnx``):
+Results (2026-12-02), ``--frames 20`` at 1242x375, idle machine, the backends as configured in
+conf/flow/ (DeepFlow and RAFT with 4 full-size refinement passes; RAFT at 0.75 of the size with its
+convex upsampler); ``--cache`` lets the backends run in separate calls (``--backends deepflow,dis``
+then ``--backends raft,raft_onnx``):
 
     | backend   | EPE (px) | Fl-all (%) | seconds / frame |
     |-----------|---------:|-----------:|----------------:|
-    | deepflow  |     1.31 |        6.0 |            1.05 |
-    | dis       |     1.42 |        6.7 |            0.06 |
-    | raft      |     1.01 |        4.6 |            0.84 |
-    | raft_onnx |     1.01 |        4.6 |            1.24 |
+    | deepflow  |     1.12 |        5.2 |            0.73 |
+    | dis       |     1.42 |        6.7 |            0.04 |
+    | raft      |     1.17 |        4.5 |            0.79 |
+    | raft_onnx |     1.17 |        4.5 |            1.20 |
     structure-tensor covariance: 0.02 s / frame
 
 ``raft_onnx``'s graph runs a pair both ways as one batch (the pipeline's forward-backward check);
 one direction alone costs it that time. ``--pipeline`` adds the flow stage as the pipeline runs it
 (``estimate_flow``: both directions where ``fb_consistency`` is on, refinements, covariance);
-``--frames 6 --backends raft,raft_onnx,deepflow --pipeline``, idle machine, 2026-12-02: raft 1.98,
-raft_onnx 1.61, deepflow 1.63 s a frame.
+``--frames 6 --backends raft,raft_onnx,deepflow --pipeline``, idle machine, 2026-12-02: raft 1.70,
+raft_onnx 1.31, deepflow 1.47 s a frame.
 
-RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: ``python -m train.flow``, 5000 steps and the upsampler's 2500).
+RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: ``python -m train.flow``, 5000 steps, the upsampler's 2500 and 1500 at the running scale).
 ``deepflow`` is guided by DIS's matches (``flow.matches=dis``): OpenCV's DeepFlow alone is the
 variational part without DeepMatching and loses the large near-field displacements of the road.
 """

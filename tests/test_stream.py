@@ -47,7 +47,8 @@ def test_presets_compose_to_the_documented_groups():
     assert fast["solver"] == (3, 5)
     assert fast["stream"] == {"flow_init": True, "semantic_every": 2, "motion_warm_start": True, "overlap": True}
     acc = _choices(["preset=accurate"])
-    assert acc["flow"] == ("deepflow", None, False, True)  # DeepFlow (DIS-guided), checked forward-backward
+    # DeepFlow (DIS-guided), refined at full size in 4 passes, checked forward-backward.
+    assert acc["flow"] == ("deepflow", None, True, True) and load_config(["preset=accurate"]).flow.refine_passes == 4
     assert acc["semantic"] == fast["semantic"] and acc["motion"] == "mono" and acc["solver"] == (3, 5)
     assert acc["stream"] == {"flow_init": False, "semantic_every": 1, "motion_warm_start": False, "overlap": True}
     # Without a preset: the oracle inputs of conf/config.yaml, nothing carried that changes a result.

@@ -6,11 +6,18 @@ Run from the repository root (CPU work: be nice to other users of the machine)::
     python -m train.flow export_only=true           # only export the last checkpoint to models/
 
 The shipped weights add RAFT's convex upsampler to those, trained alone on the frozen body
-(``mask_hidden``, ``trainable``; models/MODEL_CARD.md)::
+(``mask_hidden``, ``trainable``; models/MODEL_CARD.md), then fine-tune the whole network at the scale
+``flow=raft`` runs at (0.75 of KITTI's size: the half-size pool upscaled 1.23-1.74x). The whole
+chain, each stage from the last one's weights, the last writing ``models/``::
 
+    nice -n 10 python -m train.flow out_weights=runs/train_flow/raft_small.pt export.onnx=runs/train_flow/raft_small.onnx
     nice -n 10 python -m train.flow mask_hidden=128 trainable=mask_predictor \
-        init_weights=models/raft_small.pt run_dir=runs/train_flow_convex \
+        init_weights=runs/train_flow/raft_small.pt run_dir=runs/train_flow_convex \
+        out_weights=runs/train_flow_convex/raft_small.pt export.onnx=runs/train_flow_convex/raft_small.onnx \
         'stages=[{steps: 2500, lr: 4.0e-4, warmup: 100, real_fraction: 0.2}]'
+    nice -n 10 python -m train.flow mask_hidden=128 trainable=all \
+        init_weights=runs/train_flow_convex/raft_small.pt run_dir=runs/train_flow_s075 \
+        'stages=[{steps: 1500, lr: 1.0e-4, warmup: 100, real_fraction: 0.35}]' 'augment.scale_log2=[0.3,0.8]'
 
 Data:
 

@@ -529,9 +529,15 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
         if str(_get(cfg, "name", "")) == "raft":
             flow, back, grey = _raft_both_ways(pair.image, pair.image_prev, cfg, grey_prev)  # RAFT starts from zero
         else:
-            flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
-            # The backward flow starts from zero: the carried flow is a forward one.
-            back, _ = _flow_of_checked_images(pair.image_prev, pair.image, cfg, None, grey)
+            g_cur = _gray_u8(pair.image.float())
+            g_prev = grey_prev if grey_prev is not None else _gray_u8(pair.image_prev.float())
+            # The two directions in two threads: the OpenCV backends release the GIL and DeepFlow's
+            # variational stage (bands=1) and the refinement use about one core each. The backward
+            # flow starts from zero: the carried flow is a forward one.
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                back_job = pool.submit(_flow_of_checked_images, pair.image_prev, pair.image, cfg, None, g_cur)
+                flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, g_prev)
+                back, _ = back_job.result()
         return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey
     with ThreadPoolExecutor(max_workers=1) as pool:
         cov = pool.submit(_covariance, pair.image, cfg, params, None)
