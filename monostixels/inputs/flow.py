@@ -414,7 +414,7 @@ def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
     passes = _refine_passes(cfg)
     # The two directions in two threads: OpenCV's refinement leaves most of a second core idle (and
     # releases the GIL); on two cores this halves its time.
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    with ThreadPoolExecutor(max_workers=1) as pool:
         back = pool.submit(_refine, (g_prev, g_cur), bwd, passes)
         fwd, bwd = _refine((g_cur, g_prev), fwd, passes), back.result()
     for f in (fwd, bwd):
@@ -461,13 +461,22 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
     return _flow_of_checked_images(image_cur, image_prev, cfg)[0]
 
 
+def _uses_grey(cfg: Any) -> bool:
+    """Whether the flow of ``cfg`` reads the full-size grey images (the refinement, or a grey backend at
+    full size)."""
+    name = str(_get(cfg, "name", ""))
+    full_size = flow_scale(cfg) == 1.0 or name in _OWN_SCALE
+    return _refine_enabled(cfg) or (full_size and name in _GREY_BACKENDS)
+
+
 def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any, init: np.ndarray | None = None,
-                            grey_prev: np.ndarray | None = None) -> tuple[torch.Tensor, np.ndarray | None]:
+                            grey_prev: np.ndarray | None = None, grey_cur: np.ndarray | None = None
+                            ) -> tuple[torch.Tensor, np.ndarray | None]:
     """:func:`compute_flow` on images that passed :func:`monostixels._checks.check_image_pair`, backend name known.
 
-    ``init``: (H, W, 2) start of the flow (full-size pixels), or None; ``grey_prev``: the
-    :func:`_gray_u8` of ``image_prev`` where the caller kept it. Returns the flow and the full-size
-    grey of ``image_cur`` where one was made (else None).
+    ``init``: (H, W, 2) start of the flow (full-size pixels), or None; ``grey_prev``, ``grey_cur``: the
+    :func:`_gray_u8` of ``image_prev`` / ``image_cur`` where the caller has them. Returns the flow and
+    the full-size grey of ``image_cur`` where one was made or given (else None).
     """
     name = str(_get(cfg, "name", ""))
     scale = flow_scale(cfg)
@@ -475,8 +484,9 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
     full_size = scale == 1.0 or name in _OWN_SCALE
     # The full-size grey images once, for the backend and the refinement alike.
     grey = None
-    if refine or (full_size and name in _GREY_BACKENDS):
-        grey = (_gray_u8(image_cur.float()), grey_prev if grey_prev is not None else _gray_u8(image_prev.float()))
+    if _uses_grey(cfg):
+        grey = (grey_cur if grey_cur is not None else _gray_u8(image_cur.float()),
+                grey_prev if grey_prev is not None else _gray_u8(image_prev.float()))
     if full_size:
         flow = _backend(name, image_cur, image_prev, cfg, grey, init)
     else:
@@ -529,14 +539,17 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
         if str(_get(cfg, "name", "")) == "raft":
             flow, back, grey = _raft_both_ways(pair.image, pair.image_prev, cfg, grey_prev)  # RAFT starts from zero
         else:
-            g_cur = _gray_u8(pair.image.float())
-            g_prev = grey_prev if grey_prev is not None else _gray_u8(pair.image_prev.float())
+            # Both greys once, for the two directions (each is the other's previous image).
+            g_cur = g_prev = None
+            if _uses_grey(cfg):
+                g_cur = _gray_u8(pair.image.float())
+                g_prev = grey_prev if grey_prev is not None else _gray_u8(pair.image_prev.float())
             # The two directions in two threads: the OpenCV backends release the GIL and DeepFlow's
             # variational stage (bands=1) and the refinement use about one core each. The backward
             # flow starts from zero: the carried flow is a forward one.
             with ThreadPoolExecutor(max_workers=1) as pool:
-                back_job = pool.submit(_flow_of_checked_images, pair.image_prev, pair.image, cfg, None, g_cur)
-                flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, g_prev)
+                back_job = pool.submit(_flow_of_checked_images, pair.image_prev, pair.image, cfg, None, g_cur, g_prev)
+                flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, g_prev, g_cur)
                 back, _ = back_job.result()
         return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey
     with ThreadPoolExecutor(max_workers=1) as pool:
