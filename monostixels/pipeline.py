@@ -31,7 +31,7 @@ from monostixels.data.base import FramePair
 from monostixels.energy import PriorParams
 from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion
-from monostixels.inputs.flow import FlowResult, estimate_flow
+from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
 from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers
@@ -195,7 +195,8 @@ class Pipeline:
         """The pair's flow and semantic scores (``carried``: what a stream gives it) and each one's wall time.
 
         With ``overlap`` the semantic net runs in a second thread beside the flow; scores carried by the
-        stream (``stream.semantic_every``) follow the flow instead.
+        stream (``stream.semantic_every``) follow the flow instead. A keyframe pair given the kept flows of
+        the frames between (``carried.chain``) takes its flow chained through them.
         """
         sec: dict[str, float] = {}
         # Beside an image flow backend, one ONNX Runtime thread: its default pool (one spinning
@@ -212,8 +213,13 @@ class Pipeline:
         with ThreadPoolExecutor(max_workers=1) if self.overlap and fresh else nullcontext() as pool:
             future = pool.submit(semantics) if pool is not None else None
             t0 = time.perf_counter()
-            kept = {k: v for k, v in (("init", carried.flow_init), ("grey_prev", carried.grey_prev)) if v is not None}
-            flow = estimate_flow(pair, self.cfg.flow, **kept)
+            if carried.chain is not None and str(self.cfg.flow.get("name", "")) != "gt":
+                # A keyframe pair reaching past the last frame: its flow chained through the frames between.
+                ch = carried.chain
+                flow = chained_flow(pair, self.cfg.flow, ch.last_image, ch.steps, last_grey=ch.last_grey)
+            else:
+                kept = {k: v for k, v in (("init", carried.flow_init), ("grey_prev", carried.grey_prev)) if v is not None}
+                flow = estimate_flow(pair, self.cfg.flow, **kept)
             sec["flow"] = time.perf_counter() - t0
             if future is not None:
                 semantic, sec["semantic"] = future.result()
@@ -242,7 +248,7 @@ class Pipeline:
             # What the next pair starts from is known now; with stream.overlap its flow and semantics
             # start in the background while this pair is solved.
             state.update(pair, grey=flow.grey, flow=flow.flow, semantic=semantic, semantic_fresh=carried.semantic is None,
-                         motion=None if motion.degenerate else motion, carried=carried)
+                         motion=None if motion.degenerate else motion, carried=carried, flow_result=flow)
             state.start_next(self.inputs)
         t0 = time.perf_counter()
         with torch.inference_mode():

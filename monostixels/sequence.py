@@ -11,7 +11,9 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    over their time) times the time between the frames. Where no frame in the window is far enough:
    the oldest one if it lies more than ``solver.min_translation`` away (the most baseline there is),
    else the previous frame (a standing camera: the shortest interval keeps the movers' flow small).
-   ``keyframes.min_distance_m = 0`` always pairs with the previous frame.
+   ``keyframes.min_distance_m = 0`` always pairs with the previous frame. A pair reaching past the
+   previous frame takes its flow chained through the frames between (``keyframes.chain_flow``; the
+   stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow.chained_flow`).
 2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
    scene model), but the movers still are found and measured from the flow: their depth from the
    ground contact, their motion from ``t̃``. Static stixels whose track was measured with a baseline
@@ -59,10 +61,15 @@ class KeyframeParams:
         min_distance_m: the least driven distance between the two frames of a pair (metres; 0 = always
             the previous frame). The paper's: 0.5 m.
         window: earlier frames considered (>= 1).
+        chain_flow: a pair reaching back past the previous frame takes its flow chained through the
+            frames between (each frame's flow to the one before, kept by the stream, composed and then
+            refined on the pair: :func:`monostixels.inputs.flow.chained_flow`); False: the flow is computed
+            on the pair directly.
     """
 
     min_distance_m: float = 0.5
     window: int = 10
+    chain_flow: bool = True
 
     def __post_init__(self) -> None:
         v = self.min_distance_m
@@ -70,17 +77,21 @@ class KeyframeParams:
             raise InputError(f"keyframes.min_distance_m: a distance >= 0 metres, got {v!r}")
         if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
             raise InputError(f"keyframes.window: an integer >= 1 (earlier frames considered), got {self.window!r}")
+        if not isinstance(self.chain_flow, bool):
+            raise InputError(f"keyframes.chain_flow: true or false, got {self.chain_flow!r}")
 
     @staticmethod
     def from_config(cfg: Any) -> "KeyframeParams":
         d = KeyframeParams()
         if cfg is None:
             return d
-        known = {"min_distance_m", "window", "name"}
+        known = {"min_distance_m", "window", "chain_flow", "name"}
         extra = [k for k in cfg.keys() if k not in known]
         if extra:
-            raise InputError(f"keyframes: unknown setting(s) {', '.join(map(str, extra))}; known: min_distance_m, window")
-        return KeyframeParams(min_distance_m=cfg.get("min_distance_m", d.min_distance_m), window=cfg.get("window", d.window))
+            raise InputError(f"keyframes: unknown setting(s) {', '.join(map(str, extra))}; "
+                             "known: min_distance_m, window, chain_flow")
+        return KeyframeParams(min_distance_m=cfg.get("min_distance_m", d.min_distance_m), window=cfg.get("window", d.window),
+                              chain_flow=cfg.get("chain_flow", d.chain_flow))
 
 
 def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams, speed_mps: float | None,
@@ -163,6 +174,7 @@ class SequenceRunner:
         self.default_dt = float(cfg.eval.get("frame_interval_s", 0.1)) if "eval" in cfg else 0.1
         # Work carried from frame to frame (config group stream; monostixels.stream).
         self.stream = StreamState.from_config(cfg)
+        self.stream.chain_frames = self.keyframes.window if self.keyframes.chain_flow else 0
         self.reset()
 
     def reset(self) -> None:

@@ -15,6 +15,11 @@ for its *current* frame, which becomes the *previous* frame of the next pair:
   motion, the prediction the ego-motion starts from (``stream.motion_warm_start``, see
   :func:`monostixels.inputs.motion.estimate_mono`'s ``prior``).
 
+With :attr:`StreamState.chain_frames` (set by the sequence layer from ``keyframes.chain_flow`` and
+``keyframes.window``) each kept frame also keeps its image and its flows to the frame before it, both
+ways; a keyframe pair reaching past the last frame gets them (:class:`Chain`) and its flow is chained
+through the frames between (:func:`monostixels.inputs.flow.chained_flow`).
+
 A pair is continued when its earlier frame (``meta["frame_prev"]``) is a kept frame of the same
 ``meta["sequence"]`` (and image size) and it comes after the last pair; keyframe pairs that reach two
 frames back are continued too. Any other pair (independent pairs, the first pair of a clip, a pair
@@ -45,7 +50,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.data.base import FramePair
 
-__all__ = ["StreamParams", "StreamState", "Carried", "warp_scores"]
+__all__ = ["StreamParams", "StreamState", "Carried", "Chain", "warp_scores"]
 
 #: Ratio of two pairs' time intervals beyond which the last flow is no start for the next one (a run of
 #: dropped frames, a keyframe that reaches back much further): the flow scales with the interval only
@@ -112,11 +117,28 @@ class Carried:
     semantic: torch.Tensor | None = None
     motion: Any = None
     interval_ratio: float = 1.0
+    chain: "Chain | None" = None
 
     @property
     def anything(self) -> bool:
         """Whether anything is carried (else the pair runs exactly as on its own)."""
-        return any(x is not None for x in (self.grey_prev, self.flow_init, self.semantic, self.motion))
+        return any(x is not None for x in (self.grey_prev, self.flow_init, self.semantic, self.motion, self.chain))
+
+
+@dataclass
+class Chain:
+    """What a keyframe pair's flow is chained through (:func:`monostixels.inputs.flow.chained_flow`).
+
+    Attributes:
+        last_image: (3, H, W) image of the stream's last frame ``L`` (between the pair's two frames).
+        last_grey: (H, W) uint8 grey of it, or None.
+        steps: the kept flows from ``L`` back to the pair's earlier frame, newest first: (flow from a frame
+            to the frame before it, flow back or None), (H, W, 2) float32 pixels.
+    """
+
+    last_image: torch.Tensor
+    last_grey: np.ndarray | None
+    steps: list[tuple[np.ndarray, np.ndarray | None]]
 
 
 @dataclass
@@ -126,6 +148,9 @@ class _Frame:
     grey: np.ndarray | None          # (H, W) uint8
     semantic: torch.Tensor | None    # (10, H, W)
     semantic_age: int                # frames since the net ran (0 = on this frame)
+    image: torch.Tensor | None = None                            # (3, H, W), kept where flows are chained
+    step: tuple[np.ndarray, np.ndarray | None] | None = None     # flows to / from the frame before (H, W, 2)
+    step_to: Any = None                                          # the frame `step` reaches
 
 
 @dataclass
@@ -147,6 +172,10 @@ class StreamState:
 
     def __init__(self, params: StreamParams | None = None) -> None:
         self.params = params or StreamParams()
+        #: Frames a keyframe pair's flow may be chained through (the sequence layer's ``keyframes.window``
+        #: where ``keyframes.chain_flow``; 0 = never chained): each kept frame then also keeps its image and
+        #: its flows to the frame before.
+        self.chain_frames = 0
         self._lock = threading.Lock()
         self._generation = 0
         self._lookahead: _Lookahead | None = None
@@ -241,11 +270,32 @@ class StreamState:
                 and self._key == (seq, tuple(pair.size)) and prev in self._frames and prev < cur
                 and self._last.frame < cur)
 
+    def _chain(self, pair: FramePair) -> Chain | None:
+        """The kept flows from the last frame back to ``pair``'s earlier frame, where they reach it."""
+        seq, cur, prev = (pair.meta.get(k) for k in ("sequence", "frame", "frame_prev"))
+        last = self._last
+        if (self.chain_frames < 1 or last is None or seq is None or cur is None or prev is None
+                or self._key != (seq, tuple(pair.size)) or not prev < last.frame < cur):
+            return None
+        frame, steps = last.frame, []
+        while frame != prev:
+            kept = self._frames.get(frame)
+            if kept is None or kept.step is None or kept.step_to is None or kept.step_to < prev:
+                return None
+            steps.append(kept.step)
+            frame = kept.step_to
+        top = self._frames[last.frame]
+        if top.image is None or len(steps) > self.chain_frames:
+            return None
+        return Chain(last_image=top.image, last_grey=top.grey, steps=steps)
+
     def carried(self, pair: FramePair) -> Carried:
         """What the stream gives ``pair``: nothing unless its earlier frame was the current frame of a
-        kept pair of the same sequence (and image size) and it comes after the last pair."""
+        kept pair of the same sequence (and image size) and it comes after the last pair; with
+        :attr:`chain_frames`, a pair reaching back past the last frame also gets the flows to chain."""
+        chain = self._chain(pair)
         if not self._continues(pair):
-            return Carried()
+            return Carried(chain=chain)
         last = self._last
         assert last is not None
         prev = self._frames[pair.meta["frame_prev"]]
@@ -260,11 +310,13 @@ class StreamState:
         if p.semantic_every > 1 and prev.semantic is not None and prev.semantic_age + 1 < p.semantic_every:
             semantic = prev.semantic
         motion = last.motion if p.motion_warm_start else None
-        return Carried(grey_prev=prev.grey, flow_init=init, semantic=semantic, motion=motion, interval_ratio=ratio)
+        return Carried(grey_prev=prev.grey, flow_init=init, semantic=semantic, motion=motion, interval_ratio=ratio,
+                       chain=chain)
 
     # ------------------------------------------------------------------ after a pair
     def update(self, pair: FramePair, *, grey: np.ndarray | None, flow: torch.Tensor | None,
-               semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried) -> None:
+               semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried,
+               flow_result: Any = None) -> None:
         """Keep what ``pair`` computed for its current frame.
 
         Args:
@@ -274,6 +326,8 @@ class StreamState:
             semantic_fresh: the net ran on this pair (else its scores were carried).
             motion: its camera-motion estimate, None where it is degenerate.
             carried: what :meth:`carried` gave it.
+            flow_result: its :class:`~monostixels.inputs.flow.FlowResult` (with :attr:`chain_frames`: the
+                flows between its current frame and the one before, kept for later chains).
         """
         seq, frame = pair.meta.get("sequence"), pair.meta.get("frame")
         if seq is None or frame is None:
@@ -284,19 +338,25 @@ class StreamState:
             self.reset()
             self._key = key
         with self._lock:  # a pair read ahead in vain may still be reading the state
-            self._update(pair, grey, flow, semantic, semantic_fresh, motion, carried)
+            self._update(pair, grey, flow, semantic, semantic_fresh, motion, carried, flow_result)
 
     def _update(self, pair: FramePair, grey: np.ndarray | None, flow: torch.Tensor | None,
-                semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried) -> None:
+                semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried,
+                flow_result: Any) -> None:
         frame = pair.meta["frame"]
+        last = self._last.frame if self._last is not None else None
         self._generation += 1
         self.continued += int(carried.anything)
         self.cold += int(not carried.anything)
         p = self.params
         prev = self._frames.get(pair.meta.get("frame_prev"))
         age = 0 if semantic_fresh or prev is None else prev.semantic_age + 1
-        self._frames[frame] = _Frame(grey=grey, semantic=semantic if p.semantic_every > 1 else None, semantic_age=age)
-        for f in sorted(self._frames)[:-_HISTORY_FRAMES]:
+        kept = _Frame(grey=grey, semantic=semantic if p.semantic_every > 1 else None, semantic_age=age)
+        if self.chain_frames > 0 and flow_result is not None:
+            kept.image = pair.image
+            kept.step, kept.step_to = _step_of(pair, flow_result, last)
+        self._frames[frame] = kept
+        for f in sorted(self._frames)[:-max(_HISTORY_FRAMES, self.chain_frames + 1)]:
             del self._frames[f]
         dt = pair.meta.get("dt")
         keep_flow = p.flow_init and flow is not None
@@ -307,6 +367,23 @@ class StreamState:
     def drop(self) -> None:
         """The pair failed: the next one starts cold."""
         self.reset()
+
+
+def _hwc(x: torch.Tensor | None) -> np.ndarray | None:
+    return None if x is None else np.ascontiguousarray(x.permute(1, 2, 0).numpy(), dtype=np.float32)
+
+
+def _step_of(pair: FramePair, flow: Any, last: Any) -> tuple[tuple[np.ndarray, np.ndarray | None] | None, Any]:
+    """The flows between ``pair``'s current frame and the stream frame before it (``last``), and that frame.
+
+    A chained pair computed them (``flow.step``, to ``last``); a pair of consecutive stream frames has
+    them as its own flows (a ground-truth flow none: nothing to chain). Else none."""
+    if flow.step is not None:
+        return (_hwc(flow.step[0]), _hwc(flow.step[1])), last
+    prev = pair.meta.get("frame_prev")
+    if flow.backend != "gt" and (last is None or prev == last):
+        return (_hwc(flow.flow), _hwc(flow.backward)), prev
+    return None, None
 
 
 def warp_scores(scores: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:

@@ -53,6 +53,7 @@ def test_keyframe_when_nothing_is_far_enough():
 @pytest.mark.parametrize("key,value,match", [
     ("keyframes.min_distance_m", -0.5, "min_distance_m"),
     ("keyframes.window", 0, "window"),
+    ("keyframes.chain_flow", "maybe", "chain_flow"),
     ("temporal.accel_std_mps2", 0, "accel_std_mps2"),
     ("temporal.group_depth_ratio", -0.1, "group_depth_ratio"),
     ("ttc.warn_s", -1, "warn_s"),
