@@ -216,7 +216,8 @@ class Pipeline:
             if carried.chain is not None and str(self.cfg.flow.get("name", "")) != "gt":
                 # A keyframe pair reaching past the last frame: its flow chained through the frames between.
                 ch = carried.chain
-                flow = chained_flow(pair, self.cfg.flow, ch.last_image, ch.steps, last_grey=ch.last_grey)
+                flow = chained_flow(pair, self.cfg.flow, ch.last_image, ch.steps, last_grey=ch.last_grey,
+                                    prev_grey=ch.prev_grey)
             else:
                 kept = {k: v for k, v in (("init", carried.flow_init), ("grey_prev", carried.grey_prev)) if v is not None}
                 flow = estimate_flow(pair, self.cfg.flow, **kept)

@@ -132,6 +132,7 @@ class Chain:
     Attributes:
         last_image: (3, H, W) image of the stream's last frame ``L`` (between the pair's two frames).
         last_grey: (H, W) uint8 grey of it, or None.
+        prev_grey: (H, W) uint8 grey of the pair's earlier frame where the stream kept it, or None.
         steps: the kept flows from ``L`` back to the pair's earlier frame, newest first: (flow from a frame
             to the frame before it, flow back or None), (H, W, 2) float32 pixels.
     """
@@ -139,6 +140,7 @@ class Chain:
     last_image: torch.Tensor
     last_grey: np.ndarray | None
     steps: list[tuple[np.ndarray, np.ndarray | None]]
+    prev_grey: np.ndarray | None = None
 
 
 @dataclass
@@ -287,7 +289,9 @@ class StreamState:
         top = self._frames[last.frame]
         if top.image is None or len(steps) > self.chain_frames:
             return None
-        return Chain(last_image=top.image, last_grey=top.grey, steps=steps)
+        kept_prev = self._frames.get(prev)
+        return Chain(last_image=top.image, last_grey=top.grey, steps=steps,
+                     prev_grey=kept_prev.grey if kept_prev is not None else None)
 
     def carried(self, pair: FramePair) -> Carried:
         """What the stream gives ``pair``: nothing unless its earlier frame was the current frame of a

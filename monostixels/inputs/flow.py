@@ -666,7 +666,7 @@ def compose_flows(first: np.ndarray, then: np.ndarray) -> np.ndarray:
 
 
 def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Sequence[tuple[np.ndarray, np.ndarray | None]],
-                 *, last_grey: np.ndarray | None = None) -> FlowResult:
+                 *, last_grey: np.ndarray | None = None, prev_grey: np.ndarray | None = None) -> FlowResult:
     """Flow of a keyframe pair reaching several frames back, chained through the frames between.
 
     The paper pairs frames a driven distance apart (0.5 m). Over two or more frame intervals the
@@ -685,6 +685,7 @@ def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Seq
         steps: the kept flows of the frames from ``L`` back to ``k``, newest first: ``steps[i]`` = (flow
             from frame ``i`` to the frame before it, flow back or None), (H, W, 2) float32 pixels.
         last_grey: (H, W) uint8 grey of ``last_image``, or None.
+        prev_grey: (H, W) uint8 grey of ``pair.image_prev`` (kept by the stream), or None: converted here.
 
     Returns:
         The pair's :class:`FlowResult` (``chained`` frames, ``step`` = this frame's flows to ``L``).
@@ -716,7 +717,7 @@ def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Seq
             bwd = compose_flows(bwd, b)
         bwd = compose_flows(bwd, np.ascontiguousarray(b_tl.permute(1, 2, 0).numpy()))
     g_cur = grey if grey is not None else _gray_u8(pair.image.float())
-    g_prev = _gray_u8(pair.image_prev.float())
+    g_prev = prev_grey if prev_grey is not None else _gray_u8(pair.image_prev.float())
     passes = _refine_passes(cfg)
 
     def chw(x: np.ndarray) -> torch.Tensor:
