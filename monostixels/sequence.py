@@ -9,8 +9,9 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    distance is at least ``keyframes.min_distance_m``. The distance is the ground truth's where the
    motion comes from it (``motion=gt|file``), else the stream's speed estimate (the last pairs' ``|t|``
    over their time) times the time between the frames. Where no frame in the window is far enough:
-   the oldest one if it lies more than ``solver.min_translation`` away (the most baseline there is),
-   else the previous frame (a standing camera: the shortest interval keeps the movers' flow small).
+   the oldest one (the most baseline there is; a standing camera: the movers' chained flow measured
+   over the longest interval), or the previous frame where a standing camera's flow is not chained
+   (``keyframes.chain_flow=false``: a flow straight across the pair loses large displacements).
    ``keyframes.min_distance_m = 0`` always pairs with the previous frame. A pair reaching past the
    previous frame takes its flow chained through the frames between (``keyframes.chain_flow``; the
    stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow.chained_flow`).
@@ -65,11 +66,15 @@ class KeyframeParams:
             frames between (each frame's flow to the one before, kept by the stream, composed and then
             refined on the pair: :func:`monostixels.inputs.flow.chained_flow`); False: the flow is computed
             on the pair directly.
+        standing_max_s: a standing camera pairs with the oldest frame of the window at most this long
+            ago (seconds; the movers' velocity is averaged over the pair, and should not lag behind the
+            TTC warnings it feeds, ``ttc.warn_s`` 2 s by default).
     """
 
     min_distance_m: float = 0.5
     window: int = 10
     chain_flow: bool = True
+    standing_max_s: float = 2.0
 
     def __post_init__(self) -> None:
         v = self.min_distance_m
@@ -79,19 +84,23 @@ class KeyframeParams:
             raise InputError(f"keyframes.window: an integer >= 1 (earlier frames considered), got {self.window!r}")
         if not isinstance(self.chain_flow, bool):
             raise InputError(f"keyframes.chain_flow: true or false, got {self.chain_flow!r}")
+        v = self.standing_max_s
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            raise InputError(f"keyframes.standing_max_s: a time > 0 seconds, got {v!r}")
 
     @staticmethod
     def from_config(cfg: Any) -> "KeyframeParams":
         d = KeyframeParams()
         if cfg is None:
             return d
-        known = {"min_distance_m", "window", "chain_flow", "name"}
+        known = {"min_distance_m", "window", "chain_flow", "standing_max_s", "name"}
         extra = [k for k in cfg.keys() if k not in known]
         if extra:
             raise InputError(f"keyframes: unknown setting(s) {', '.join(map(str, extra))}; "
-                             "known: min_distance_m, window, chain_flow")
+                             "known: min_distance_m, window, chain_flow, standing_max_s")
         return KeyframeParams(min_distance_m=cfg.get("min_distance_m", d.min_distance_m), window=cfg.get("window", d.window),
-                              chain_flow=cfg.get("chain_flow", d.chain_flow))
+                              chain_flow=cfg.get("chain_flow", d.chain_flow),
+                              standing_max_s=cfg.get("standing_max_s", d.standing_max_s))
 
 
 def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams, speed_mps: float | None,
@@ -125,6 +134,14 @@ def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams,
     c_far, d_far = known[-1]
     if d_far > standing_m:
         return c_far.back, d_far
+    if params.chain_flow:
+        # Standing: no baseline to gain, but a mover's flow grows with the interval while a chained
+        # flow's error grows slower (each frame's flow refined on the pair), so its motion is measured
+        # over the longest interval allowed. A flow straight across the pair loses large displacements:
+        # the previous frame then.
+        recent = [(c, d) for c, d in zip(candidates, dist) if math.isfinite(c.dt) and c.dt <= params.standing_max_s]
+        if recent:
+            return recent[-1][0].back, recent[-1][1]
     return candidates[0].back, dist[0]
 
 

@@ -336,16 +336,18 @@ class Tracks:
         dyn = world.type == DYNAMIC_OBJECT
         vel_meas = torch.where(dyn[:, None], world.motion.to(dtype) @ Rwc.T / max(dt_pair, 1e-6),
                                torch.zeros(N, 3, dtype=dtype))
+        # Closing rate eta = -v_rel,z / Z (1/s) of this pair alone: depth and speeds share the monocular
+        # scale, so their ratio does not (TTC = 1 / eta is scale-free; the paper's "time to contact").
+        # Each stixel's own motion over its own depth: the object's median velocity below would divide
+        # one stixel's scale error by another's depth.
+        v_cam = torch.zeros(3, dtype=dtype) if camera_velocity is None else camera_velocity.to(dtype)
+        eta_meas = -(vel_meas @ Rwc - v_cam[None])[:, 2] / X_cam[:, 2].clamp_min(1e-3)
         if prm.group_depth_ratio > 0:
             # One mover's stixels share its motion: the median over the object is the measurement of each
             # (one stixel's motion is one column's flow; synthetic clips: error 0.74 -> 0.46 m/s per stixel).
             vel_meas = _group_median(vel_meas, object_groups(world, prm.group_depth_ratio))
         fx = float(world.K[0, 0])
         lateral_std = X_cam[:, 2].abs() * (world.column_width / fx) / 2 + 0.05
-        # Closing rate eta = -v_rel,z / Z (1/s) of this pair alone: depth and speeds share the monocular
-        # scale, so their ratio does not (TTC = 1 / eta is scale-free; the paper's "time to contact").
-        v_cam = torch.zeros(3, dtype=dtype) if camera_velocity is None else camera_velocity.to(dtype)
-        eta_meas = -(vel_meas @ Rwc - v_cam[None])[:, 2] / X_cam[:, 2].clamp_min(1e-3)
 
         # --- association: the tracks' predicted points, seen from this camera
         parent = torch.full((N,), -1, dtype=torch.long)  # row of the track a stixel continues

@@ -45,7 +45,13 @@ def test_keyframe_when_nothing_is_far_enough():
     slow = [_prev(1, 0.05), _prev(2, 0.1), _prev(3, 0.15)]
     assert choose_keyframe(slow, p, None, True, 0.05)[0] == 3  # creeping: the most baseline there is
     standing = [_prev(1, 0.0), _prev(2, 1e-4), _prev(3, 2e-4)]
-    assert choose_keyframe(standing, p, None, True, 0.05)[0] == 1  # standing: the shortest interval
+    # Standing: no baseline to gain; the movers' flow, chained, is measured over the whole window.
+    assert choose_keyframe(standing, p, None, True, 0.05)[0] == 3
+    # Without chaining a flow straight across the window loses the movers: the previous frame.
+    assert choose_keyframe(standing, KeyframeParams(0.5, 3, chain_flow=False), None, True, 0.05)[0] == 1
+    # ... and no longer ago than standing_max_s (frames 0.1 s apart: 0.25 s reaches 2 back; under one frame: 1).
+    assert choose_keyframe(standing, KeyframeParams(0.5, 3, standing_max_s=0.25), None, True, 0.05)[0] == 2
+    assert choose_keyframe(standing, KeyframeParams(0.5, 3, standing_max_s=0.05), None, True, 0.05)[0] == 1
     with pytest.raises(InputError, match="no earlier frame"):
         choose_keyframe([], p, None, True, 0.05)
 
@@ -54,6 +60,7 @@ def test_keyframe_when_nothing_is_far_enough():
     ("keyframes.min_distance_m", -0.5, "min_distance_m"),
     ("keyframes.window", 0, "window"),
     ("keyframes.chain_flow", "maybe", "chain_flow"),
+    ("keyframes.standing_max_s", 0, "standing_max_s"),
     ("temporal.accel_std_mps2", 0, "accel_std_mps2"),
     ("temporal.group_depth_ratio", -0.1, "group_depth_ratio"),
     ("ttc.warn_s", -1, "warn_s"),
@@ -185,6 +192,42 @@ def test_time_to_collision_of_a_hand_made_closing_object():
     warn = critical(X, v, ttc, TtcParams(warn_s=2.5, corridor_m=1.5))
     # In the path; beside it (3.5 m lateral); not closing; crossing into it (10 m ahead, 4 m/s sideways: x = -5 m).
     assert warn.tolist() == [True, False, False, False]
+
+
+def _object_world(distances: list[float], motions: list[float]) -> StixelWorld:
+    """One dynamic object: stixels in adjacent columns about the principal point, rows 100-140, each at its
+    distance (m) with its motion along the optical axis over the pair (m)."""
+    fx = 500.0
+    K = torch.tensor([[fx, 0, 320.0], [0, fx, 120.0], [0, 0, 1.0]], dtype=torch.float64)
+    ng = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    cols = torch.arange(len(distances)) + 64
+    uc = (cols * 5 + 2.0).double()
+    n = object_normals(K, ng, uc)
+    ray = pixel_rays(K, uc, torch.full((len(distances),), 120.0, dtype=torch.float64))
+    X = ray * torch.tensor(distances, dtype=torch.float64)[:, None] / ray[:, 2:]
+    p = 1.0 / (n * X).sum(1)
+    k = len(distances)
+    full = lambda x, dt=torch.long: torch.full((k,), x, dtype=dt)  # noqa: E731
+    motion = torch.zeros(k, 3, dtype=torch.float64)
+    motion[:, 2] = torch.tensor(motions, dtype=torch.float64)
+    return StixelWorld(column_width=5, image_size=(240, 640), K=K, ground_normal=ng, column=cols,
+                       v_top=full(100), v_bottom=full(140), type=full(2), cls=full(6), inverse_depth=p, motion=motion,
+                       cost=full(0.0, torch.float64), tau=torch.zeros(k, 2, dtype=torch.float64),
+                       energy=torch.zeros(128, dtype=torch.float64))
+
+
+def test_ttc_is_free_of_each_stixels_scale_error():
+    # A car 20 m ahead closes at 10 m/s (TTC 2 s; camera standing, 10 Hz). Its stixels' depths and motions
+    # carry one monocular scale each (1.0, 1.1, 0.95): one stixel's motion over its own depth is the true
+    # closing rate, while the object's median velocity over another stixel's depth would not be.
+    scales = [1.0, 1.1, 0.95]
+    w = _object_world([20.0 * s for s in scales], [-1.0 * s for s in scales])
+    out = Tracks(TrackParams()).update(w, frame=0, time=0.0, pose=torch.eye(4, dtype=torch.float64), dt_pair=0.1,
+                                       degenerate=True)
+    assert len(set(out["track_id"].tolist())) == 3
+    assert out["ttc"].tolist() == pytest.approx([2.0, 2.0, 2.0], rel=1e-6)
+    # The velocity stays the object's median (one mover, one velocity): -10 m/s for all three.
+    assert out["velocity"][:, 2].tolist() == pytest.approx([-10.0, -10.0, -10.0], rel=1e-6)
 
 
 def test_sequence_eval_and_run_outputs(tmp_path):
