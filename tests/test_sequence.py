@@ -63,6 +63,8 @@ def test_keyframe_when_nothing_is_far_enough():
     ("keyframes.standing_max_s", 0, "standing_max_s"),
     ("temporal.accel_std_mps2", 0, "accel_std_mps2"),
     ("temporal.group_depth_ratio", -0.1, "group_depth_ratio"),
+    ("temporal.eta_gate", -1, "eta_gate"),
+    ("temporal.eta_interval_s", 0, "eta_interval_s"),
     ("ttc.warn_s", -1, "warn_s"),
 ])
 def test_bad_sequence_settings_are_named(key, value, match):
@@ -228,6 +230,42 @@ def test_ttc_is_free_of_each_stixels_scale_error():
     assert out["ttc"].tolist() == pytest.approx([2.0, 2.0, 2.0], rel=1e-6)
     # The velocity stays the object's median (one mover, one velocity): -10 m/s for all three.
     assert out["velocity"][:, 2].tolist() == pytest.approx([-10.0, -10.0, -10.0], rel=1e-6)
+
+
+def _closing_ttc(params: TrackParams, factors: dict[int, float], dt_pair: float = 0.1) -> list[tuple[int, float, float]]:
+    """(track id, TTC, true TTC) per frame of a car closing at 10 m/s from 20 m (camera standing, 10 Hz);
+    at the frames in ``factors`` the pair's measured motion is that fraction of the true one."""
+    tracks, out = Tracks(params), []
+    for f in range(8):
+        distance = 20.0 - 1.0 * f
+        w = _object_world([distance], [-10.0 * dt_pair * factors.get(f, 1.0)])
+        o = tracks.update(w, frame=f, time=0.1 * f, pose=torch.eye(4, dtype=torch.float64), dt_pair=dt_pair,
+                          degenerate=True)
+        out.append((int(o["track_id"][0]), float(o["ttc"][0]), distance / 10.0))
+    return out
+
+
+def test_ttc_gate_coasts_through_one_lost_pair_and_restarts_after_two():
+    # Frame 5's pair measures 65 % of the closing speed (a lost flow): within the association gate, far
+    # outside the closing rate's.
+    gated = _closing_ttc(TrackParams(), {5: 0.65})
+    assert len({t for t, _, _ in gated}) == 1  # one track throughout
+    assert all(ttc == pytest.approx(true, rel=1e-6) for _, ttc, true in gated)  # the prediction stood
+    ungated = _closing_ttc(TrackParams(eta_gate=0.0), {5: 0.65})
+    assert ungated[5][1] > 1.005 * ungated[5][2]  # the Kalman update alone is pulled off
+    # Two in a row: the track's rate is taken to be what is wrong and restarts at the measurement.
+    twice = _closing_ttc(TrackParams(), {5: 0.65, 6: 0.65})
+    assert twice[5][1] == pytest.approx(1.5, rel=1e-6)
+    assert twice[6][1] == pytest.approx(1.4 / 0.65, rel=1e-6)
+
+
+def test_a_longer_pair_weighs_more_in_the_closing_rate():
+    # The same relative error in one pair's rate (80 % at frame 5): spread over a pair 0.4 s long it is a
+    # smaller error in the rate than over 0.1 s (eta_interval_s / dt), and the filter follows it further.
+    short = _closing_ttc(TrackParams(eta_gate=0.0), {5: 0.8}, dt_pair=0.1)
+    long = _closing_ttc(TrackParams(eta_gate=0.0), {5: 0.8}, dt_pair=0.4)
+    assert short[4][1] == pytest.approx(1.6, rel=1e-6) and long[4][1] == pytest.approx(1.6, rel=1e-6)
+    assert 1.5 < short[5][1] < long[5][1] < 1.5 / 0.8
 
 
 def test_sequence_eval_and_run_outputs(tmp_path):
