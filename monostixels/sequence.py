@@ -15,6 +15,7 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    ``keyframes.min_distance_m = 0`` always pairs with the previous frame. A pair reaching past the
    previous frame takes its flow chained through the frames between (``keyframes.chain_flow``; the
    stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow.chained_flow`).
+   Only solved frames are partners: a frame whose pair failed has no pose to chain through.
 2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
    scene model), but the movers still are found and measured from the flow: their depth from the
    ground contact, their motion from ``t̃``. Static stixels whose track was measured with a baseline
@@ -220,7 +221,7 @@ class SequenceRunner:
                 if key != self.key:
                     self.reset()
                     self.key = key
-                cands = source.previous_frames(i, self.keyframes.window)
+                cands = self._solved(source.previous_frames(i, self.keyframes.window), key)
                 back, driven = choose_keyframe(cands, self.keyframes, self.speed, self.use_gt_distance,
                                                self.standing_m)
                 pair = source.pair_back(i, back) if back != 1 else source[i]
@@ -229,6 +230,24 @@ class SequenceRunner:
             if progress is not None:
                 progress.update(1)
             yield step
+
+    def _solved(self, candidates: list[PreviousFrame], key: Any) -> list[PreviousFrame]:
+        """The earlier frames a pair may reach: those solved (their pose is known), nearest first.
+
+        A frame whose pair failed (its camera motion could not be estimated) has no pose to chain a later
+        pair's pose through. Where every earlier frame of the window failed, the sequence starts again at
+        this pair (tracks and stream forgotten), paired with the frame before.
+        """
+        if not self.frames:
+            return candidates
+        solved = {f.name for f in self.frames.values()}
+        usable = [c for c in candidates if c.name in solved]
+        if usable or not candidates:
+            return usable
+        logger.warning("no solved frame in the last %d: the sequence starts again", self.keyframes.window)
+        self.reset()
+        self.key = key
+        return candidates[:1]
 
     # ------------------------------------------------------------------ one frame
     def _solve(self, index: int, pair: FramePair, back: int | None, driven: float | None) -> SequenceStep:

@@ -305,6 +305,41 @@ def test_sequence_eval_and_run_outputs(tmp_path):
     assert "temporal" not in single
 
 
+def test_a_failed_pair_is_not_a_later_pairs_partner():
+    """A frame whose camera motion failed has no pose: a later keyframe pair reaches past it to a solved
+    frame, and its pose chains through that frame (ground-truth motion: exactly)."""
+    from monostixels.pipeline import MotionEstimationError
+
+    ov = ["data=synthetic", "data.frames=1", "data.sequence_length=6", "data.ego_speed_mps=3", "data.scale=0.25",
+          "flow=gt", "semantic=gt", "motion=gt"]
+    cfg = load_config(ov)
+    runner = SequenceRunner(cfg)
+    run = runner.pipeline.run
+
+    def failing(pair, state=None):
+        if pair.name.endswith("_002"):
+            raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated (test)")
+        return run(pair, state=state)
+
+    runner.pipeline.run = failing
+    steps = list(runner.run(make_source(cfg)))
+    assert steps[1].result is None and "test" in steps[1].error  # frame 2
+    # 0.3 m a frame, keyframes at 0.5 m: frame 4 would pair with frame 2 (2 back); it reaches frame 1 instead.
+    info = steps[3].result.stixels.pair_info
+    assert info["frames_back"] == 3 and info["previous"].endswith("_001")
+    pose = steps[3].result.pose
+    assert float(pose[:3, 3].norm()) == pytest.approx(4 * 0.3, abs=1e-3)  # frame 4 is 1.2 m from frame 0
+    assert steps[3].result.stixels.track_id.max() >= 0
+    # Where every earlier frame of the window failed, the sequence starts again with the frame before.
+    runner = SequenceRunner(load_config(ov + ["keyframes.window=1"]))
+    run = runner.pipeline.run
+    runner.pipeline.run = failing
+    steps = list(runner.run(make_source(cfg)))
+    assert steps[2].result.stixels.pair_info["frames_back"] == 1
+    # ... its world is the frame before (frame 2), 0.3 m back, not frame 0.
+    assert float(steps[2].result.pose[:3, 3].norm()) == pytest.approx(0.3, abs=1e-3)
+
+
 def test_run_on_a_video_writes_tracks_velocities_and_ttc(tmp_path):
     """`monostixels run data=video` on a clip written from a rendered sequence: per-stixel track ids,
     velocities and TTC in stixels.json, the earlier frame of each pair, tracks that persist."""
