@@ -5,13 +5,14 @@ fails with a message that names it (SPEC section 7).
 """
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from dataclasses import fields
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 import torch
 
 __all__ = ["InputError", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size"]
+           "check_rotation", "check_same_size", "params_from_config"]
 
 
 class InputError(ValueError):
@@ -109,3 +110,22 @@ def check_keys(given: Iterable[str], expected: Iterable[str], name: str) -> None
     unknown, missing = given - expected, expected - given
     if unknown or missing:
         raise InputError(f"{name}: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
+
+
+def params_from_config(cls: type, cfg: Any, group: str) -> Any:
+    """The dataclass ``cls`` of settings from the config node ``group`` (None: the defaults).
+
+    A key the node leaves out takes the dataclass default; a key it sets, ``null`` included, is passed
+    on for ``cls`` to validate (a ``null`` is never silently replaced by the default). An unknown key
+    fails with the known ones named (``name``, a config group's own label, is ignored).
+    """
+    if cfg is None:
+        return cls()
+    known = {f.name for f in fields(cls)}
+    if not hasattr(cfg, "keys"):
+        raise InputError(f"{group}: expected a config node of settings, got {type(cfg).__name__}")
+    keys = list(cfg.keys())
+    extra = [k for k in keys if k not in known | {"name"}]
+    if extra:
+        raise InputError(f"{group}: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known))}")
+    return cls(**{k: cfg[k] for k in keys if k in known})

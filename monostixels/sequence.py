@@ -41,7 +41,7 @@ from typing import Any, Iterator, Sequence
 import torch
 from omegaconf import DictConfig
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, params_from_config
 from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.geometry import Motion
@@ -91,17 +91,7 @@ class KeyframeParams:
 
     @staticmethod
     def from_config(cfg: Any) -> "KeyframeParams":
-        d = KeyframeParams()
-        if cfg is None:
-            return d
-        known = {"min_distance_m", "window", "chain_flow", "standing_max_s", "name"}
-        extra = [k for k in cfg.keys() if k not in known]
-        if extra:
-            raise InputError(f"keyframes: unknown setting(s) {', '.join(map(str, extra))}; "
-                             "known: min_distance_m, window, chain_flow, standing_max_s")
-        return KeyframeParams(min_distance_m=cfg.get("min_distance_m", d.min_distance_m), window=cfg.get("window", d.window),
-                              chain_flow=cfg.get("chain_flow", d.chain_flow),
-                              standing_max_s=cfg.get("standing_max_s", d.standing_max_s))
+        return params_from_config(KeyframeParams, cfg, "keyframes")
 
 
 def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams, speed_mps: float | None,

@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, params_from_config
 from monostixels.data.base import FramePair
 
 __all__ = ["StreamParams", "StreamState", "Carried", "Chain", "warp_scores"]
@@ -90,14 +90,7 @@ class StreamParams:
     @staticmethod
     def from_config(cfg: Any) -> "StreamParams":
         """From the ``stream`` config node (None: nothing carried)."""
-        d = StreamParams()
-        if cfg is None:
-            return d
-        known = set(d.__dataclass_fields__)
-        extra = [k for k in cfg.keys() if k not in known]
-        if extra:
-            raise InputError(f"stream: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known))}")
-        return StreamParams(**{k: cfg.get(k, getattr(d, k)) for k in known})
+        return params_from_config(StreamParams, cfg, "stream")
 
 
 @dataclass

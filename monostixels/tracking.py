@@ -39,7 +39,7 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, params_from_config
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.geometry import Motion, ground_basis, pixel_rays
 from monostixels.stixels import StixelWorld
@@ -121,7 +121,7 @@ class TrackParams:
 
     @staticmethod
     def from_config(cfg: Any) -> "TrackParams":
-        return _from_config(TrackParams, cfg, "temporal")
+        return params_from_config(TrackParams, cfg, "temporal")
 
 
 @dataclass
@@ -144,22 +144,7 @@ class TtcParams:
 
     @staticmethod
     def from_config(cfg: Any) -> "TtcParams":
-        return _from_config(TtcParams, cfg, "ttc")
-
-
-def _from_config(cls: type, cfg: Any, group: str) -> Any:
-    d = cls()
-    if cfg is None:
-        return d
-    kw = {}
-    for f in fields(cls):
-        v = cfg.get(f.name, None) if hasattr(cfg, "get") else getattr(cfg, f.name, None)
-        kw[f.name] = getattr(d, f.name) if v is None else v
-    known = {f.name for f in fields(cls)} | {"name"}
-    extra = [k for k in (cfg.keys() if hasattr(cfg, "keys") else []) if k not in known]
-    if extra:
-        raise InputError(f"{group}: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known - {'name'}))}")
-    return cls(**kw)
+        return params_from_config(TtcParams, cfg, "ttc")
 
 
 def object_groups(world: StixelWorld, depth_ratio: float) -> torch.Tensor:

@@ -66,6 +66,11 @@ def test_keyframe_when_nothing_is_far_enough():
     ("temporal.eta_gate", -1, "eta_gate"),
     ("temporal.eta_interval_s", 0, "eta_interval_s"),
     ("ttc.warn_s", -1, "warn_s"),
+    # A null is the user's value, not a request for the default: rejected, as every bad value is.
+    ("temporal.eta_gate", "null", "eta_gate"),
+    ("keyframes.window", "null", "window"),
+    ("ttc.corridor_m", "null", "corridor_m"),
+    ("+temporal.eta_gates", 3, "unknown setting"),
 ])
 def test_bad_sequence_settings_are_named(key, value, match):
     cfg = load_config(["data=synthetic", f"{key}={value}"])
