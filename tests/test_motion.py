@@ -336,3 +336,20 @@ def test_motion_track_follows_a_real_speed_change():
     out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate(truth)]
     assert all(abs(o / t - 1) < 0.04 for o, t in zip(out, truth))
     assert out[-1] < 0.8  # it follows: 0.73 m true, 1.0 m at the start
+
+
+def test_motion_track_restarts_after_a_first_pair_far_off():
+    from monostixels.inputs.motion import MotionTrack
+
+    # The first pair 25 % long, then a car slowing from 0.53 to 0.44 m a frame (drive 0028's profile):
+    # every later pair is an outlier against the first. Two in a row that agree restart the speed.
+    truth = [0.53 - 0.015 * k for k in range(7)]
+    meas = [0.53 * 1.25] + truth[1:]
+    tr = MotionTrack()
+    out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate(meas)]
+    assert out[1] == pytest.approx(out[0])  # one outlier: the prediction stands
+    assert all(abs(o / t - 1) < 0.04 for o, t in zip(out[2:], truth[2:]))  # the lag of a steady slowing, as above
+    # Two outliers in a row that disagree with each other (+25 %, then -25 % of the truth): neither is taken.
+    tr = MotionTrack()
+    out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate([0.9, 0.9, 1.12, 0.68, 0.9])]
+    assert all(abs(o / 0.9 - 1) < 0.02 for o in out)

@@ -977,7 +977,9 @@ class TrackParams:
             0.3 = 30 %/s, i.e. 2.7 m/s^2 at 9 m/s (braking or accelerating firmly), 3 % per KITTI frame.
         scale_meas_std: relative error (std) of one pair's monocular scale (KITTI raw: 2-5 %).
         scale_gate: a pair's scale farther than this many innovation standard deviations from the
-            prediction is an outlier and replaced by the prediction.
+            prediction is an outlier and replaced by the prediction. The next pair's scale, again an
+            outlier but within this many standard deviations of the first one, restarts the track at it
+            (the track, not the pairs, was wrong: a first pair far off held every later pair out).
         normal_process_std_deg: how fast the road normal may turn in the camera (degrees per
             square-root second: a random walk; pitching on bumps, a change of slope).
         normal_meas_std_deg: error (std, degrees) of one pair's fitted road normal (KITTI raw drive
@@ -1024,6 +1026,7 @@ class MotionTrack:
         self._key: tuple | None = None
         self._x = 0.0  # log speed
         self._var = math.inf
+        self._rejected: float | None = None  # log speed of the last pair, where it was an outlier
         self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
 
     @staticmethod
@@ -1034,6 +1037,7 @@ class MotionTrack:
 
     def reset(self) -> None:
         self._key, self._x, self._var = None, 0.0, math.inf
+        self._rejected = None
         self._normals = {}
 
     def update(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
@@ -1055,18 +1059,27 @@ class MotionTrack:
         r = prm.scale_meas_std**2
         self._key = (seq, cur)
         if not consecutive:
-            self._x, self._var = z, r
+            self._x, self._var, self._rejected = z, r, None
             return est
         x_pred = self._x
         p_pred = self._var + (prm.speed_process_std * dt) ** 2
         innov = z - x_pred
         s = p_pred + r
+        last, self._rejected = self._rejected, None
         if abs(innov) > prm.scale_gate * math.sqrt(s):
-            # An outlier: keep the prediction (its variance grows; a run of such pairs re-anchors on
-            # the measurements once the prediction has become uncertain enough).
-            self._x, self._var = x_pred, p_pred
-            note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
-                    f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m")
+            # Two outliers in a row that agree with each other (two pairs' errors and the speed change
+            # between them): the track was off, not the pairs; it restarts at this one. (Without this,
+            # a first pair 8 % long held a slowing car's pairs out for the whole drive: their
+            # innovations grew faster than the prediction's variance.)
+            if last is not None and abs(z - last) <= prm.scale_gate * math.sqrt(2 * r + (prm.speed_process_std * dt) ** 2):
+                self._x, self._var = z, r
+                note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
+                        f"prediction, the second such pair in a row and consistent with the first: the speed restarts at it")
+            else:
+                # An outlier: keep the prediction (its variance grows).
+                self._x, self._var, self._rejected = x_pred, p_pred, z
+                note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
+                        f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m")
         else:
             k = p_pred / s
             self._x, self._var = x_pred + k * innov, (1 - k) * p_pred
