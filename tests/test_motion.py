@@ -353,3 +353,43 @@ def test_motion_track_restarts_after_a_first_pair_far_off():
     tr = MotionTrack()
     out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate([0.9, 0.9, 1.12, 0.68, 0.9])]
     assert all(abs(o / 0.9 - 1) < 0.02 for o in out)
+
+
+
+def test_motion_track_filters_the_normal_over_chained_pairs():
+    import dataclasses
+
+    from monostixels.inputs.motion import MotionTrack
+
+    def pair(frame: int, prev: int, seq: str = "s"):
+        p = _track_pair(frame, seq)
+        p.meta["frame_prev"] = prev
+        return p
+
+    def tilted(deg: float) -> torch.Tensor:
+        a = math.radians(deg)
+        return torch.tensor([0.0, math.cos(a), math.sin(a)], dtype=torch.float64)
+
+    def pitch(est) -> float:
+        return math.degrees(math.atan2(float(est.ground_normal[2]), float(est.ground_normal[1])))
+
+    def level_then(pairs, last):
+        tr = MotionTrack()
+        for frame, prev in pairs:
+            tr.update(pair(frame, prev), dataclasses.replace(_est(0.3), ground_normal=tilted(0.0)))
+        return pitch(tr.update(pair(*last), dataclasses.replace(_est(0.3), ground_normal=tilted(1.5))))
+
+    # Consecutive pairs: a 1.5 degree fit is fused with the level ones before it.
+    assert 0.1 < level_then([(1, 0), (2, 1), (3, 2)], (4, 3)) < 1.2
+    # A pair back to the last pair's earlier frame continues the filter from that frame's normal.
+    assert 0.1 < level_then([(1, 0), (2, 1), (3, 2)], (4, 2)) < 1.2
+    # Keyframe pairs reaching back past it keep their own fit (it matches their own scale).
+    assert level_then([(1, 0), (2, 0), (3, 1)], (4, 2)) == pytest.approx(1.5, abs=1e-9)
+    # A gate: a fit 8 degrees off is an outlier, the prediction stands.
+    tr = MotionTrack()
+    for frame in (1, 2, 3):
+        tr.update(pair(frame, frame - 1), dataclasses.replace(_est(0.3), ground_normal=tilted(0.0)))
+    assert abs(pitch(tr.update(pair(4, 3), dataclasses.replace(_est(0.3), ground_normal=tilted(8.0))))) < 0.01
+    # Another sequence starts again: its first fit is its own.
+    out = tr.update(pair(5, 4, seq="other"), dataclasses.replace(_est(0.3), ground_normal=tilted(1.5)))
+    assert torch.allclose(out.ground_normal, tilted(1.5), atol=1e-9)

@@ -1111,6 +1111,10 @@ class MotionTrack:
             k = var_pred / (var_pred + r)
             n_new = n_pred + k * (n_m - n_pred)
             n_new, var_new = n_new / n_new.norm(), (1.0 - k) * var_pred
+        # Kept: the frames from this pair's earlier frame on. A keyframe pair reaching back past them (pairs
+        # (3, 1), (4, 2), ...) starts the normal again at its own fit, which matches its own scale (the two
+        # trade off in the photometric search); continuing the filter over such pairs raised the depth
+        # jitter on every synthetic clip set (docs/experiments.md, "Ego-motion").
         self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (n_new, var_new)}
         return dataclasses.replace(est, ground_normal=n_new.to(est.ground_normal.dtype))
 
