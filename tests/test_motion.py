@@ -355,7 +355,6 @@ def test_motion_track_restarts_after_a_first_pair_far_off():
     assert all(abs(o / 0.9 - 1) < 0.02 for o in out)
 
 
-
 def test_motion_track_filters_the_normal_over_chained_pairs():
     import dataclasses
 
@@ -373,23 +372,22 @@ def test_motion_track_filters_the_normal_over_chained_pairs():
     def pitch(est) -> float:
         return math.degrees(math.atan2(float(est.ground_normal[2]), float(est.ground_normal[1])))
 
-    def level_then(pairs, last):
+    def level_then(pairs, last, tilt_deg=1.5):
+        """Level fits on ``pairs``, then a ``tilt_deg`` fit on ``last``: its filtered pitch and the track."""
         tr = MotionTrack()
         for frame, prev in pairs:
             tr.update(pair(frame, prev), dataclasses.replace(_est(0.3), ground_normal=tilted(0.0)))
-        return pitch(tr.update(pair(*last), dataclasses.replace(_est(0.3), ground_normal=tilted(1.5))))
+        return pitch(tr.update(pair(*last), dataclasses.replace(_est(0.3), ground_normal=tilted(tilt_deg)))), tr
 
     # Consecutive pairs: a 1.5 degree fit is fused with the level ones before it.
-    assert 0.1 < level_then([(1, 0), (2, 1), (3, 2)], (4, 3)) < 1.2
+    assert 0.1 < level_then([(1, 0), (2, 1), (3, 2)], (4, 3))[0] < 1.2
     # A pair back to the last pair's earlier frame continues the filter from that frame's normal.
-    assert 0.1 < level_then([(1, 0), (2, 1), (3, 2)], (4, 2)) < 1.2
+    assert 0.1 < level_then([(1, 0), (2, 1), (3, 2)], (4, 2))[0] < 1.2
     # Keyframe pairs reaching back past it keep their own fit (it matches their own scale).
-    assert level_then([(1, 0), (2, 0), (3, 1)], (4, 2)) == pytest.approx(1.5, abs=1e-9)
+    assert level_then([(1, 0), (2, 0), (3, 1)], (4, 2))[0] == pytest.approx(1.5, abs=1e-9)
     # A gate: a fit 8 degrees off is an outlier, the prediction stands.
-    tr = MotionTrack()
-    for frame in (1, 2, 3):
-        tr.update(pair(frame, frame - 1), dataclasses.replace(_est(0.3), ground_normal=tilted(0.0)))
-    assert abs(pitch(tr.update(pair(4, 3), dataclasses.replace(_est(0.3), ground_normal=tilted(8.0))))) < 0.01
+    gated, tr = level_then([(1, 0), (2, 1), (3, 2)], (4, 3), tilt_deg=8.0)
+    assert abs(gated) < 0.01
     # Another sequence starts again: its first fit is its own.
     out = tr.update(pair(5, 4, seq="other"), dataclasses.replace(_est(0.3), ground_normal=tilted(1.5)))
     assert torch.allclose(out.ground_normal, tilted(1.5), atol=1e-9)
