@@ -57,7 +57,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0, help="synthetic source seed (evaluation: 0, 1, 2)")
     ap.add_argument("--scale", type=float, default=1.0)
-    ap.add_argument("--backends", default="deepflow,dis,raft,raft_onnx")
+    ap.add_argument("--backends", default="deepflow,dis,raft,raft_onnx,raft_int8")
     ap.add_argument("--cache", default=None,
                     help="folder for rendered frames and per-backend results (lets backends run in separate calls; "
                          "the table then lists every backend measured there)")
@@ -69,9 +69,12 @@ def main() -> None:
 
     cfgs = {}
     for b in args.backends.split(","):
-        if b in ("raft", "raft_onnx"):  # the same weights in torch and in ONNX Runtime
+        if b in ("raft", "raft_onnx", "raft_int8"):  # the same weights in torch, ONNX Runtime, and its INT8 copy
             cfg = OmegaConf.load(CONF / "raft.yaml")
-            cfg.runtime = "onnx" if b == "raft_onnx" else "torch"
+            cfg.runtime = "torch" if b == "raft" else "onnx"
+            if b == "raft_int8":
+                w = Path(cfg.weights)
+                cfg.onnx = str(w.with_name(w.stem + "_int8.onnx"))
         else:
             cfg = OmegaConf.load(CONF / f"{b}.yaml")
         if cfg.name == "raft":

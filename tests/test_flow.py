@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from monostixels.geometry import Camera, intrinsics
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 from monostixels.inputs.flow import estimate_flow, flow_metrics
 from monostixels.inputs.raft import OnnxRaft, RaftFlow, TorchRaft, build_raft, export_onnx, load_raft_weights, padded_size
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _camera(H: int, W: int) -> Camera:
@@ -354,6 +357,32 @@ def test_raft_runtime_auto_takes_the_export_beside_the_weights(tmp_path):
         _raft_net(OmegaConf.create({**cfg, "runtime": "tensorrt"}))
 
 
+def test_raft_int8_copy_quantizes_the_convolutions_and_keeps_the_flow(tmp_path):
+    """quantize_onnx: the shipped weights' graph with its convolutions in INT8 (calibrated on one
+    render) gives the float graph's flow on another render within a fraction of a pixel, and a
+    graph that is not both ways is refused, naming the file."""
+    import onnx
+
+    from monostixels.data.synthetic import render_pair
+    from monostixels.inputs.raft import quantize_onnx
+
+    net = RaftFlow(load_raft_weights(REPO / "models" / "raft_small.pt"), num_flow_updates=4).eval()
+    f32 = export_onnx(net, tmp_path / "f32.onnx", 128, 160, half_weights=True)
+    calib, test = render_pair(5, scale=0.2), render_pair(6, scale=0.2)
+    q8 = quantize_onnx(f32, tmp_path / "q8.onnx", [(calib.image, calib.image_prev)])
+    ops = [n.op_type for n in onnx.load(str(q8)).graph.node]
+    assert ops.count("DequantizeLinear") > ops.count("Conv") > 0  # every Conv reads quantized inputs
+    runner = OnnxRaft(q8)
+    assert runner.quantized == "int8" and runner.num_flow_updates == 4 and OnnxRaft(f32).quantized is None
+    want = OnnxRaft(f32)(test.image, test.image_prev)
+    got = runner(test.image, test.image_prev)
+    assert float(want.abs().mean()) > 1.0
+    assert 0 < float((got - want).norm(dim=0).mean()) < 0.1 * float(want.norm(dim=0).mean())
+    fixed = export_onnx(RaftFlow(build_raft("small"), 2), tmp_path / "fixed.onnx", 128, 160, dynamic=False)
+    with pytest.raises(InputError, match="fixed.onnx"):
+        quantize_onnx(fixed, tmp_path / "x.onnx", [(calib.image, calib.image_prev)])
+
+
 def test_shipped_raft_files_agree_and_auto_runs_the_onnx_one():
     """models/raft_small.onnx is the export of models/raft_small.pt (the same flow on a render), with
     the shipped config's updates recorded, so that runtime=auto takes it on a CPU."""
@@ -373,6 +402,20 @@ def test_shipped_raft_files_agree_and_auto_runs_the_onnx_one():
     f_onnx, f_torch = onnx_net(pair.image, pair.image_prev), torch_net(pair.image, pair.image_prev)
     assert float(f_torch.abs().max()) > 1.0
     assert float((f_onnx - f_torch).abs().max()) < 0.02
+    # The INT8 copy (flow.precision=int8, the default): what auto runs on a CPU, the same updates, a flow
+    # within a few percent of the float one's (0.27 px of 7 px here, before any refinement) and as close
+    # to the ground truth.
+    int8 = _raft_net(OmegaConf.merge(cfg, {"runtime": "onnx", "onnx": str(REPO / "models" / "raft_small_int8.onnx")}))
+    assert int8.quantized == "int8" and int8.num_flow_updates == int(cfg.iters) and cfg.precision == "int8"
+    if not torch.cuda.is_available():
+        assert _raft_net(cfg).quantized == "int8"
+        assert _raft_net(OmegaConf.merge(cfg, {"precision": "float32"})).quantized is None
+    f_int8 = int8(pair.image, pair.image_prev)
+    assert float((f_int8 - f_torch).norm(dim=0).mean()) < 0.05 * float(f_torch.norm(dim=0).mean())
+    epe = [float((f - pair.gt.flow).norm(dim=0).mean()) for f in (f_torch, f_int8)]
+    assert epe[1] < 1.03 * epe[0]
+    with pytest.raises(InputError, match="flow.precision"):
+        _raft_net(OmegaConf.merge(cfg, {"precision": "fp8"}))
 
 
 def test_gather_correlation_lookup_equals_torchvisions_grid_sample():

@@ -13,6 +13,7 @@ from monostixels.data.synthetic import render_pair
 from train.flow import _render_sample, augment, real_pool, sequence_loss
 
 REPO = Path(__file__).resolve().parents[1]
+KITTI2015 = REPO.parent / "shared" / "data" / "kitti2015"
 
 
 def _warp(prev: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
@@ -51,6 +52,24 @@ def test_real_pool_never_takes_the_lidar_evaluation_drive(tmp_path):
         real_pool(cfg)
 
 
+@pytest.mark.skipif(not (REPO.parent / "shared" / "data" / "kitti_raw").is_dir(), reason="shared KITTI raw sample absent")
+def test_calibration_pairs_are_the_real_sources_at_the_running_scale():
+    from train.flow import calibration_pairs
+
+    root = str(REPO.parent / "shared" / "data" / "kitti_raw")
+    cfg = OmegaConf.create({"export": {"calibration_per_source": 2, "calibration_scale": 0.5},
+                            "real": {"sources": [{"name": "kitti_raw", "root": root, "step": 1}]}})
+    pairs = calibration_pairs(cfg)
+    from monostixels.data.sources import make_source
+
+    H, W = next(iter(make_source({"name": "kitti_raw", "root": root, "step": 1}))).size
+    assert len(pairs) == 2 and all(a.shape == b.shape == (3, round(H / 2), round(W / 2)) for a, b in pairs)
+    assert all(0 <= float(a.min()) and float(a.max()) <= 1 and not torch.equal(a, b) for a, b in pairs)
+    cfg.real.sources = [{"name": "kitti_raw", "root": "../shared/data/kitti_raw_lidar"}]
+    with pytest.raises(ValueError, match="evaluation drive"):
+        calibration_pairs(cfg)
+
+
 def test_sequence_loss_weights_later_updates_more():
     flow = torch.zeros(1, 2, 4, 4)
     valid = torch.ones(1, 4, 4, dtype=torch.bool)
@@ -71,6 +90,10 @@ def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path):
             "val.updates=3", "val.source_seed=20", "ckpt_every=5", "threads=1", "augment.colour=0",
             "augment.eraser_prob=0", "augment.scale_log2=[0,0]", "stages=[{steps: 60, lr: 6e-4, warmup: 2, real_fraction: 0.0}]",
             f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "export.updates=2", "max_minutes=null"]
+    # The INT8 copy is calibrated on the real frames: one KITTI 2015 pair, small, where the samples are.
+    int8 = KITTI2015.is_dir()
+    args += ([f"real.sources=[{{name: kitti2015, root: {KITTI2015}, fx: 721.5, fy: 721.5, cx: 609.6, cy: 172.9}}]",
+              "export.calibration_per_source=1", "export.calibration_scale=0.3"] if int8 else ["export.int8=false"])
     p = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     ck = torch.load(tmp_path / "ckpt.pt", weights_only=False)
@@ -85,6 +108,10 @@ def test_a_short_training_run_lowers_the_loss_and_resumes(tmp_path):
     losses = [h[1] for h in ck["history"]]
     assert sum(losses[-10:]) < 0.9 * sum(losses[:10])  # random crops: noisy, so averaged
     assert (tmp_path / "w.pt").is_file() and (tmp_path / "w.onnx").is_file()
+    if int8:
+        from monostixels.inputs.raft import OnnxRaft
+
+        assert OnnxRaft(tmp_path / "w_int8.onnx").quantized == "int8"
     # Resume: more steps continue from the checkpoint (no restart from step 0).
     args2 = [a if not a.startswith("stages=") else "stages=[{steps: 64, lr: 6e-4, warmup: 2, real_fraction: 0.0}]" for a in args]
     p = subprocess.run(args2, cwd=REPO, capture_output=True, text=True, timeout=900)
@@ -108,7 +135,8 @@ def test_the_convex_upsampler_alone_trains_on_a_frozen_body(tmp_path):
             "val.updates=3", "val.source_seed=20", "ckpt_every=10", "threads=1", "augment.colour=0",
             "augment.eraser_prob=0", "augment.scale_log2=[0,0]", "stages=[{steps: 40, lr: 2e-3, warmup: 2, real_fraction: 0.0}]",
             "mask_hidden=16", "trainable=mask_predictor", f"init_weights={tmp_path / 'init.pt'}",
-            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "export.updates=2", "max_minutes=null"]
+            f"out_weights={tmp_path / 'w.pt'}", f"export.onnx={tmp_path / 'w.onnx'}", "export.updates=2", "max_minutes=null",
+            "export.int8=false"]
     p = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-3000:]
     assert "convex upsampler from scratch" in p.stdout + p.stderr

@@ -12,7 +12,8 @@
 # the schedule, the weights and their ONNX export): copy it to runs/train_flow_gpu/ckpt.pt here.
 # The next chunk, or a CPU run with the same overrides and run_dir=runs/train_flow_gpu device=cpu,
 # resumes from it. Real samples need DeepFlow (opencv-contrib), which the device image lacks: keep
-# real_fraction at 0 there unless run_dir/pool already holds the real pool.
+# real_fraction at 0 there unless run_dir/pool already holds the real pool. The INT8 copy is calibrated
+# on the real frames, which the machine does not carry: write it here (`python -m train.flow export_only=true`).
 set -euo pipefail
 minutes=${1:?usage: device_chunk.sh MINUTES [train.flow overrides]}
 shift
@@ -23,7 +24,7 @@ run=.device/run
 mkdir -p "$run" "$OUT"
 status=0
 "$python" -m train.flow device=cuda amp=bf16 threads=16 batch_size=16 run_dir="$run" max_minutes="$minutes" \
-    out_weights="$run/raft_small.pt" export.onnx="$run/raft_small.onnx" "$@" > "$OUT/train.log" 2>&1 || status=$?
+    out_weights="$run/raft_small.pt" export.onnx="$run/raft_small.onnx" export.int8=false "$@" > "$OUT/train.log" 2>&1 || status=$?
 for f in ckpt.pt raft_small.pt raft_small.onnx; do
     if [ -f "$run/$f" ]; then cp "$run/$f" "$OUT/$f"; fi
 done

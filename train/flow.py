@@ -44,7 +44,9 @@ occluding patches in the second image (eraser), horizontal flips, random crops.
 Checkpoints (model, optimiser, step, history) every ``ckpt_every`` steps to ``run_dir/ckpt.pt``,
 and a copy at the end of each stage (``stage{k}.pt``); a new run with the same ``run_dir`` resumes.
 Every ``val.every`` steps the EPE on held-out renders is logged. At the end the weights go to
-``out_weights`` (float16) and ONNX (:func:`monostixels.inputs.raft.export_onnx`).
+``out_weights`` (float16) and ONNX (:func:`monostixels.inputs.raft.export_onnx`), with an INT8 copy
+(``export.int8``, :func:`monostixels.inputs.raft.quantize_onnx`; the activation ranges from the
+first pairs of the real sources at the scale ``flow=raft`` runs at).
 
 Convention: ``image1`` = current, ``image2`` = previous, output current -> previous (``x_prev = x + f``).
 """
@@ -65,12 +67,12 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from monostixels.data.synthetic import SOURCE_SEED_STRIDE, render_pair
-from monostixels.inputs.raft import RAFT_MIN_SIZE, RAFT_MULTIPLE, RaftFlow, build_raft, export_onnx, load_raft_weights, mask_hidden_of
+from monostixels.inputs.raft import RAFT_MIN_SIZE, RAFT_MULTIPLE, RaftFlow, build_raft, export_onnx, load_raft_weights, mask_hidden_of, quantize_onnx
 
 logger = logging.getLogger("train.flow")
 
 __all__ = ["main", "Sample", "render_pool", "real_pool", "augment", "sample_batch", "sequence_loss", "export",
-           "validate"]
+           "calibration_pairs", "validate"]
 
 #: A training sample: images (3, H, W) uint8 current and previous, flow (2, H, W) float16 current ->
 #: previous (px), valid (H, W) bool.
@@ -319,12 +321,36 @@ def validate(model: torch.nn.Module, pairs: list[Sample], updates: int) -> float
     return float(np.mean(errs))
 
 
+def calibration_pairs(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Image pairs (3, h, w) in [0, 1] for the INT8 copy's activation ranges: the first
+    ``export.calibration_per_source`` pairs of each of ``real.sources`` (the training's real frames, never
+    drive 0023), each at ``export.calibration_scale`` of its size (where ``flow=raft`` runs the network)."""
+    from monostixels.data.sources import make_source
+
+    per, scale = int(cfg.export.calibration_per_source), float(cfg.export.calibration_scale)
+    pairs = []
+    for src_cfg in cfg.real.sources:
+        d = OmegaConf.to_container(src_cfg, resolve=True)
+        if "0023" in str(d.get("root", "")) or "lidar" in str(d.get("root", "")):
+            raise ValueError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never calibrate on it")
+        for k, pair in enumerate(make_source(d)):
+            if k >= per:
+                break
+            H, W = pair.size
+            size = (round(H * scale), round(W * scale))
+            pairs.append((_resize_image(pair.image.float(), size), _resize_image(pair.image_prev.float(), size)))
+    return pairs
+
+
 def export(cfg: DictConfig) -> None:
-    """Export ``cfg.out_weights`` to ONNX (``cfg.export``)."""
+    """Export ``cfg.out_weights`` to ONNX (``cfg.export``), and with ``export.int8`` its INT8 copy beside it
+    (``<name>_int8.onnx``, the file ``flow.precision=int8`` looks for beside the weights)."""
     model = load_raft_weights(cfg.out_weights, cfg.size)
     path = export_onnx(RaftFlow(model, int(cfg.export.updates)), cfg.export.onnx, int(cfg.export.height),
                        int(cfg.export.width), half_weights=bool(cfg.export.get("half_weights", False)))
     logger.info("ONNX written: %s (%.1f MB)", path, path.stat().st_size / 1e6)
+    if cfg.export.get("int8", False):
+        quantize_onnx(path, path.with_name(path.stem + "_int8.onnx"), calibration_pairs(cfg))
 
 
 def _lr_factor(step: int, warmup: int, steps: int) -> float:

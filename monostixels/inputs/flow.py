@@ -9,7 +9,8 @@ Backends (``cfg.name``):
   (``cfg.matches: dis|none``, see :func:`_deepflow`).
 - ``dis``: OpenCV DIS flow (Kroeger et al. 2016), fast; ``cfg.preset`` ultrafast|fast|medium.
 - ``raft``: torchvision RAFT (small/large) with weights from a local file (``cfg.weights``),
-  run in torch or through ONNX Runtime (``cfg.runtime: torch|onnx``, file ``cfg.onnx``).
+  run in torch or through ONNX Runtime (``cfg.runtime: torch|onnx``, file ``cfg.onnx``; ``auto``: ONNX
+  Runtime on a CPU, the INT8 copy beside the weights where ``cfg.precision: int8``).
 
 Convention: every backend returns the flow from the *current* to the *previous* image,
 ``x_prev = x + f(x)`` (SPEC section 2), in pixels; OpenCV backends are called as
@@ -371,13 +372,21 @@ def _raft_net(cfg: Any) -> Any:
         # On a CPU the exported graph runs faster in ONNX Runtime than the network in torch
         # (docs/results.md "Flow"). The export of the weights is the .onnx file beside them (as
         # train.flow writes both): other weights without one run in torch, and so does any on a GPU.
+        # flow.precision=int8 takes the INT8 copy beside them (<name>_int8.onnx) where there is one:
+        # its convolutions, most of the time, ~3x faster on a CPU (the flow stage 0.70x), the EPE within
+        # 1-4 % (docs/experiments.md "Flow").
         weights = _get(cfg, "weights", None)
-        beside = resolve_path(weights).with_suffix(".onnx") if weights is not None else None
-        if beside is not None and beside.is_file() and not torch.cuda.is_available():
-            net = cached_onnx_raft(beside, int(_get(cfg, "threads", 0)))
-            # Its updates are fixed at export: another flow.iters runs in torch.
-            if net.num_flow_updates == int(_get(cfg, "iters", 12)):
-                return net
+        precision = str(_get(cfg, "precision", "float32"))
+        if precision not in ("float32", "int8"):
+            raise InputError(f"flow.precision: must be float32 or int8, got {precision!r}")
+        if weights is not None and not torch.cuda.is_available():
+            w = resolve_path(weights)
+            names = ([w.with_name(w.stem + "_int8.onnx")] if precision == "int8" else []) + [w.with_suffix(".onnx")]
+            for beside in (n for n in names if n.is_file()):
+                net = cached_onnx_raft(beside, int(_get(cfg, "threads", 0)))
+                # Its updates are fixed at export: another flow.iters runs in torch.
+                if net.num_flow_updates == int(_get(cfg, "iters", 12)):
+                    return net
         runtime = "torch"
     if runtime == "torch":
         weights = _get(cfg, "weights", None)
