@@ -26,7 +26,10 @@ then ``--backends raft,raft_onnx``):
 one direction alone costs it that time. ``--pipeline`` adds the flow stage as the pipeline runs it
 (``estimate_flow``: both directions where ``fb_consistency`` is on, refinements, covariance);
 ``--frames 6 --backends raft,raft_onnx,deepflow --pipeline``, idle machine, 2026-12-02: raft 1.70,
-raft_onnx 1.31, deepflow 1.47 s a frame.
+raft_onnx 1.31, deepflow 1.47 s a frame. ``raft_int8`` is the INT8 copy (``models/raft_small_int8.onnx``,
+what ``flow=raft`` runs on a CPU): 2026-12-03, ``--frames 20 --backends raft_onnx,raft_int8,deepflow
+--pipeline`` on a host twice as slow, EPE 1.17 / 1.22 / 1.12 px, seconds 2.46 / 1.49 / 1.48, pipeline
+2.62 / 1.91 / 2.73.
 
 RAFT = models/raft_small.pt / .onnx (models/MODEL_CARD.md: ``python -m train.flow``, 5000 steps, the upsampler's 2500 and 1500 at the running scale).
 ``deepflow`` is guided by DIS's matches (``flow.matches=dis``): OpenCV's DeepFlow alone is the

@@ -449,7 +449,22 @@ def test_raft_flow_equals_torchvisions_last_prediction(mask_hidden):
         want = raft(2 * a - 1, 2 * b - 1, num_flow_updates=3)[-1]
         got = RaftFlow(raft, 3)(a, b)
     assert float(want.abs().max()) > 0.01
-    assert torch.allclose(got, want, atol=1e-6)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_convex_upsampling_equals_torchvisions():
+    """convex_upsample (the softmax written out, for ONNX Runtime) is torchvision's upsample_flow with a mask."""
+    from monostixels._torchvision import torchvision
+    from monostixels.inputs.raft import convex_upsample
+
+    torch.manual_seed(5)
+    flow, mask = 6 * torch.randn(2, 2, 5, 7), 4 * torch.randn(2, 9 * 64, 5, 7)
+    want = torchvision.models.optical_flow._utils.upsample_flow(flow, up_mask=mask)
+    got = convex_upsample(flow, mask)
+    assert got.shape == want.shape == (2, 2, 40, 56)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-5)
+    # Each vector is a convex combination of 8x its 3x3 neighbours (zero beyond the border).
+    assert float(got.abs().max()) <= 8 * float(flow.abs().max()) + 1e-4
 
 
 def test_raft_small_with_the_convex_upsampler_exports_and_loads(tmp_path):

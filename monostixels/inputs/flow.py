@@ -373,7 +373,7 @@ def _raft_net(cfg: Any) -> Any:
         # (docs/results.md "Flow"). The export of the weights is the .onnx file beside them (as
         # train.flow writes both): other weights without one run in torch, and so does any on a GPU.
         # flow.precision=int8 takes the INT8 copy beside them (<name>_int8.onnx) where there is one:
-        # its convolutions, most of the time, ~3x faster on a CPU (the flow stage 0.70x), the EPE within
+        # its convolutions, most of the time, ~3x faster on a CPU (the flow stage about 0.7x), the EPE within
         # 1-4 % (docs/experiments.md "Flow").
         weights = _get(cfg, "weights", None)
         precision = str(_get(cfg, "precision", "float32"))

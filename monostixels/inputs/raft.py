@@ -48,6 +48,7 @@ __all__ = [
     "mask_hidden_of",
     "load_raft_weights",
     "RaftFlow",
+    "convex_upsample",
     "padded_size",
     "pad_images",
     "export_onnx",
@@ -212,8 +213,31 @@ class RaftFlow(nn.Module):
             corr = raft.corr_block.index_pyramid(centroids_coords=coords1)
             hidden, delta = raft.update_block(hidden, context, corr, coords1 - coords0)
             coords1 = coords1 + delta
-        up_mask = None if raft.mask_predictor is None else raft.mask_predictor(hidden)
-        return _upsample_flow(coords1 - coords0, up_mask=up_mask)
+        if raft.mask_predictor is None:
+            return _upsample_flow(coords1 - coords0)
+        return convex_upsample(coords1 - coords0, raft.mask_predictor(hidden))
+
+
+def convex_upsample(flow: torch.Tensor, up_mask: torch.Tensor, factor: int = 8) -> torch.Tensor:
+    """RAFT's convex upsampling: each full-size vector a softmax-weighted mean of the 3x3 coarse vectors
+    around its cell, times ``factor`` (torchvision's ``upsample_flow`` with a mask, to float rounding).
+
+    The softmax is written out (max, exp, sums): ONNX Runtime's ``Softmax`` over the 9 weights, an inner
+    axis of a 7-d tensor, transposes it to the last axis and back, 7x the time of the whole upsampling
+    written this way (138 against 20 ms at 288x936, both ways).
+
+    Args:
+        flow: (B, 2, h, w) coarse flow, pixels of the coarse grid. up_mask: (B, 9 * factor^2, h, w) logits.
+
+    Returns:
+        (B, 2, factor h, factor w) flow, pixels.
+    """
+    B, C, h, w = flow.shape
+    m = up_mask.view(B, 1, 9, factor, factor, h, w)
+    e = torch.exp(m - m.amax(dim=2, keepdim=True))
+    around = F.unfold(factor * flow, kernel_size=3, padding=1).view(B, C, 9, 1, 1, h, w)
+    up = (e * around).sum(dim=2) / e.sum(dim=2)
+    return up.permute(0, 1, 4, 2, 5, 3).reshape(B, C, factor * h, factor * w)
 
 
 def padded_size(height: int, width: int) -> tuple[int, int]:
