@@ -281,10 +281,18 @@ class SequenceRunner:
         # The camera's velocity over the pair, current axes: it moved by R^T t (X_prev = R X_cur + t).
         v_cam = (res.motion.motion.R.double().T @ res.motion.motion.t.double()) / max(dt, 1e-9)
         if tracking:
+            # The flow from this frame to the last one (the stream frame before it): a chained keyframe
+            # pair's first step, or a consecutive pair's own flow; the association follows stixels through it.
+            last_no = next(reversed(self.frames)) if self.frames else None
+            flow_last = None
+            if res.flow.step is not None:
+                flow_last = res.flow.step[0]
+            elif last_no is not None and pair.meta.get("frame_prev") == last_no:
+                flow_last = res.flow.flow
             out = self.tracks.update(
                 st, frame=frame_no, time=time, pose=pose, dt_pair=dt,
                 degenerate=bool(res.motion.degenerate or st.flags.get("degenerate_motion")), camera_velocity=v_cam,
-                motion=res.motion.motion)
+                motion=res.motion.motion, flow_to_last=flow_last, flow_reaches=last_no)
             track_id, velocity = out["track_id"], out["velocity"]
             st = _with_filtered_depth(st, out["point_cam"])
             if bool(out["carried"].any()):

@@ -10,9 +10,11 @@ under it).
 Per frame, for the pair (current ``t``, earlier ``k``):
 
 1. **Association.** Every track's point, predicted by its own velocity and seen from the current
-   camera through the chained camera motion, lands in a stixel of frame ``t``; that stixel continues
-   the track if it is of the same kind and its measurement passes the chi-square gate on position
-   and velocity (several tracks in one stixel: the nearest). Stixels without a track start one.
+   camera through the chained camera motion, lands in a stixel of frame ``t``: the track is a
+   candidate there. Where the flow to the last frame is known, so are the tracks of the last frame's
+   stixels that a stixel's pixels land in through it (``overlap_min_share`` of them at least). A
+   stixel continues a candidate of its kind whose prediction passes the chi-square gate on position
+   and velocity (several: the nearest). Stixels without a track start one.
 2. **Measurement.** Position: the stixel's plane at its column centre and middle row, in the world
    (along-ray standard deviation ``depth_std_rel`` of the distance, across the ray half a column).
    Velocity: a dynamic stixel's metric motion over the pair's interval, the median over its object
@@ -79,6 +81,9 @@ class TrackParams:
             the camera height (the flow fits each ground stixel's plane).
         ground_height_process_std: random walk of the road height along a track (metres per
             square-root second: slopes, kerbs passing under the column).
+        overlap_min_share: where the flow to the last tracked frame is given, a stixel may also continue
+            the track of any last-frame stixel of its kind that at least this share of its pixels map
+            into through the flow; 0 = off (the tracks' predicted points alone).
     """
 
     enabled: bool = True
@@ -97,6 +102,7 @@ class TrackParams:
     eta_gate: float = 3.84
     ground_height_std_rel: float = 0.03
     ground_height_process_std: float = 0.1
+    overlap_min_share: float = 0.3
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -111,11 +117,13 @@ class TrackParams:
                   "eta_std_abs", "eta_process_std", "eta_interval_s", "ground_height_std_rel", "ground_height_process_std"):
             if getattr(self, k) <= 0:
                 raise InputError(f"temporal.{k}: must be > 0, got {getattr(self, k)}")
-        for k in ("velocity_std_rel", "eta_std_rel", "eta_gate"):
+        for k in ("velocity_std_rel", "eta_std_rel", "eta_gate", "overlap_min_share"):
             if getattr(self, k) < 0:
                 raise InputError(f"temporal.{k}: must be >= 0, got {getattr(self, k)}")
         if not (isinstance(self.max_age_frames, int) and self.max_age_frames >= 1):
             raise InputError(f"temporal.max_age_frames: an integer >= 1, got {self.max_age_frames!r}")
+        if self.overlap_min_share > 1:
+            raise InputError(f"temporal.overlap_min_share: a share in [0, 1], got {self.overlap_min_share}")
         if self.group_depth_ratio < 0:
             raise InputError(f"temporal.group_depth_ratio: must be >= 0 (0 = off), got {self.group_depth_ratio}")
 
@@ -256,7 +264,10 @@ class Tracks:
         self.eta = torch.zeros(0, dtype=torch.float64)       # (T,) closing rate -v_rel,z / Z (1/s)
         self.eta_var = torch.zeros(0, dtype=torch.float64)   # (T,) its variance
         self.eta_rejected = torch.zeros(0, dtype=torch.bool)  # (T,) the last pair's rate failed the gate
+        self.stixel = torch.zeros(0, dtype=torch.long)       # (T,) the track's stixel in the frame of its last update
         self.next_id = 0
+        self.prev_frame: int | None = None                   # the frame of the last update
+        self.prev_index: torch.Tensor | None = None          # (H, W) its stixel index map (-1: none)
 
     # ------------------------------------------------------------------ model
     def _predict(self, rows: torch.Tensor, time: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -296,7 +307,8 @@ class Tracks:
     # ------------------------------------------------------------------ one frame
     def update(self, world: StixelWorld, *, frame: int, time: float, pose: torch.Tensor, dt_pair: float,
                degenerate: bool, camera_velocity: torch.Tensor | None = None,
-               motion: Motion | None = None) -> dict[str, torch.Tensor]:
+               motion: Motion | None = None, flow_to_last: torch.Tensor | None = None,
+               flow_reaches: int | None = None) -> dict[str, torch.Tensor]:
         """Associate, filter and report the tracks of one frame.
 
         Args:
@@ -309,6 +321,9 @@ class Tracks:
                 closing rates; None = standing.
             motion: the pair's camera motion (``X_prev = R X_cur + t``): tracked movers' motions are then
                 recomputed at their tracks' depths; None = the solver's.
+            flow_to_last: (2, H, W) flow from this frame to frame ``flow_reaches`` (pixels, ``x_there = x +
+                flow``); where that is the last updated frame, its stixels seen through the flow are
+                candidates of the association too (``overlap_min_share``). None: the predicted points alone.
 
         Returns:
             ``track_id`` (N,) int64 (-1: sky), ``position`` (N, 3) filtered world position (NaN where
@@ -345,8 +360,14 @@ class Tracks:
 
         # --- association: the tracks' predicted points, seen from this camera
         parent = torch.full((N,), -1, dtype=torch.long)  # row of the track a stixel continues
+        index = world.index_map()
         if self.ids.numel() and bool(obj.any()):
-            parent = self._associate(world, obj, kind, time, Rwc, o, X_w, lateral_std, dyn, vel_meas, degenerate)
+            overlap = None
+            if (flow_to_last is not None and flow_reaches is not None and flow_reaches == self.prev_frame
+                    and prm.overlap_min_share > 0):
+                overlap = self._overlap(world, index, obj, kind, flow_to_last)
+            parent = self._associate(world, index, obj, kind, time, Rwc, o, X_w, lateral_std, dyn, vel_meas,
+                                     degenerate, overlap)
         keeps_id = parent >= 0
         rows_all = torch.nonzero(obj).squeeze(1)
         out_id = torch.full((N,), -1, dtype=torch.long)
@@ -355,6 +376,7 @@ class Tracks:
         carried = torch.zeros(N, dtype=torch.bool)
         if rows_all.numel() == 0:
             self._drop_old(frame)
+            self.prev_frame, self.prev_index = frame, index
             return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried}
 
         n = rows_all.numel()
@@ -431,7 +453,9 @@ class Tracks:
         self.eta = torch.cat([self.eta[keep], eta_new])
         self.eta_var = torch.cat([self.eta_var[keep], eta_var_new])
         self.eta_rejected = torch.cat([self.eta_rejected[keep], eta_rej_new])
+        self.stixel = torch.cat([self.stixel[keep], rows_all])
         self._drop_old(frame)
+        self.prev_frame, self.prev_index = frame, index
 
         out_id[rows_all] = ids
         # The filtered point on the stixel's own ray (it stays in its column): the ray's scale whose
@@ -523,20 +547,68 @@ class Tracks:
         keep = (frame - self.last_frame) <= self.params.max_age_frames
         if not bool(keep.all()):
             for k in ("x", "P", "ids", "time", "last_frame", "measured", "y", "kind", "gy", "gy_var", "eta", "eta_var",
-                      "eta_rejected"):
+                      "eta_rejected", "stixel"):
                 setattr(self, k, getattr(self, k)[keep])
 
-    def _associate(self, world: StixelWorld, obj: torch.Tensor, kind: torch.Tensor, time: float, Rwc: torch.Tensor,
-                   o: torch.Tensor,
+    def _overlap(self, world: StixelWorld, index: torch.Tensor, obj: torch.Tensor, kind: torch.Tensor,
+                 flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Candidate pairs (track rows (n,), stixels (n,)) from the flow to the last updated frame.
+
+        ``index``: (H, W) this frame's stixel index map. Every second pixel of every second row of a
+        stixel of this frame is followed through ``flow`` (2, H, W) into the last frame; the track of the
+        last-frame stixel it lands in (of the same kind) is a candidate where at least
+        ``overlap_min_share`` of the stixel's followed pixels land in it.
+        A track's single predicted point misses a stixel whose rows and columns change as a mover nears
+        or turns; its pixels, seen through the flow, do not.
+        """
+        if self.prev_index is None or tuple(self.prev_index.shape) != tuple(world.image_size) \
+                or tuple(flow.shape[-2:]) != tuple(world.image_size):
+            return None
+        H, W = world.image_size
+        last = torch.nonzero(self.last_frame == self.prev_frame).squeeze(1)
+        n_prev = int(self.prev_index.max()) + 1
+        if last.numel() == 0 or n_prev <= 0:
+            return None
+        row_of = torch.full((n_prev,), -1, dtype=torch.long)
+        ok_rows = self.stixel[last] < n_prev
+        row_of[self.stixel[last[ok_rows]]] = last[ok_rows]
+        vs = torch.arange(0, H, 2)
+        us = torch.arange(0, W, 2)
+        s_idx = index[vs[:, None], us[None, :]].reshape(-1)
+        f = flow[:, vs[:, None], us[None, :]].reshape(2, -1).double()
+        u2 = (us[None, :].double().expand(vs.numel(), -1).reshape(-1) + f[0]).round()
+        v2 = (vs[:, None].double().expand(-1, us.numel()).reshape(-1) + f[1]).round()
+        valid = (s_idx >= 0) & torch.isfinite(u2) & torch.isfinite(v2)
+        valid &= (u2 >= 0) & (u2 < W) & (v2 >= 0) & (v2 < H)
+        s_idx = s_idx.clamp_min(0)
+        valid &= obj[s_idx]
+        total = torch.bincount(s_idx[valid], minlength=len(world))
+        j = torch.full_like(s_idx, -1)
+        j[valid] = self.prev_index[v2[valid].long(), u2[valid].long()]
+        r = torch.where(j >= 0, row_of[j.clamp_min(0)], torch.full_like(j, -1))
+        hit = valid & (r >= 0)
+        hit[hit.clone()] = self.kind[r[hit]] == kind[s_idx[hit]]
+        if not bool(hit.any()):
+            return None
+        T = self.ids.numel()
+        key, count = torch.unique(s_idx[hit] * T + r[hit], return_counts=True)
+        s_u, r_u = key // T, key % T
+        keep = count.double() >= self.params.overlap_min_share * total[s_u].double()
+        return r_u[keep], s_u[keep]
+
+    def _associate(self, world: StixelWorld, index: torch.Tensor, obj: torch.Tensor, kind: torch.Tensor, time: float,
+                   Rwc: torch.Tensor, o: torch.Tensor,
                    X_w: torch.Tensor, lateral_std: torch.Tensor, dyn: torch.Tensor, vel_meas: torch.Tensor,
-                   degenerate: bool) -> torch.Tensor:
+                   degenerate: bool, overlap: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """Row (N,) of the track each stixel continues (-1: none).
 
         Every track's point, predicted to ``time`` (its own velocity) and projected into this camera
-        (the pose chain of the camera motion), lands in a stixel: that stixel continues the track if
-        it is an object and the prediction passes the chi-square gate on the position. Several tracks
-        landing in one stixel: the nearest (Mahalanobis) continues there. Without a baseline
-        (``degenerate``) a static stixel's depth is the scene model's and is not gated.
+        (the pose chain of the camera motion), lands in a stixel: that track is a candidate of the stixel.
+        ``overlap`` (track rows, stixels): more candidates, the last frame's stixels seen through the flow
+        (:meth:`_overlap`). A candidate continues in its stixel if the stixel is of its kind and the
+        prediction passes the chi-square gate on position and velocity. Several candidates passing in one
+        stixel: the nearest (Mahalanobis) continues there. Without a baseline (``degenerate``) a static
+        stixel's depth is the scene model's and is not gated.
         """
         H, W = world.image_size
         xp, Pp = self._predict(torch.arange(self.ids.numel()), time)
@@ -549,14 +621,15 @@ class Tracks:
         u = (K[0, 0] * Xc[:, 0] / zs + K[0, 2]).round()
         v = (K[1, 1] * Xc[:, 1] / zs + K[1, 2]).round()
         inside = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        index = world.index_map()
         s_of = torch.full((self.ids.numel(),), -1, dtype=torch.long)
         s_of[inside] = index[v[inside].long(), u[inside].long()]
         cand = torch.nonzero((s_of >= 0)).squeeze(1)
         parent = torch.full((len(world),), -1, dtype=torch.long)
+        sc = s_of[cand]
+        if overlap is not None:
+            cand, sc = torch.cat([cand, overlap[0]]), torch.cat([sc, overlap[1]])
         if cand.numel() == 0:
             return parent
-        sc = s_of[cand]
         ok = obj[sc] & (kind[sc] == self.kind[cand])
         cand, sc = cand[ok], sc[ok]
         if cand.numel() == 0:

@@ -191,6 +191,37 @@ def test_static_stixel_is_held_by_its_track_without_baseline():
     assert float(out["velocity"][0].norm()) < 0.05
 
 
+def test_a_stixel_whose_rows_changed_continues_its_track_through_the_flow():
+    # A wall 15 m ahead, camera still: in frame 1 its stixel covers rows 80-118 instead of 100-140 (its foot
+    # hidden). The track's point (row 120) lands outside it; through the (zero) flow half of its pixels land
+    # in the wall's stixel of frame 0, so it continues that track. Without the flow it starts a new one, and
+    # with overlap_min_share above the landing share too.
+    import dataclasses
+    pose = torch.eye(4, dtype=torch.float64)
+    w0 = _one_stixel_world(15.0, 1.0, False, torch.zeros(3))
+    w1 = dataclasses.replace(w0, v_top=torch.tensor([80]), v_bottom=torch.tensor([118]))
+    zero = torch.zeros(2, 240, 640)
+    ids = {}
+    for name, params, flow in (("flow", TrackParams(), zero), ("no flow", TrackParams(), None),
+                               ("share above", TrackParams(overlap_min_share=0.6), zero)):
+        tracks = Tracks(params)
+        first = tracks.update(w0, frame=0, time=0.0, pose=pose, dt_pair=0.1, degenerate=False)["track_id"][0]
+        second = tracks.update(w1, frame=1, time=0.1, pose=pose, dt_pair=0.1, degenerate=False,
+                               flow_to_last=flow, flow_reaches=0)["track_id"][0]
+        ids[name] = (int(first), int(second))
+    assert ids["flow"][0] == ids["flow"][1]
+    assert ids["no flow"][0] != ids["no flow"][1]
+    assert ids["share above"][0] != ids["share above"][1]  # 19 of 39 rows land: 0.49 < 0.6
+    # A flow to another frame than the last updated one is not used.
+    tracks = Tracks(TrackParams())
+    first = int(tracks.update(w0, frame=0, time=0.0, pose=pose, dt_pair=0.1, degenerate=False)["track_id"][0])
+    out = tracks.update(w1, frame=1, time=0.1, pose=pose, dt_pair=0.1, degenerate=False, flow_to_last=zero,
+                        flow_reaches=-1)
+    assert int(out["track_id"][0]) != first
+    with pytest.raises(InputError, match="overlap_min_share"):
+        TrackParams(overlap_min_share=1.5)
+
+
 def test_time_to_collision_of_a_hand_made_closing_object():
     X = torch.tensor([[0.5, 0.0, 20.0], [3.5, 0.0, 20.0], [0.0, 0.0, 20.0], [0.0, 0.0, 10.0]], dtype=torch.float64)
     v = torch.tensor([[0.0, 0.0, -10.0], [0.0, 0.0, -10.0], [0.0, 0.0, 2.0], [-4.0, 0.0, -8.0]], dtype=torch.float64)
