@@ -14,7 +14,9 @@ Per frame, for the pair (current ``t``, earlier ``k``):
    candidate there. Where the flow to the last frame is known, so are the tracks of the last frame's
    stixels that a stixel's pixels land in through it (``overlap_min_share`` of them at least). A
    stixel continues a candidate of its kind whose prediction passes the chi-square gate on position
-   and velocity (several: the nearest). Stixels without a track start one.
+   and velocity (several: the nearest). A mover's stixel linked through the flow to its track whose
+   one-pair velocity alone fails continues it on its position (once, ``coast_min_age``). Stixels
+   without a track start one.
 2. **Measurement.** Position: the stixel's plane at its column centre and middle row, in the world
    (along-ray standard deviation ``depth_std_rel`` of the distance, across the ray half a column).
    Velocity: a dynamic stixel's metric motion over the pair's interval, the median over its object
@@ -50,6 +52,8 @@ __all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_colli
 
 #: Chi-square quantile of 4 degrees of freedom at 99.9 %: the association gate on position and velocity.
 _CHI2_4DOF_999 = 18.47
+#: The same of 2 degrees of freedom: the gate on position alone.
+_CHI2_2DOF_999 = 13.82
 
 
 @dataclass
@@ -84,6 +88,10 @@ class TrackParams:
         overlap_min_share: where the flow to the last tracked frame is given, a stixel may also continue
             the track of any last-frame stixel of its kind that at least this share of its pixels map
             into through the flow; 0 = off (the tracks' predicted points alone).
+        coast_min_age: a dynamic stixel linked through the flow to a mover's track that has continued at
+            least this many frames, whose velocity fails the gate where its position passes, continues
+            the track on its position alone (the track's velocity stands, once; a second such frame in a
+            row starts a new track); 0 = off.
     """
 
     enabled: bool = True
@@ -103,6 +111,7 @@ class TrackParams:
     ground_height_std_rel: float = 0.03
     ground_height_process_std: float = 0.1
     overlap_min_share: float = 0.3
+    coast_min_age: int = 2
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -120,6 +129,8 @@ class TrackParams:
         for k in ("velocity_std_rel", "eta_std_rel", "eta_gate", "overlap_min_share"):
             if getattr(self, k) < 0:
                 raise InputError(f"temporal.{k}: must be >= 0, got {getattr(self, k)}")
+        if not (isinstance(self.coast_min_age, int) and self.coast_min_age >= 0):
+            raise InputError(f"temporal.coast_min_age: an integer >= 0 (0 = off), got {self.coast_min_age!r}")
         if not (isinstance(self.max_age_frames, int) and self.max_age_frames >= 1):
             raise InputError(f"temporal.max_age_frames: an integer >= 1, got {self.max_age_frames!r}")
         if self.overlap_min_share > 1:
@@ -265,6 +276,9 @@ class Tracks:
         self.eta_var = torch.zeros(0, dtype=torch.float64)   # (T,) its variance
         self.eta_rejected = torch.zeros(0, dtype=torch.bool)  # (T,) the last pair's rate failed the gate
         self.stixel = torch.zeros(0, dtype=torch.long)       # (T,) the track's stixel in the frame of its last update
+        self.age = torch.zeros(0, dtype=torch.long)          # (T,) frames the track has continued
+        self.dynamic = torch.zeros(0, dtype=torch.bool)      # (T,) its last stixel was dynamic
+        self.coasted = torch.zeros(0, dtype=torch.bool)      # (T,) its last update was on the position alone
         self.next_id = 0
         self.prev_frame: int | None = None                   # the frame of the last update
         self.prev_index: torch.Tensor | None = None          # (H, W) its stixel index map (-1: none)
@@ -360,14 +374,15 @@ class Tracks:
 
         # --- association: the tracks' predicted points, seen from this camera
         parent = torch.full((N,), -1, dtype=torch.long)  # row of the track a stixel continues
+        position_only = torch.zeros(N, dtype=torch.bool)  # continues it on its position alone
         index = world.index_map()
         if self.ids.numel() and bool(obj.any()):
             overlap = None
             if (flow_to_last is not None and flow_reaches is not None and flow_reaches == self.prev_frame
                     and prm.overlap_min_share > 0):
                 overlap = self._overlap(world, index, obj, kind, flow_to_last)
-            parent = self._associate(world, index, obj, kind, time, Rwc, o, X_w, lateral_std, dyn, vel_meas,
-                                     degenerate, overlap)
+            parent, position_only = self._associate(world, index, obj, kind, time, Rwc, o, X_w, lateral_std, dyn,
+                                                    vel_meas, degenerate, overlap)
         keeps_id = parent >= 0
         rows_all = torch.nonzero(obj).squeeze(1)
         out_id = torch.full((N,), -1, dtype=torch.long)
@@ -401,6 +416,8 @@ class Tracks:
         # the too-far and too-fast readings less weight and bias the filter low.
         Rm = self._measurement(x_pred[:, :2], x_pred[:, 2:], dyn[rows_all], o[[0, 2]], lateral_std[rows_all])
         P_pred[~has] = Rm[~has]
+        coast = position_only[rows_all] & has
+        Rm[coast, 2, 2] = Rm[coast, 3, 3] = 1e12  # the velocity measured is not used: the track's stands
         keeps &= has
         # Without a baseline a static stixel's depth is the scene model's: where its track was measured
         # with a baseline before, the track's prediction stands (carried into the output).
@@ -454,6 +471,11 @@ class Tracks:
         self.eta_var = torch.cat([self.eta_var[keep], eta_var_new])
         self.eta_rejected = torch.cat([self.eta_rejected[keep], eta_rej_new])
         self.stixel = torch.cat([self.stixel[keep], rows_all])
+        age_new = torch.zeros(n, dtype=torch.long)
+        age_new[keeps] = self.age[c[keeps]] + 1
+        self.age = torch.cat([self.age[keep], age_new])
+        self.dynamic = torch.cat([self.dynamic[keep], dyn[rows_all]])
+        self.coasted = torch.cat([self.coasted[keep], coast])
         self._drop_old(frame)
         self.prev_frame, self.prev_index = frame, index
 
@@ -547,7 +569,7 @@ class Tracks:
         keep = (frame - self.last_frame) <= self.params.max_age_frames
         if not bool(keep.all()):
             for k in ("x", "P", "ids", "time", "last_frame", "measured", "y", "kind", "gy", "gy_var", "eta", "eta_var",
-                      "eta_rejected", "stixel"):
+                      "eta_rejected", "stixel", "age", "dynamic", "coasted"):
                 setattr(self, k, getattr(self, k)[keep])
 
     def _overlap(self, world: StixelWorld, index: torch.Tensor, obj: torch.Tensor, kind: torch.Tensor,
@@ -599,8 +621,9 @@ class Tracks:
     def _associate(self, world: StixelWorld, index: torch.Tensor, obj: torch.Tensor, kind: torch.Tensor, time: float,
                    Rwc: torch.Tensor, o: torch.Tensor,
                    X_w: torch.Tensor, lateral_std: torch.Tensor, dyn: torch.Tensor, vel_meas: torch.Tensor,
-                   degenerate: bool, overlap: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-        """Row (N,) of the track each stixel continues (-1: none).
+                   degenerate: bool, overlap: tuple[torch.Tensor, torch.Tensor] | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Row (N,) of the track each stixel continues (-1: none), and whether (N,) on its position alone.
 
         Every track's point, predicted to ``time`` (its own velocity) and projected into this camera
         (the pose chain of the camera motion), lands in a stixel: that track is a candidate of the stixel.
@@ -608,7 +631,9 @@ class Tracks:
         (:meth:`_overlap`). A candidate continues in its stixel if the stixel is of its kind and the
         prediction passes the chi-square gate on position and velocity. Several candidates passing in one
         stixel: the nearest (Mahalanobis) continues there. Without a baseline (``degenerate``) a static
-        stixel's depth is the scene model's and is not gated.
+        stixel's depth is the scene model's and is not gated. A dynamic stixel left without a track whose
+        flow links it to a mover's track (``coast_min_age``) whose position alone passes its gate
+        continues that track on its position alone.
         """
         H, W = world.image_size
         xp, Pp = self._predict(torch.arange(self.ids.numel()), time)
@@ -625,15 +650,18 @@ class Tracks:
         s_of[inside] = index[v[inside].long(), u[inside].long()]
         cand = torch.nonzero((s_of >= 0)).squeeze(1)
         parent = torch.full((len(world),), -1, dtype=torch.long)
+        position_only = torch.zeros(len(world), dtype=torch.bool)
         sc = s_of[cand]
+        linked = torch.zeros(cand.numel(), dtype=torch.bool)  # a candidate through the flow
         if overlap is not None:
             cand, sc = torch.cat([cand, overlap[0]]), torch.cat([sc, overlap[1]])
+            linked = torch.cat([linked, torch.ones(overlap[0].numel(), dtype=torch.bool)])
         if cand.numel() == 0:
-            return parent
+            return parent, position_only
         ok = obj[sc] & (kind[sc] == self.kind[cand])
-        cand, sc = cand[ok], sc[ok]
+        cand, sc, linked = cand[ok], sc[ok], linked[ok]
         if cand.numel() == 0:
-            return parent
+            return parent, position_only
         pos = X_w[sc][:, [0, 2]]
         Rm = self._measurement(xp[cand, :2], xp[cand, 2:], dyn[sc], o[[0, 2]], lateral_std[sc])
         # Gate on position and velocity: a mover's stixel does not continue the track of the wall behind it.
@@ -644,13 +672,32 @@ class Tracks:
         if degenerate:
             gate |= ~dyn[sc]
         gate |= kind[sc] == 1  # a ground track's point follows its stixel's middle row: no position gate
-        cand, sc, d2 = cand[gate], sc[gate], d2[gate]
+        parent = self._nearest(len(world), cand[gate], sc[gate], d2[gate])
+        m = self.params.coast_min_age
+        if m > 0:
+            # A near mover's one-pair velocity can be far off (its contact below the image, its flow lost)
+            # while its pixels, through the flow, land in its own track: a track that has continued m frames
+            # outweighs that one pair's velocity, once (the closing rate's gate does the same).
+            alt = linked & dyn[sc] & (parent[sc] < 0) & self.dynamic[cand] & (self.age[cand] >= m) \
+                & ~self.coasted[cand]
+            if bool(alt.any()):
+                ra, Sa = r[alt, :2], S[alt, :2, :2]
+                d2p = (ra[:, None, :] @ torch.linalg.solve(Sa, ra[:, :, None]))[:, 0, 0]
+                g2 = d2p < _CHI2_2DOF_999
+                second = self._nearest(len(world), cand[alt][g2], sc[alt][g2], d2p[g2])
+                position_only = second >= 0
+                parent = torch.where(position_only, second, parent)
+        return parent, position_only
+
+    def _nearest(self, n: int, cand: torch.Tensor, sc: torch.Tensor, d2: torch.Tensor) -> torch.Tensor:
+        """Row (n,) of the candidate track ``cand`` with the smallest ``d2`` in each stixel ``sc`` (-1: none;
+        ties: the older track, lower row)."""
+        parent = torch.full((n,), -1, dtype=torch.long)
         if cand.numel() == 0:
             return parent
-        # One track per stixel: the smallest d2 (ties: the older track, lower row).
-        best = torch.full((len(world),), math.inf, dtype=torch.float64).scatter_reduce(0, sc, d2, reduce="amin")
+        best = torch.full((n,), math.inf, dtype=torch.float64).scatter_reduce(0, sc, d2, reduce="amin")
         win = d2 == best[sc]
-        first = torch.full((len(world),), self.ids.numel(), dtype=torch.long).scatter_reduce(
+        first = torch.full((n,), self.ids.numel(), dtype=torch.long).scatter_reduce(
             0, sc[win], cand[win], reduce="amin")
         hit = first < self.ids.numel()
         parent[hit] = first[hit]

@@ -222,6 +222,35 @@ def test_a_stixel_whose_rows_changed_continues_its_track_through_the_flow():
         TrackParams(overlap_min_share=1.5)
 
 
+def test_a_movers_track_outlasts_one_wild_velocity_linked_through_the_flow():
+    # A car 20 m ahead drives away at 4 m/s (camera still, 10 Hz). In frame 4 its pair's motion comes out
+    # at -15 m/s where its position is right: linked through the flow to its 4-frame track it keeps the
+    # track and the track's velocity; a second wild pair in a row starts a new track. Without the flow,
+    # or with coast_min_age=0, the first wild pair starts a new track.
+    pose = torch.eye(4, dtype=torch.float64)
+    zero = torch.zeros(2, 240, 640)
+
+    def drive(params: TrackParams, flow: torch.Tensor | None) -> list[tuple[int, float]]:
+        tracks, out = Tracks(params), []
+        for k in range(6):
+            dz = 0.4 if k < 4 else -1.5
+            w = _one_stixel_world(20.0 + 0.4 * k, 0.0, True, torch.tensor([0.0, 0.0, dz]))
+            r = tracks.update(w, frame=k, time=0.1 * k, pose=pose, dt_pair=0.1, degenerate=True,
+                              flow_to_last=flow, flow_reaches=k - 1)
+            out.append((int(r["track_id"][0]), float(r["velocity"][0, 2])))
+        return out
+
+    coast = drive(TrackParams(), zero)
+    assert len({i for i, _ in coast[:5]}) == 1 and coast[5][0] != coast[4][0]
+    assert coast[4][1] == pytest.approx(4.0, abs=0.3)  # the track's velocity stands
+    for params, flow in ((TrackParams(), None), (TrackParams(coast_min_age=0), zero)):
+        plain = drive(params, flow)
+        assert len({i for i, _ in plain[:4]}) == 1 and plain[4][0] != plain[3][0]
+        assert plain[4][1] == pytest.approx(-15.0, abs=0.5)  # a new track at the wild pair
+    with pytest.raises(InputError, match="coast_min_age"):
+        TrackParams(coast_min_age=-1)
+
+
 def test_time_to_collision_of_a_hand_made_closing_object():
     X = torch.tensor([[0.5, 0.0, 20.0], [3.5, 0.0, 20.0], [0.0, 0.0, 20.0], [0.0, 0.0, 10.0]], dtype=torch.float64)
     v = torch.tensor([[0.0, 0.0, -10.0], [0.0, 0.0, -10.0], [0.0, 0.0, 2.0], [-4.0, 0.0, -8.0]], dtype=torch.float64)
