@@ -594,12 +594,12 @@ class Tracks:
         row_of = torch.full((n_prev,), -1, dtype=torch.long)
         ok_rows = self.stixel[last] < n_prev
         row_of[self.stixel[last[ok_rows]]] = last[ok_rows]
-        vs = torch.arange(0, H, 2)
-        us = torch.arange(0, W, 2)
-        s_idx = index[vs[:, None], us[None, :]].reshape(-1)
-        f = flow[:, vs[:, None], us[None, :]].reshape(2, -1).double()
-        u2 = (us[None, :].double().expand(vs.numel(), -1).reshape(-1) + f[0]).round()
-        v2 = (vs[:, None].double().expand(-1, us.numel()).reshape(-1) + f[1]).round()
+        vv, uu = torch.meshgrid(torch.arange(0, H, 2), torch.arange(0, W, 2), indexing="ij")
+        vv, uu = vv.reshape(-1), uu.reshape(-1)
+        s_idx = index[vv, uu]
+        f = flow[:, vv, uu].double()
+        u2 = (uu + f[0]).round()
+        v2 = (vv + f[1]).round()
         valid = (s_idx >= 0) & torch.isfinite(u2) & torch.isfinite(v2)
         valid &= (u2 >= 0) & (u2 < W) & (v2 >= 0) & (v2 < H)
         s_idx = s_idx.clamp_min(0)
@@ -608,8 +608,7 @@ class Tracks:
         j = torch.full_like(s_idx, -1)
         j[valid] = self.prev_index[v2[valid].long(), u2[valid].long()]
         r = torch.where(j >= 0, row_of[j.clamp_min(0)], torch.full_like(j, -1))
-        hit = valid & (r >= 0)
-        hit[hit.clone()] = self.kind[r[hit]] == kind[s_idx[hit]]
+        hit = valid & (r >= 0) & (self.kind[r.clamp_min(0)] == kind[s_idx])
         if not bool(hit.any()):
             return None
         T = self.ids.numel()
