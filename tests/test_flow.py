@@ -284,14 +284,22 @@ def test_raft_missing_and_wrong_weights(tmp_path):
         load_raft_weights(garbage)
 
 
-def test_raft_onnx_with_float16_weights_is_half_the_file_and_the_same_flow(tmp_path):
-    torch.manual_seed(1)
-    net = RaftFlow(build_raft("small"), num_flow_updates=2).eval()
-    # The shipped state dict is float16: the torch path computes with float16-rounded weights.
+@pytest.fixture(scope="module")
+def raft3(tmp_path_factory: pytest.TempPathFactory) -> tuple[RaftFlow, Path]:
+    """Random RAFT-small with 3 updates and its ONNX export (any size, 128x160 traced), shared by the
+    tests below: an export takes 15-20 s. The weights are rounded to float16, as the shipped state dict
+    is, so that the float16 test compares like with like."""
+    torch.manual_seed(0)
+    net = RaftFlow(build_raft("small"), num_flow_updates=3).eval()
     net.raft.load_state_dict({k: v.half().float() if v.is_floating_point() else v
                               for k, v in net.raft.state_dict().items()})
+    return net, export_onnx(net, tmp_path_factory.mktemp("raft3") / "raft.onnx", 128, 160)
+
+
+def test_raft_onnx_with_float16_weights_is_half_the_file_and_the_same_flow(tmp_path, raft3):
+    # The shipped state dict is float16: the torch path computes with float16-rounded weights (raft3's).
+    net, full = raft3
     H, W = 128, 160
-    full = export_onnx(net, tmp_path / "full.onnx", H, W)
     half = export_onnx(net, tmp_path / "half.onnx", H, W, half_weights=True)
     # Every float32 weight is stored in 2 bytes instead of 4 (the graph itself is the same).
     n_weights = sum(v.numel() for v in net.state_dict().values() if v.is_floating_point())
@@ -303,11 +311,9 @@ def test_raft_onnx_with_float16_weights_is_half_the_file_and_the_same_flow(tmp_p
     assert torch.allclose(OnnxRaft(half)(a, b), OnnxRaft(full)(a, b), atol=1e-4)
 
 
-def test_raft_torch_and_onnx_agree(tmp_path):
-    torch.manual_seed(0)
-    net = RaftFlow(build_raft("small"), num_flow_updates=3).eval()
+def test_raft_torch_and_onnx_agree(tmp_path, raft3):
+    net, path = raft3
     H, W = 128, 160
-    path = export_onnx(net, tmp_path / "raft.onnx", H, W)
     a, b = _texture(H, W, seed=2), _texture(H, W, seed=3)
     f_torch = TorchRaft(net)(a, b)
     f_onnx = OnnxRaft(path)(a, b)
@@ -334,15 +340,16 @@ def test_raft_torch_and_onnx_agree(tmp_path):
     assert torch.allclose(res_onnx.flow, f_torch, atol=1e-3)
 
 
-def test_raft_runtime_auto_takes_the_export_beside_the_weights(tmp_path):
+def test_raft_runtime_auto_takes_the_export_beside_the_weights(tmp_path, raft3):
     """runtime=auto on a CPU: ONNX Runtime on the weights' own export (same name, .onnx) when it was
     made with the configured updates; torch for other updates, and for weights without an export."""
+    import shutil
+
     from monostixels.inputs.flow import _raft_net
 
-    torch.manual_seed(2)
-    net = RaftFlow(build_raft("small"), num_flow_updates=3).eval()
+    net, export = raft3
     torch.save(net.raft.state_dict(), tmp_path / "mine.pt")
-    export_onnx(net, tmp_path / "mine.onnx", 128, 160)
+    shutil.copy(export, tmp_path / "mine.onnx")
     assert OnnxRaft(tmp_path / "mine.onnx").num_flow_updates == 3
     torch.save(net.raft.state_dict(), tmp_path / "other.pt")
     cfg = {"name": "raft", "runtime": "auto", "weights": str(tmp_path / "mine.pt"), "iters": 3}
