@@ -48,7 +48,7 @@ from monostixels.sfm import DEFAULT_MIN_PARALLAX_RAD
 from monostixels.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
 from monostixels.stixels import StixelWorld
 
-__all__ = ["MoverCheckParams", "check_movers"]
+__all__ = ["MoverCheckParams", "check_movers", "static_only"]
 
 logger = logging.getLogger(__name__)
 
@@ -277,6 +277,21 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     flags["static_checked"] = changed
     logger.debug("mover check: %d of %d dynamic stixels explained by a static object", changed, S)
     return dataclasses.replace(stixels, type=types, inverse_depth=p_out, motion=mot, tau=tau, flags=flags)
+
+
+def static_only(stixels: StixelWorld) -> StixelWorld:
+    """The stixels with every dynamic one made a static object (its motion and ``tau`` zeroed, its depth
+    kept): for a frame whose camera motion is unknown, where no flow vector can be told to be an object's
+    own motion. ``flags["movers_suppressed"]`` counts them."""
+    dyn = stixels.type == DYNAMIC_OBJECT
+    flags = dict(stixels.flags)
+    flags["movers_suppressed"] = int(dyn.sum())
+    if not bool(dyn.any()):
+        return dataclasses.replace(stixels, flags=flags)
+    types = torch.where(dyn, torch.full_like(stixels.type, STATIC_OBJECT), stixels.type)
+    mot = stixels.motion.masked_fill(dyn[:, None], 0.0)
+    tau = stixels.tau.masked_fill(dyn[:, None] if stixels.tau.dim() == 2 else dyn, 0.0)
+    return dataclasses.replace(stixels, type=types, motion=mot, tau=tau, flags=flags)
 
 
 def _contact_row(K: torch.Tensor, n_obj: torch.Tensor, n_g: torch.Tensor, d: torch.Tensor, d_g: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
 from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion
 from monostixels.inputs.semantic import estimate_semantics
-from monostixels.movers import MoverCheckParams, check_movers
+from monostixels.movers import MoverCheckParams, check_movers, static_only
 from monostixels.solver import SolverConfig, solve
 from monostixels.stixels import StixelWorld
 from monostixels.stream import Carried, StreamState, warp_scores
@@ -150,9 +150,12 @@ class Pipeline:
                 # `monostixels run`: still produce output, flagged, from the scene model only.
                 logger.warning("%s: camera motion could not be estimated (%s); depths from the scene model only",
                                pair.name, est.reason)
+            # Solved like a standing camera (depths from the scene model), but its kind stays what it is:
+            # without a metric motion no flow vector may be called object motion.
             est = MotionEstimate(
                 motion=Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)),
                 degenerate=True, reason=est.reason, inlier_ratio=est.inlier_ratio,
+                kind=est.kind if est.kind in ("scale_unknown", "unknown") else "unknown", unit_motion=est.unit_motion,
             )
         return est
 
@@ -268,6 +271,12 @@ class Pipeline:
                                          self.solver_cfg.top_refine_depth_ratio, float(self.prior.alpha_L),
                                          self.solver_cfg.top_refine_objects)
             sec["tops"] = time.perf_counter() - t0
+        if motion.kind in ("scale_unknown", "unknown"):
+            # The camera's motion is not known: the flow cannot tell an object's motion from the camera's.
+            stixels = static_only(stixels)
+        stixels.flags["camera_motion"] = motion.kind
+        if motion.scale_from is not None:
+            stixels.flags["scale_from"] = motion.scale_from
         if motion.degenerate and not stixels.flags.get("degenerate_motion"):
             stixels.flags["degenerate_motion"] = True
         if stixels.flags.get("degenerate_motion"):

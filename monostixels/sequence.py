@@ -163,6 +163,10 @@ class _Frame:
     pose: torch.Tensor           # (4, 4) camera-to-world
 
 
+#: Kinds of camera-motion estimate (monostixels.inputs.motion.MOTION_KINDS) that know no metric motion.
+_NOT_KNOWN = ("scale_unknown", "unknown")
+
+
 class SequenceRunner:
     """Frames of a data source through the pipeline, with keyframes, tracks and TTC (module docstring).
 
@@ -248,12 +252,36 @@ class SequenceRunner:
             return SequenceStep(index, pair, None, str(err))
         dt = float(pair.meta.get("dt") or (self.default_dt * (back or 1)))
         sequence = back is not None
+        if res.motion.kind in _NOT_KNOWN:
+            # The camera's motion is not known: no pose to chain, nothing to track, no time to collision.
+            self._unknown(res, pair, back, dt)
+            return SequenceStep(index, pair, res)
         if sequence and not res.motion.degenerate:
             self.speed = res.motion.motion.translation_norm / max(dt, 1e-9)
         elif sequence and res.motion.degenerate:
             self.speed = 0.0
         self._finish(res, pair, back, driven, dt, sequence)
         return SequenceStep(index, pair, res)
+
+    def _unknown(self, res: PipelineResult, pair: FramePair, back: int | None, dt: float) -> None:
+        """Outputs of a pair whose camera motion is unknown (``scale_unknown`` / ``unknown``).
+
+        Its stixels are already static (the pipeline); here they get no track, no velocity, no time to
+        collision and no pose (``pose`` stays None). The frame is not kept as a later pair's partner, so the
+        pose chain goes on through the frames whose motion is known; the keyframe speed is left as it was.
+        """
+        st = res.stixels
+        N = len(st)
+        self.count += 1
+        st.track_id = torch.full((N,), -1, dtype=torch.long)
+        st.velocity = torch.zeros(N, 3, dtype=torch.float64)
+        st.ttc_s = torch.full((N,), math.inf, dtype=torch.float64)
+        st.ttc_warning = torch.zeros(N, dtype=torch.bool)
+        st.pose = None
+        st.pair_info = {"current": pair.name, "previous": pair.meta.get("name_prev", ""),
+                        "frames_back": int(back) if back is not None else 1, "dt_s": dt,
+                        "driven_m": None, "keyframe_distance_m": None}
+        res.pose = None
 
     def _finish(self, res: PipelineResult, pair: FramePair, back: int | None, driven: float | None, dt: float,
                 sequence: bool) -> None:

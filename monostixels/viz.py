@@ -339,9 +339,15 @@ def frame_notes(stixels: Any) -> list[str]:
 
     A frame flagged ``degenerate_motion`` (the camera barely translates, SPEC section 7) has its
     depths from the scene model: ground at the camera height, objects standing on it; on sequences
-    static objects seen before with a baseline keep their tracks' depths (``carried_stixels``).
+    static objects seen before with a baseline keep their tracks' depths (``carried_stixels``). A frame
+    whose camera motion is unknown (``flags["camera_motion"]`` ``scale_unknown`` / ``unknown``) says that
+    it shows no movers and raises no collision warning.
     """
     flags = getattr(stixels, "flags", None) or {}
+    if flags.get("camera_motion") in ("scale_unknown", "unknown"):
+        # Said first and plainly: the frame shows no movers and raises no collision warning.
+        what = "speed" if flags["camera_motion"] == "scale_unknown" else "motion"
+        return [f"camera {what} unknown: no movers, no collision warnings; depths from the scene model"]
     if not flags.get("degenerate_motion"):
         return []
     reason = str(flags.get("reason", ""))

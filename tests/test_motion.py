@@ -147,6 +147,7 @@ def test_mono_flags_pure_rotation_and_standing_still():
     pair, fr = _pair_and_flow(still, noise_px=0.1)
     est = estimate_motion(pair, fr, MONO)
     assert est.degenerate and "standing still" in est.reason
+    assert est.kind == "standing" and est.scale_from is None
 
 
 def test_mono_bad_flow():
@@ -285,6 +286,11 @@ def test_mono_scale_from_the_images_when_the_road_flow_fails():
     # Switched off, the same pair has no metric scale (reported, not guessed).
     off = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "photometric_scale": False}), semantic=sem)
     assert off.motion is None and "no metric scale" in off.reason
+    # ... but the camera moves, and its direction is known: kept, for a sequence's speed to scale.
+    assert off.kind == "scale_unknown" and off.unit_motion is not None
+    assert motion_errors(off.unit_motion, pair.motion)["trans_dir_err_deg"] < 0.5
+    assert float(off.unit_motion.t.norm()) == pytest.approx(1.0)
+    assert est.kind == "metric" and est.scale_from == "photometric"
     # Images that do not show the motion: no clear minimum, no estimate.
     noise = torch.rand(3, *pair.size, generator=g)
     blind = FramePair(image=noise, image_prev=torch.rand(3, *pair.size, generator=g), camera=pair.camera, name="noise")
@@ -324,6 +330,43 @@ def test_motion_track_rejects_a_scale_outlier_and_keeps_direction():
     assert float(MotionTrack().update(_track_pair(1), _est(1.3)).motion.t[2]) == pytest.approx(1.3)
     assert float(tr.update(_track_pair(8), _est(1.3)).motion.t[2]) == pytest.approx(1.3)  # frame 7 missing
     assert float(tr.update(_track_pair(9, seq="other"), _est(0.5)).motion.t[2]) == pytest.approx(0.5)
+
+
+def _unit(direction=(0.0, 0.0, 1.0)):
+    from monostixels.geometry import Motion
+    from monostixels.inputs.motion import MotionEstimate
+
+    t = torch.tensor(direction, dtype=torch.float64)
+    unit = Motion(torch.eye(3, dtype=torch.float64), t / t.norm())
+    return MotionEstimate(None, False, "no metric scale: test", 0.5, kind="scale_unknown", unit_motion=unit)
+
+
+def test_motion_track_holds_the_speed_over_pairs_without_a_scale():
+    from monostixels.inputs.motion import MotionTrack, TrackParams
+
+    tr = MotionTrack(TrackParams(scale_hold_s=0.25))
+    for k in range(4):  # 20 m/s at 10 Hz
+        out = tr.update(_track_pair(k + 1), _est(2.0))
+        assert out.scale_from is None and out.kind == "metric"
+    # The road gives no scale: the direction is the pair's own, the length the sequence's speed.
+    held = tr.update(_track_pair(5), _unit((0.1, 0.0, 1.0)))
+    assert held.kind == "metric" and held.scale_from == "sequence" and not held.degenerate
+    assert float(held.motion.t.norm()) == pytest.approx(2.0, rel=0.01)
+    assert float(held.motion.t[0] / held.motion.t[2]) == pytest.approx(0.1)
+    assert "scale from the sequence" in held.reason
+    # 0.25 s at most: two more pairs of 0.1 s are held (0.2 s), the third is not.
+    assert tr.update(_track_pair(6), _unit()).scale_from == "sequence"
+    late = tr.update(_track_pair(7), _unit())
+    assert late.kind == "scale_unknown" and late.motion is None
+    # A measured pair in between starts the count again.
+    tr = MotionTrack(TrackParams(scale_hold_s=0.15))
+    for k, e in enumerate([_est(2.0), _est(2.0), _unit(), _est(2.0), _unit()]):
+        out = tr.update(_track_pair(k + 1), e)
+    assert out.scale_from == "sequence"
+    # No speed yet (the first pair), another sequence, or a gap: nothing to hold.
+    assert MotionTrack().update(_track_pair(1), _unit()).kind == "scale_unknown"
+    assert tr.update(_track_pair(9), _unit()).kind == "scale_unknown"  # frame 8 missing
+    assert MotionTrack(TrackParams(scale_hold_s=0.0)).update(_track_pair(1), _unit()).motion is None
 
 
 def test_motion_track_follows_a_real_speed_change():

@@ -13,7 +13,7 @@ from monostixels.data.base import PreviousFrame
 from monostixels.data.sources import make_source
 from monostixels.data.synthetic import SyntheticSequence, render_pair
 from monostixels.geometry import Motion, object_normals, pixel_rays
-from monostixels.pipeline import load_config
+from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import KeyframeParams, SequenceRunner, choose_keyframe
 from monostixels.stixels import StixelWorld
 from monostixels.tracking import TrackParams, Tracks, TtcParams, critical, time_to_collision
@@ -438,3 +438,43 @@ def test_run_on_a_video_writes_tracks_velocities_and_ttc(tmp_path):
     # Tracks continue from frame to frame (on this tiny, fast-flow clip about 40 % of a frame's stixels
     # continue a track of the frame before; nothing would without the association).
     assert np.mean([len(a & b) / len(b) for a, b in zip(ids, ids[1:])]) > 0.3
+
+
+def test_a_pair_whose_camera_motion_is_unknown_shows_no_movers_and_no_warning(monkeypatch):
+    """A pair whose metric motion is unknown (no scale, or no estimate at all) calls nothing moving, raises no
+    collision warning, has no pose and is no later pair's partner; the frames around it are solved as before."""
+    import monostixels.pipeline as pipeline_module
+    from monostixels.classes import DYNAMIC_OBJECT
+    from monostixels.inputs.motion import MotionEstimate
+    from monostixels.viz import frame_notes
+
+    ov = ["data=synthetic", "data.frames=1", "data.sequence_length=6", "data.ego_speed_mps=3", "data.scale=0.25",
+          "flow=gt", "semantic=gt", "motion=gt"]
+    cfg = load_config(ov)
+    real = pipeline_module.estimate_motion
+
+    def estimate(pair, flow, mcfg, semantic=None, **kw):
+        est = real(pair, flow, mcfg, semantic, **kw)
+        if pair.name.endswith("_002"):  # the direction known, not the length
+            unit = Motion(est.motion.R, est.motion.t / est.motion.t.norm())
+            return MotionEstimate(None, False, "no metric scale: test", 0.5, kind="scale_unknown", unit_motion=unit)
+        if pair.name.endswith("_003"):
+            return MotionEstimate(None, False, "too few usable flow vectors: test", 0.0, kind="unknown")
+        return est
+
+    monkeypatch.setattr(pipeline_module, "estimate_motion", estimate)
+    runner = SequenceRunner(cfg, Pipeline(cfg, allow_motion_failure=True))
+    steps = list(runner.run(make_source(cfg)))
+    worlds = [s.result.stixels for s in steps]
+    assert any(bool((w.type == DYNAMIC_OBJECT).any()) for w in (worlds[0], worlds[4]))  # the scene has movers
+    for w, kind, what in ((worlds[1], "scale_unknown", "speed"), (worlds[2], "unknown", "motion")):
+        assert w.flags["camera_motion"] == kind and w.flags["degenerate_motion"]
+        assert not bool((w.type == DYNAMIC_OBJECT).any()) and float(w.motion.abs().max()) == 0.0
+        assert not bool(w.ttc_warning.any()) and bool(torch.isinf(w.ttc_s).all())
+        assert bool((w.track_id == -1).all()) and w.pose is None and "pose" not in w.to_dict()
+        assert frame_notes(w)[0].startswith(f"camera {what} unknown: no movers, no collision warnings")
+    # Frame 4 pairs past frames 2 and 3 with frame 1; its pose chains the known motions (0.3 m a frame).
+    info = worlds[3].pair_info
+    assert info["previous"].endswith("_001") and info["frames_back"] == 3
+    assert float(steps[3].result.pose[:3, 3].norm()) == pytest.approx(4 * 0.3, abs=1e-3)
+    assert worlds[3].flags["camera_motion"] == "metric" and worlds[3].flags["scale_from"] == "given"

@@ -71,6 +71,7 @@ from monostixels.inputs.confidence import to_gray
 
 __all__ = [
     "MOTION_BACKENDS",
+    "MOTION_KINDS",
     "MIN_TRANSLATION_M",
     "MonoParams",
     "MotionEstimate",
@@ -86,6 +87,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 MOTION_BACKENDS = ("gt", "file", "mono")
+#: What a camera-motion estimate knows (:attr:`MotionEstimate.kind`). Only ``standing`` lets the movers
+#: treat every flow vector as object motion; ``scale_unknown`` and ``unknown`` call nothing moving.
+MOTION_KINDS = ("metric", "standing", "scale_unknown", "unknown")
 #: Below this camera translation (metres) a known motion (gt / file) counts as standing still:
 #: 1 mm moves a point 5 m away by ~0.15 px at KITTI focal length — no usable parallax.
 MIN_TRANSLATION_M = 1e-3
@@ -105,6 +109,14 @@ class MotionEstimate:
         inlier_ratio: fraction of the used flow vectors consistent with the estimate (1 for gt/file).
         ground_normal: (3,) float64 unit normal of the road plane fitted for the metric scale
             (current camera, pointing down), or None (gt/file, or no fit).
+        kind: which of :data:`MOTION_KINDS` the estimate is: ``metric`` (rotation and metric
+            translation), ``standing`` (no translation: standing still or turning on the spot;
+            ``degenerate``), ``scale_unknown`` (rotation and translation direction known, its metric
+            length not: ``unit_motion``) or ``unknown`` (nothing known about the camera).
+        unit_motion: ``scale_unknown``: the rotation and the unit translation direction; else None.
+        scale_from: where a metric translation's length came from: ``given`` (gt / file),
+            ``photometric`` (the road's image alignment), ``ground_flow`` (the road's flow vectors),
+            ``sequence`` (the recent pairs' speed, :class:`MotionTrack`); None otherwise.
     """
 
     motion: Motion | None
@@ -112,6 +124,9 @@ class MotionEstimate:
     reason: str
     inlier_ratio: float
     ground_normal: torch.Tensor | None = None
+    kind: str = "metric"
+    unit_motion: Motion | None = None
+    scale_from: str | None = None
 
 
 @dataclass
@@ -185,8 +200,9 @@ def _known(motion: Motion, what: str) -> MotionEstimate:
     """A known motion, flagged degenerate when it has no translation to speak of."""
     tn = motion.translation_norm
     if tn < MIN_TRANSLATION_M:
-        return MotionEstimate(motion, True, f"no translation ({what}): |t| = {tn:.2e} m < {MIN_TRANSLATION_M} m", 1.0)
-    return MotionEstimate(motion, False, f"ok ({what})", 1.0)
+        return MotionEstimate(motion, True, f"no translation ({what}): |t| = {tn:.2e} m < {MIN_TRANSLATION_M} m", 1.0,
+                              kind="standing")
+    return MotionEstimate(motion, False, f"ok ({what})", 1.0, scale_from="given")
 
 
 @lru_cache(maxsize=8)
@@ -676,7 +692,8 @@ def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray,
               f"normal tilt {_tilt_deg(normal, n_g):.1f} deg)")
     if note:
         reason += f" ({note})"
-    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(normal))
+    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(normal),
+                          scale_from="photometric")
 
 
 def estimate_mono(
@@ -750,7 +767,8 @@ def estimate_mono(
     # The flow must land inside the previous image.
     ok &= (p_prev[:, 0] >= 0) & (p_prev[:, 0] <= W - 1) & (p_prev[:, 1] >= 0) & (p_prev[:, 1] <= H - 1)
     if ok.sum() < params.min_points:
-        return MotionEstimate(None, False, f"too few usable flow vectors: {int(ok.sum())} < {params.min_points}", 0.0)
+        return MotionEstimate(None, False, f"too few usable flow vectors: {int(ok.sum())} < {params.min_points}", 0.0,
+                              kind="unknown")
     idx = np.nonzero(ok)[0]
     if len(idx) > params.max_points:
         idx = np.sort(rng.choice(idx, size=params.max_points, replace=False))
@@ -838,7 +856,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         kind = "standing still" if still else "pure rotation"
         inl = float((res0 < params.ransac_threshold * 2).mean())
         reason = f"no translation ({kind}): median parallax {parallax:.2f} px < {params.min_parallax} px"
-        return MotionEstimate(Motion(torch.from_numpy(R0), torch.zeros(3, dtype=torch.float64)), True, reason, inl)
+        return MotionEstimate(Motion(torch.from_numpy(R0), torch.zeros(3, dtype=torch.float64)), True, reason, inl,
+                              kind="standing")
 
     # 3. Essential matrix (points1 = current, points2 = previous: X_prev = R X_cur + t).
     a_all, b_all = _rays(Kn, pc), _rays(Kn, pp)
@@ -856,11 +875,12 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         E, mask = cv2.findEssentialMat(pc, pp, Kn, method=cv2.RANSAC, prob=params.ransac_confidence,
                                        threshold=params.ransac_threshold)
         if E is None or E.shape != (3, 3):
-            return MotionEstimate(None, False, "essential matrix: RANSAC found no model", 0.0)
+            return MotionEstimate(None, False, "essential matrix: RANSAC found no model", 0.0, kind="unknown")
         _, R, t, mask = cv2.recoverPose(E, pc, pp, Kn, mask=mask.copy())
         inl = mask.ravel() > 0
         if inl.sum() < params.min_points:
-            return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers", float(inl.mean()))
+            return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers", float(inl.mean()),
+                                  kind="unknown")
         t = t.ravel()
     # Refine, then re-select inliers with the refined model (the RANSAC set is from a 5-point
     # hypothesis and misses good vectors), and refine once more on them.
@@ -868,7 +888,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         R, t = _refine_pose(R, t, a_all[inl], b_all[inl], f_scale=f_scale)
         inl = np.abs(_sampson(_skew(t) @ R, a_all, b_all)) < f_scale
         if inl.sum() < params.min_points:
-            return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement", float(inl.mean()))
+            return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement",
+                                  float(inl.mean()), kind="unknown")
     inlier_ratio = float(inl.mean())
 
     # 4. Metric scale (and road normal) from the ground.
@@ -920,14 +941,17 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             if refine_weak:  # warm, it may not have been refined: the search from scratch
                 found = _photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt) or found
             return _photometric_estimate(found, R, t, n_g, head, pixels, inlier_ratio, note="; ".join(failures))
-        return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio)
+        # The camera moves and its direction is known; only the length of t is not (a sequence may supply it).
+        unit = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(np.ascontiguousarray(t)))
+        return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio,
+                              kind="scale_unknown", unit_motion=unit)
     scale = height * q
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
     reason = f"{head}, scale from {int(ginl.sum())} ground vectors ({src}, normal tilt {tilt:.1f} deg)"
     if failures:
         reason += f" ({'; '.join(failures)})"
     normal = torch.from_numpy(np.ascontiguousarray(m / q))
-    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=normal)
+    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=normal, scale_from="ground_flow")
 
 
 def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor | None = None, *,
@@ -986,6 +1010,10 @@ class TrackParams:
             0023: consecutive fits differ by 0.3-2 degrees).
         normal_gate_deg: a fit farther than this from the prediction (degrees, beyond its innovation
             std) is an outlier and the prediction stands. 0 = no normal filter.
+        scale_hold_s: a pair whose translation direction is known but not its length
+            (``scale_unknown``) takes the filtered speed of the pairs before it, for at most this many
+            seconds after the last pair with a measured scale (a car's speed changes slowly); later, or
+            without such pairs, it stays ``scale_unknown``. 0 = never.
     """
 
     sequence_prior: bool = True
@@ -995,6 +1023,7 @@ class TrackParams:
     normal_process_std_deg: float = 0.3
     normal_meas_std_deg: float = 0.5
     normal_gate_deg: float = 3.0
+    scale_hold_s: float = 2.0
 
 
 class MotionTrack:
@@ -1028,6 +1057,7 @@ class MotionTrack:
         self._var = math.inf
         self._rejected: float | None = None  # log speed of the last pair, where it was an outlier
         self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
+        self._held_s = 0.0  # seconds since the last pair with a measured scale
 
     @staticmethod
     def from_config(cfg: Any) -> "MotionTrack":
@@ -1039,6 +1069,7 @@ class MotionTrack:
         self._key, self._x, self._var = None, 0.0, math.inf
         self._rejected = None
         self._normals = {}
+        self._held_s = 0.0
 
     def update(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
         """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the state advanced)."""
@@ -1046,15 +1077,19 @@ class MotionTrack:
         seq, cur, prev = pair.meta.get("sequence"), pair.meta.get("frame"), pair.meta.get("frame_prev")
         consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
                        and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
+        dt = float(pair.meta.get("dt") or 1.0)
+        if est.kind == "scale_unknown" and est.unit_motion is not None and consecutive:
+            if self._held_s + dt <= prm.scale_hold_s:
+                return self._hold(est, cur, prev, dt)
         if est.motion is None or est.degenerate or seq is None or cur is None:
             self.reset()
             return est
-        dt = float(pair.meta.get("dt") or 1.0)
         norm = float(est.motion.t.norm())
         if norm <= 0:
             self.reset()
             return est
         est = self._filter_normal(est, cur, prev if consecutive else None, dt)
+        self._held_s = 0.0
         z = math.log(norm / dt)
         r = prm.scale_meas_std**2
         self._key = (seq, cur)
@@ -1088,6 +1123,29 @@ class MotionTrack:
         logger.debug("%s: %s", pair.name, note)
         return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}")
 
+
+    def _hold(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
+        """A ``scale_unknown`` pair made metric by the filtered speed (predicted, not updated: its variance
+        grows) and, where the earlier frame has one, the filtered road normal turned into this camera."""
+        prm = self.params
+        self._var += (prm.speed_process_std * dt) ** 2
+        self._held_s += dt
+        self._key = (self._key[0], cur)
+        self._rejected = None
+        R, t_unit = est.unit_motion.R, est.unit_motion.t
+        length = math.exp(self._x) * dt
+        normal = None
+        old = self._normals.get(prev)
+        if old is not None:
+            n = R.double().T @ old[0]
+            normal = n / n.norm()
+            var = old[1] + math.radians(prm.normal_process_std_deg) ** 2 * dt
+            self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (normal, var)}
+        note = (f"scale from the sequence: {length:.3f} m ({math.exp(self._x):.1f} m/s, "
+                f"{self._held_s:.2f} s since the last measured scale)")
+        logger.debug("%s", note)
+        return dataclasses.replace(est, motion=Motion(R, t_unit / t_unit.norm() * length), kind="metric",
+                                   scale_from="sequence", ground_normal=normal, reason=f"{est.reason}; {note}")
 
     def _filter_normal(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
         """``est`` with its road normal fused with the one of frame ``prev`` (None: restart)."""
