@@ -36,6 +36,7 @@ from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_moti
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers, static_only
 from monostixels.solver import SolverConfig, solve
+from monostixels.static_regions import apply_ignore_mask
 from monostixels.stixels import StixelWorld
 from monostixels.stream import Carried, StreamState, warp_scores
 
@@ -187,12 +188,22 @@ class Pipeline:
         """
         sec: dict[str, float] = {}
         start = time.perf_counter()
+        full = pair
+        if pair.meta.get("ignore_mask") is not None:
+            pair = _cropped(pair)
         try:
-            return self._run(pair, state, sec, start)
+            res = self._run(pair, state, sec, start)
         except Exception:
             if state is not None:
                 state.drop()  # the next pair starts cold
             raise
+        if pair is not full:
+            # The outputs keep the frame's size: the rows cut off get no stixel (no depth).
+            res.pair = full
+            res.stixels.image_size = full.size
+            res.flow, res.semantic = _padded(res.flow, res.semantic, full.size[0])
+            res.stixels.flags["ignored_pixels"] = int(full.meta["ignore_mask"].sum())
+        return res
 
     def inputs(self, pair: FramePair, carried: Carried) -> tuple[FlowResult, torch.Tensor | None, dict[str, float]]:
         """The pair's flow and semantic scores (``carried``: what a stream gives it) and each one's wall time.
@@ -241,6 +252,9 @@ class Pipeline:
         ready = state.take_inputs(pair) if state is not None else None
         flow, semantic, input_sec = ready if ready is not None else self.inputs(pair, carried)
         sec.update(input_sec)
+        ignore = pair.meta.get("ignore_pixels")
+        if ignore is not None:
+            flow, semantic = _without(ignore, flow, semantic)
         if ready is not None:
             # Computed ahead, while the last pair was solved: counted in this pair's wall time all the same.
             sec["inputs_ahead"] = sec["inputs"]
@@ -298,3 +312,62 @@ class Pipeline:
         logger.debug("%s: %d stixels, seconds %s", pair.name, len(stixels), sec)
         return PipelineResult(pair=pair, flow=flow, semantic=semantic, motion=motion, stixels=stixels,
                               sfm_depth=sfm, seconds=sec)
+
+
+#: Flow variance (pixels^2) given to ignored pixels: far past any motion or solver gate, so they weigh nothing.
+_IGNORED_FLOW_VAR = 1.0e6
+
+
+def _cropped(pair: FramePair) -> FramePair:
+    """``pair`` without the bottom rows its ignore mask covers whole (a bonnet), the rest of the mask in
+    ``meta["ignore_pixels"]``; the intrinsics stay (rows are cut below, the principal point does not move)."""
+    mask = pair.meta["ignore_mask"]
+    split = apply_ignore_mask(torch.as_tensor(mask), pair.size)
+    rows = split.crop_rows
+
+    def cut(x: torch.Tensor | None) -> torch.Tensor | None:
+        if x is None or x.dim() < 2 or tuple(x.shape[-2:]) != pair.size:
+            return x
+        return x[..., :rows, :]
+
+    gt = dataclasses.replace(pair.gt, **{f.name: cut(getattr(pair.gt, f.name)) for f in dataclasses.fields(pair.gt)
+                                         if f.name != "bottoms"})
+    meta = {k: v for k, v in pair.meta.items() if k != "ignore_mask"}
+    meta["ignore_pixels"] = split.pixels
+    return dataclasses.replace(pair, image=pair.image[:, :rows], image_prev=pair.image_prev[:, :rows], gt=gt, meta=meta)
+
+
+def _without(ignore: torch.Tensor, flow: FlowResult, semantic: torch.Tensor | None
+             ) -> tuple[FlowResult, torch.Tensor | None]:
+    """The inputs with ``ignore`` (H, W) pixels made uninformative: the flow's variance beyond every gate
+    (the solver and the ego-motion weigh them by it) and the class scores flat."""
+    m = ignore.bool()
+    cov = flow.cov.clone()
+    cov[m] = torch.eye(2, dtype=cov.dtype) * _IGNORED_FLOW_VAR
+    flow = dataclasses.replace(flow, cov=cov)
+    if semantic is not None:
+        semantic = semantic.clone()
+        semantic[:, m] = 1.0 / semantic.shape[0]
+    return flow, semantic
+
+
+def _padded(flow: FlowResult, semantic: torch.Tensor | None, rows: int) -> tuple[FlowResult, torch.Tensor | None]:
+    """A cropped pair's inputs back at the frame's ``rows``: zero flow of no weight and flat scores below the cut."""
+
+    def pad(x: torch.Tensor | None, value: float) -> torch.Tensor | None:
+        if x is None:
+            return None
+        extra = list(x.shape)
+        extra[-2] = rows - x.shape[-2]
+        return torch.cat([x, torch.full(extra, value, dtype=x.dtype)], dim=-2)
+
+    cov = flow.cov
+    cov_pad = torch.eye(2, dtype=cov.dtype).expand(rows - cov.shape[0], cov.shape[1], 2, 2) * _IGNORED_FLOW_VAR
+    step = flow.step
+    if step is not None:
+        step = (pad(step[0], 0.0), pad(step[1], 0.0))
+    flow = dataclasses.replace(flow, flow=pad(flow.flow, 0.0), cov=torch.cat([cov, cov_pad], 0),
+                               backward=pad(flow.backward, 0.0), step=step, grey=None)
+    if semantic is not None:
+        semantic = pad(semantic, 1.0 / semantic.shape[0])
+    return flow, semantic

@@ -662,12 +662,13 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
 
 def _photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: np.ndarray | None, K: np.ndarray,
                         n_g: np.ndarray, height: float, params: MonoParams,
-                        rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        rng: np.random.Generator,
+                        ignore: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The grey images (current, previous) and ground pixels (N, 2) of :func:`_photometric_ground`.
 
     The pixels are every second pixel that is road (``road_scores``: (10, H, W) class scores)
-    or, without them, every second pixel of the road region ahead; at most
-    ``photometric_pixels`` of them (a seeded subset drawn from ``rng``). They depend on the
+    or, without them, every second pixel of the road region ahead, less the ``ignore`` (H, W) pixels;
+    at most ``photometric_pixels`` of them (a seeded subset drawn from ``rng``). They depend on the
     images, the semantics and the camera only, not on the flow.
     """
     H, W = images[0].shape[-2:]
@@ -678,6 +679,8 @@ def _photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: 
     vv, uu = np.nonzero(dense_2)  # every second pixel
     pts = np.c_[uu * 2, vv * 2].astype(np.float64)
     pts = pts[_ground_candidates(K, n_g, height, pts, params, lateral=road_scores is None)]
+    if ignore is not None:
+        pts = pts[~ignore[pts[:, 1].astype(np.int64), pts[:, 0].astype(np.int64)]]
     if len(pts) > params.photometric_pixels:
         pts = pts[np.sort(rng.choice(len(pts), size=params.photometric_pixels, replace=False))]
     return _grey(images[0]), _grey(images[1]), pts
@@ -707,6 +710,7 @@ def estimate_mono(
     images: tuple[torch.Tensor, torch.Tensor] | None = None,
     prior: MotionEstimate | None = None,
     interval_ratio: float = 1.0,
+    ignore: torch.Tensor | None = None,
 ) -> MotionEstimate:
     """Monocular camera motion from dense flow (see the module docstring for the method).
 
@@ -728,6 +732,7 @@ def estimate_mono(
             (see :func:`_photometric_ground`). Where either test fails, that step runs from scratch.
             None: from scratch.
         interval_ratio: see ``prior``.
+        ignore: (H, W) bool pixels to leave out (a bonnet, :mod:`monostixels.static_regions`), or None.
 
     Returns:
         A :class:`MotionEstimate` (metres).
@@ -741,6 +746,10 @@ def estimate_mono(
         check_shape(cov, [H, W, 2, 2], "flow covariance")
     if semantic is not None:
         check_shape(semantic, [NUM_CLASSES, H, W], "semantic scores")
+    ignore_np = None
+    if ignore is not None:
+        check_shape(ignore, [H, W], "ignore mask")
+        ignore_np = ignore.bool().numpy()
     Kn = K.double().numpy()
     n_g = ground_normal.double().numpy()
     rng = np.random.default_rng(params.seed)
@@ -750,7 +759,7 @@ def estimate_mono(
     vs, us = np.meshgrid(np.arange(off, H, params.step), np.arange(off, W, params.step), indexing="ij")
     us, vs = us.ravel(), vs.ravel()
     f = flow_np[:, vs, us].astype(np.float64).T  # N x 2; gathered before the (exact) conversion
-    ok = np.ones(len(us), dtype=bool)
+    ok = np.ones(len(us), dtype=bool) if ignore_np is None else ~ignore_np[vs, us]
     if cov is not None:
         ok &= _max_eigenvalue_at_most(cov.detach().cpu().numpy()[vs, us], params.max_flow_sigma**2)
     labels = None
@@ -778,7 +787,8 @@ def estimate_mono(
     # The photometric search's inputs need no flow: made in a second thread during steps 2-3
     # (single-threaded). ``rng`` is that thread's alone until it is joined: steps 2-3 draw nothing.
     with ThreadPoolExecutor(max_workers=1) if photometric else nullcontext() as pool:
-        prep = (pool.submit(_photometric_inputs, images, sem_np if road else None, Kn, n_g, height, params, rng)
+        prep = (pool.submit(_photometric_inputs, images, sem_np if road else None, Kn, n_g, height, params, rng,
+                            ignore_np)
                 if pool is not None else None)
         return _mono_from_vectors(Kn, n_g, height, params, rng, H, W, ok, labels, idx, p_cur, p_prev, road, prep,
                                   _prediction(prior, interval_ratio))
@@ -983,6 +993,7 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
         return estimate_mono(
             pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, _mono_params(cfg), semantic,
             images=(pair.image, pair.image_prev), prior=prior, interval_ratio=interval_ratio,
+            ignore=pair.meta.get("ignore_pixels"),
         )
     raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
 

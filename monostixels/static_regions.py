@@ -1,0 +1,161 @@
+"""Image regions that never move: a bonnet in view, a dashboard reflection at the bottom of the picture.
+
+A dashcam films part of its own car. Those pixels stay where they are while the scene streams past, so
+their flow says "no motion": the ego-motion would read them as a standing camera, the movers as an object
+driving along with us. They are excluded from every stage (:func:`apply_ignore_mask`).
+
+:func:`find_static_region` finds such a region from a few frames of the clip, without optical flow (at
+highway speed the flow on the near road is unreliable, and a flow of zero there would look static too):
+
+- a pixel carries evidence only where the later frame of a sampled pair has texture (grey-value gradient
+  above :data:`TEXTURE_GRAD`); there it is *static* in that pair where its grey value stays within
+  :data:`STATIC_DIFF`;
+- the image is cut into vertical strips of :data:`STRIP_PX` pixels; a row of a strip is static where
+  :data:`STATIC_SHARE` of its textured pixels are, else moving (without texture it says nothing). Each
+  strip is read from the bottom up: its static part is the run of rows below the first moving row, up to
+  its last static row (rows without texture in between are allowed, :data:`GAP_SHARE`); a strip without
+  a moving row says nothing;
+- the region is kept only where it spans most of the width (:data:`MIN_WIDTH_SHARE` of the strips, as a
+  bonnet does) and stays below :data:`MAX_HEIGHT_SHARE` of the image (a standing camera, where nothing
+  moves, must not turn the whole picture into "bonnet").
+
+Only regions touching the bottom edge are found; anything else (a logo, a timestamp) is for the user's
+own mask (``data.mask=FILE``).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+import torch
+
+from monostixels._checks import InputError
+
+__all__ = ["find_static_region", "IgnoreMask", "apply_ignore_mask"]
+
+logger = logging.getLogger(__name__)
+
+#: Grey-value gradient (Sobel 3x3 of a [0, 1] image) above which a pixel has texture to judge motion by.
+TEXTURE_GRAD = 0.25
+#: A textured pixel whose grey value changes by less than this between two frames is static in that pair.
+STATIC_DIFF = 0.03
+#: Width (pixels) of the vertical strips read from the bottom up.
+STRIP_PX = 16
+#: A row of a strip is static where at least this share of its textured pixels (over all pairs) is static,
+#: else moving; it says nothing with fewer than MIN_EVIDENCE textured pixels.
+STATIC_SHARE = 0.8
+MIN_EVIDENCE = 3
+#: Rows without evidence (no texture) that a strip's static part may hold above its last static row,
+#: as a share of the image height (at least 3 rows); the part ends there.
+GAP_SHARE = 0.05
+#: The region must cover at least this share of the strips (a bonnet spans the picture) ...
+MIN_WIDTH_SHARE = 0.6
+#: ... and no strip's part may reach above this share of the image height.
+MAX_HEIGHT_SHARE = 0.4
+
+
+def _grey(frame: np.ndarray) -> np.ndarray:
+    if frame.ndim == 3:
+        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    g = frame.astype(np.float32)
+    return g / 255.0 if frame.dtype == np.uint8 else g
+
+
+def find_static_region(frames: Sequence[np.ndarray]) -> np.ndarray:
+    """The region at the bottom of the picture that stays still while the scene moves (module docstring).
+
+    Args:
+        frames: at least 3 frames of one clip, in time order and some way apart (a few tenths of a second:
+            the scene must move between them), (H, W) grey or (H, W, 3) BGR, uint8 or float in [0, 1].
+
+    Returns:
+        (H, W) bool, True = static (to be ignored); all False where no such region is found.
+    """
+    if len(frames) < 3:
+        raise InputError(f"static region: needs at least 3 frames, got {len(frames)}")
+    grey = [_grey(f) for f in frames]
+    H, W = grey[0].shape
+    if any(g.shape != (H, W) for g in grey):
+        raise InputError("static region: the frames differ in size")
+    static = np.zeros((H, W), np.float32)
+    textured_n = np.zeros((H, W), np.float32)
+    for a, b in zip(grey[:-1], grey[1:]):
+        grad = np.hypot(cv2.Sobel(b, cv2.CV_32F, 1, 0), cv2.Sobel(b, cv2.CV_32F, 0, 1))
+        textured = grad > TEXTURE_GRAD
+        textured_n += textured
+        static += textured & (np.abs(b - a) < STATIC_DIFF)
+    mask = np.zeros((H, W), bool)
+    strips = list(range(0, W, STRIP_PX))
+    gap_max = max(3, int(GAP_SHARE * H))
+    top = np.full(len(strips), -1, dtype=np.int64)  # first row of each strip's static part; -1 = no evidence
+    for k, u0 in enumerate(strips):
+        s_row = static[:, u0:u0 + STRIP_PX].sum(1)
+        n_row = textured_n[:, u0:u0 + STRIP_PX].sum(1)
+        known = n_row >= MIN_EVIDENCE
+        is_static = known & (s_row >= STATIC_SHARE * n_row)
+        is_moving = known & ~is_static
+        last, gap, moved = H, 0, False
+        for r in range(H - 1, -1, -1):
+            if is_moving[r]:
+                moved = True
+                break
+            if is_static[r]:
+                last, gap = r, 0
+            elif last < H:
+                gap += 1  # rows without evidence above static ones: the region ends after a few
+                if gap > gap_max:
+                    break
+        if moved or gap > gap_max:
+            top[k] = last  # H: the strip moves down to its bottom row
+    decided = top >= 0
+    found = decided & (top < H)
+    if decided.sum() == 0 or found.sum() < MIN_WIDTH_SHARE * len(strips):
+        return mask
+    if (H - top[found]).max() > MAX_HEIGHT_SHARE * H:
+        return mask
+    # A bonnet's edge is smooth: each strip's top as the median over it and its decided neighbours.
+    smooth = np.full(len(strips), H, dtype=np.int64)
+    for k in range(len(strips)):
+        window = top[max(0, k - 2):k + 3]
+        window = window[window >= 0]
+        if len(window):
+            smooth[k] = int(np.median(window))
+    for k, u0 in enumerate(strips):
+        mask[smooth[k]:, u0:u0 + STRIP_PX] = True
+    if not mask.any():
+        return mask
+    logger.info("static region at the bottom: rows %d-%d of %d (%.1f %% of the image)",
+                int(smooth.min()), H - 1, H, 100.0 * mask.mean())
+    return mask
+
+
+@dataclass
+class IgnoreMask:
+    """How a pair's ignore mask (``pair.meta["ignore_mask"]``, (H, W) bool, True = ignore) is applied.
+
+    Attributes:
+        crop_rows: the rows kept, ``[0, crop_rows)``: below them every pixel of every row is ignored, and the
+            pair is solved without them (the outputs keep the full size; those rows get no stixel).
+        pixels: (crop_rows, W) bool, the ignored pixels left above the cut (or None).
+    """
+
+    crop_rows: int
+    pixels: torch.Tensor | None
+
+
+def apply_ignore_mask(mask: torch.Tensor, size: tuple[int, int]) -> IgnoreMask:
+    """Split an ignore mask (H, W) into the full rows cut off at the bottom and the pixels left above them."""
+    H, W = size
+    if tuple(mask.shape) != (H, W):
+        raise InputError(f"ignore mask: size {tuple(mask.shape)} differs from the frame's {(H, W)}")
+    full = mask.bool().all(1)
+    crop = H
+    while crop > 0 and bool(full[crop - 1]):
+        crop -= 1
+    if crop < H // 2:
+        raise InputError(f"ignore mask: it leaves {crop} of {H} rows: too little of the picture to solve")
+    rest = mask[:crop].bool()
+    return IgnoreMask(crop, rest if bool(rest.any()) else None)

@@ -1,0 +1,98 @@
+"""Static image regions (a bonnet in view): found from the frames, and left out of every stage."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from monostixels._checks import InputError
+from monostixels.data.synthetic import render_pair
+from monostixels.static_regions import apply_ignore_mask, find_static_region
+
+#: Rows of the painted bonnet at the bottom of a quarter-size render (94 rows), its top edge curved.
+_BONNET_MIN, _BONNET_MAX = 10, 16
+
+
+def _bonnet(H: int, W: int) -> np.ndarray:
+    """(H, W) bool: a bonnet whose top edge rises towards the middle of the picture."""
+    u = np.arange(W)
+    height = _BONNET_MIN + (_BONNET_MAX - _BONNET_MIN) * (1 - ((u - W / 2) / (W / 2)) ** 2)
+    return np.arange(H)[:, None] >= (H - height)[None, :]
+
+
+def _paint(img: torch.Tensor, mask: np.ndarray) -> torch.Tensor:
+    """The image with a dark, reflective (textured, but fixed) bonnet over ``mask``."""
+    H, W = mask.shape
+    g = np.random.default_rng(5)
+    paint = 0.15 + 0.35 * (g.random((H, W)) > 0.7)  # the same pattern in every frame: it does not move
+    out = img.clone()
+    m = torch.from_numpy(mask)
+    out[:, m] = torch.from_numpy(paint[mask]).float()
+    return out
+
+
+def _clip(seed: int = 3):
+    pair = render_pair(seed, scale=0.25)
+    return pair, [pair.image_prev, pair.image, pair.image_prev, pair.image]
+
+
+def _bgr(img: torch.Tensor) -> np.ndarray:
+    return (img.permute(1, 2, 0).numpy()[..., ::-1] * 255).round().astype(np.uint8)
+
+
+def test_a_bonnet_is_found_and_nothing_else():
+    pair, frames = _clip()
+    H, W = pair.size
+    truth = _bonnet(H, W)
+    found = find_static_region([_bgr(_paint(f, truth)) for f in frames])
+    assert found.any()
+    # The bonnet, to within a few rows at its curved edge (strips of 16 px; on average 3 rows too high at most).
+    assert (found & truth).sum() >= 0.9 * truth.sum()
+    assert (found & ~truth).sum() <= 3 * W
+    assert not found[: H - _BONNET_MAX - 6].any()
+    # The same clip without a bonnet: the road moves to the bottom edge, nothing is static.
+    assert not find_static_region([_bgr(f) for f in frames]).any()
+    # A standing camera (every frame the same): everything is static, which is no bonnet.
+    still = _bgr(_paint(pair.image, truth))
+    assert not find_static_region([still, still, still]).any()
+    with pytest.raises(InputError, match="at least 3 frames"):
+        find_static_region([still, still])
+
+
+def test_an_ignore_mask_splits_into_cut_rows_and_pixels():
+    H, W = 20, 30
+    mask = torch.zeros(H, W, dtype=torch.bool)
+    mask[16:] = True  # 4 whole rows at the bottom
+    mask[12:16, :5] = True  # and a corner above them
+    split = apply_ignore_mask(mask, (H, W))
+    assert split.crop_rows == 16
+    assert split.pixels is not None and tuple(split.pixels.shape) == (16, W) and int(split.pixels.sum()) == 20
+    assert apply_ignore_mask(torch.zeros(H, W, dtype=torch.bool), (H, W)).crop_rows == H
+    with pytest.raises(InputError, match=r"size \(20, 31\) differs"):
+        apply_ignore_mask(torch.zeros(H, W + 1, dtype=torch.bool), (H, W))
+    with pytest.raises(InputError, match="too little of the picture"):
+        apply_ignore_mask(torch.ones(H, W, dtype=torch.bool), (H, W))
+
+
+def test_the_pipeline_leaves_the_bonnet_out_and_keeps_the_frame_size():
+    import dataclasses
+
+    from monostixels.pipeline import Pipeline, load_config
+
+    pair, _ = _clip()
+    H, W = pair.size
+    bonnet = _bonnet(H, W)
+    painted = dataclasses.replace(pair, image=_paint(pair.image, bonnet), image_prev=_paint(pair.image_prev, bonnet),
+                                  meta=dict(pair.meta, ignore_mask=torch.from_numpy(bonnet)))
+    cfg = load_config(["data.scale=0.25", "flow=dis", "semantic=gt", "motion=gt"])
+    res = Pipeline(cfg, sfm=False).run(painted)
+    st = res.stixels
+    assert st.image_size == (H, W) and res.pair is painted
+    assert int(st.v_bottom.max()) < H - _BONNET_MIN  # the rows that are bonnet all across: no stixel
+    assert st.flags["ignored_pixels"] == int(bonnet.sum())
+    assert tuple(res.flow.flow.shape) == (2, H, W) and tuple(res.flow.cov.shape) == (H, W, 2, 2)
+    depth = st.depth_map()
+    assert tuple(depth.shape) == (H, W)
+    assert not bool((depth[H - _BONNET_MIN:] > 0).any())
+    # Above the cut the frame is solved: the ground and objects are there.
+    assert int((st.type == 0).sum()) > 0 and int((st.type == 1).sum()) > 0
