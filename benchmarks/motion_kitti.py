@@ -5,7 +5,7 @@ GPS/IMU records, ``oxts/``) or ../shared/data/kitti_raw (drive 0028, ``poses_cam
 odometry sequence 08, whose vertical translation drifts: read the horizontal ``dir_xz`` there).
 Runs the flow backend and the ``mono`` estimator with the sequence prior (as ``monostixels eval``
 does) on each consecutive pair; prints per-pair errors, the medians and the largest scale error
-(SPEC section 4 ``motion``).
+(docs/conventions.md, section 4.5 ``motion``).
 
 Command (repository root):
     nice -n 10 python -m benchmarks.motion_kitti [--root ../shared/data/kitti_raw_lidar] [--flow deepflow|dis] [--no-sequence-prior]

@@ -24,9 +24,9 @@ Usage::
     python benchmarks/pipeline_speed.py --presets fast --set flow=dis --json p_dis.json   # any override
     python benchmarks/pipeline_speed.py --clock cpu --frames 6 --roots ../shared/data/kitti_raw
 
-The JSON's ``median_seconds`` (SPEC section 4) is that of the first preset measured (``fast``, what
-``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each preset's. Measured numbers:
-docs/results.md ("Speed") and docs/benchmarks.md.
+The JSON's ``median_seconds`` (docs/conventions.md, section 4.7) is that of the first preset
+measured (``fast``, what ``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each
+preset's. Measured numbers: docs/results.md ("Speed") and docs/benchmarks.md.
 """
 from __future__ import annotations
 
@@ -53,7 +53,8 @@ from monostixels.pipeline import Pipeline, load_config  # noqa: E402
 from monostixels.sequence import SequenceRunner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-#: The shared development frames (SPEC section 4: data/ beside SPEC.md): a labelled drive and a LiDAR drive.
+#: The shared development frames (../shared/data beside the checkout): a labelled drive and a LiDAR
+#: drive.
 DEFAULT_ROOTS = (REPO.parent / "shared/data/kitti_raw", REPO.parent / "shared/data/kitti_raw_lidar")
 #: The presets measured by default: run's own first.
 PRESETS = ("fast", "accurate")

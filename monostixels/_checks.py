@@ -1,7 +1,7 @@
 """The one helper for argument checks at public boundaries.
 
 Every public entry point validates its inputs through these functions so that a bad input
-fails with a message that names it (SPEC section 7).
+fails with a message that names it (docs/conventions.md, section 7).
 """
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """`monostixels batch`: many clips in parallel on Ray, into one Parquet dataset.
 
 ``monostixels batch batch.inputs=DIR_OR_GLOB batch.output=DIR`` runs every clip (a video file, or a
-folder of images with its intrinsics file) as one Ray task and writes (SPEC section 4):
+folder of images with its intrinsics file) as one Ray task and writes
+(docs/conventions.md, section 4.6):
 
 - ``DIR/stixels.parquet/clip=<name>/part-0.parquet``: a Parquet dataset partitioned by clip
   (hive layout), one row per stixel per frame, columns :data:`SCHEMA`;
@@ -57,7 +58,7 @@ SCHEMA_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("v_top", "int32", "top pixel row (inclusive, v down)"),
     ("v_bottom", "int32", "bottom pixel row (inclusive)"),
     ("type", "string", "ground | static_object | dynamic_object | sky"),
-    ("class", "string", "one of the 10 classes (SPEC section 2)"),
+    ("class", "string", "one of the 10 classes (docs/conventions.md, section 2)"),
     ("inverse_depth", "float64", "plane label p, 1/metres"),
     ("depth", "float64", "depth z of the stixel's reference pixel, metres; null for sky (= stixels.json)"),
     ("x", "float64", "world position of that pixel on the stixel's plane, metres (world = first camera, "

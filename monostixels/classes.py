@@ -1,4 +1,4 @@
-"""Semantic classes, stixel types and colours (paper Table I, SPEC section 2)."""
+"""Semantic classes, stixel types and colours (paper Table I, docs/conventions.md, section 2)."""
 from __future__ import annotations
 
 __all__ = [

@@ -349,7 +349,8 @@ def _run(cfg: DictConfig) -> None:
     recording = recorder.close()
     stream = None
     if live:
-        # Which frames were processed (and how many dropped): SPEC section 4, data.realtime.
+        # Which frames were processed (and how many dropped): docs/conventions.md, section 4.3
+        # (data.realtime).
         import json
 
         stream = out / "stream.json"

@@ -144,8 +144,9 @@ def gravity(dh: torch.Tensor, prm: PriorParams) -> torch.Tensor:
     """Gravity prior ``Ψ_grav`` (paper eq. grav) of an object stixel with bottom height ``dh`` (metres).
 
     As printed, ``α⁻ + β⁻ Δh`` for ``Δh < 0`` would reward sinking deeper; like the ordering term
-    (SPEC section 2) we implement the penalty growing with the violation: ``α⁻ + β⁻ |Δh|``.
-    ``|Δh| <= GRAVITY_TOLERANCE_M`` (an object standing on the ground) falls in the ``α⁺`` branch.
+    (docs/conventions.md, section 2) we implement the penalty growing with the violation:
+    ``α⁻ + β⁻ |Δh|``. ``|Δh| <= GRAVITY_TOLERANCE_M`` (an object standing on the ground) falls in
+    the ``α⁺`` branch.
     """
     below = prm.alpha_grav_below + prm.beta_grav_below * (-dh)
     above = prm.alpha_grav_above + prm.beta_grav_above * dh
@@ -155,9 +156,10 @@ def gravity(dh: torch.Tensor, prm: PriorParams) -> torch.Tensor:
 def ordering(p: torch.Tensor, p_prev: torch.Tensor, prm: PriorParams) -> torch.Tensor:
     """Ordering prior ``Ψ_ord`` of an object stixel above an object stixel.
 
-    Paper sign slip (SPEC section 2): printed as ``α_ord + β_ord (1/p_i - 1/p_{i-1})`` for
-    ``p_i > p_{i-1}``, where the bracket is negative. We use ``α_ord + β_ord (1/p_{i-1} - 1/p_i)``,
-    a penalty that grows with the violation (the upper stixel being closer than the lower one).
+    Paper sign slip (docs/conventions.md, section 2): printed as
+    ``α_ord + β_ord (1/p_i - 1/p_{i-1})`` for ``p_i > p_{i-1}``, where the bracket is negative. We
+    use ``α_ord + β_ord (1/p_{i-1} - 1/p_i)``, a penalty that grows with the violation (the upper
+    stixel being closer than the lower one).
     """
     viol = p > p_prev
     safe_prev = torch.where(viol, p_prev, torch.ones_like(p_prev))

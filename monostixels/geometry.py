@@ -1,6 +1,6 @@
 """Camera, camera motion, stixel planes and stixel homographies.
 
-Conventions (SPEC section 2), restated once here and relied on everywhere:
+Conventions (docs/conventions.md, section 2), restated once here and relied on everywhere:
 
 - Camera frame x right, y down, z forward (OpenCV). Pixel ``x = (u, v, 1)``, ``v`` grows downward.
 - Flow maps a pixel of the *current* image to the *previous* one: ``x_prev = x + f(x)``.

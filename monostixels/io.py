@@ -2,7 +2,7 @@
 
 Images are read and written with OpenCV; the conversion BGR <-> RGB happens here, at the
 boundary, so everything inside the package is RGB. Failures raise :class:`InputError` naming the
-file (SPEC section 7).
+file (docs/conventions.md, section 7).
 """
 from __future__ import annotations
 

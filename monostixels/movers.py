@@ -29,8 +29,8 @@ detectable motion, per dynamic stixel, decided bottom-up along each column:
 Pixels without a valid triangulation (near the focus of expansion) do not vote; a stixel with too
 few valid pixels keeps the solver's labels. How the thresholds were chosen: docs/experiments.md.
 
-Convention: camera motion ``X_prev = R X_cur + t``, flow ``x_prev = x + f`` (SPEC section 2); an
-object stixel lies on ``p n^T X = 1``.
+Convention: camera motion ``X_prev = R X_cur + t``, flow ``x_prev = x + f`` (docs/conventions.md,
+section 2); an object stixel lies on ``p n^T X = 1``.
 """
 from __future__ import annotations
 

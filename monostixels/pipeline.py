@@ -135,7 +135,7 @@ class Pipeline:
 
         A degenerate estimate (standing still, pure rotation) keeps its rotation (identity if
         none) with zero translation: the solver then flags the frame and takes depths from the
-        scene model (SPEC section 7). An estimate that fails outright raises
+        scene model (docs/conventions.md, section 7). An estimate that fails outright raises
         :class:`MotionEstimationError`, unless the pipeline was made with
         ``allow_motion_failure=True`` (``monostixels run``): then the frame is treated as degenerate,
         flagged, with a warning.

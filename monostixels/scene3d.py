@@ -3,11 +3,11 @@
 What the 3D viewer (:mod:`monostixels.viewer`) draws and the batch dataset
 (:mod:`monostixels.batch`) stores, computed once here so both agree.
 
-Convention (SPEC section 2): camera x right, y down, z forward, metres. The world frame of a clip
-is its first camera (the previous image of the first frame pair), so the world's y axis points
-down too. A pose is the (4, 4) camera-to-world matrix ``X_w = R_wc X_c + t_wc``. A pair's camera
-motion ``X_prev = R X_cur + t`` is the current camera's pose in the previous camera, so poses
-chain as ``T_w_cur = T_w_prev @ [R t; 0 1]``.
+Convention (docs/conventions.md, section 2): camera x right, y down, z forward, metres. The world
+frame of a clip is its first camera (the previous image of the first frame pair), so the world's y
+axis points down too. A pose is the (4, 4) camera-to-world matrix ``X_w = R_wc X_c + t_wc``. A
+pair's camera motion ``X_prev = R X_cur + t`` is the current camera's pose in the previous camera,
+so poses chain as ``T_w_cur = T_w_prev @ [R t; 0 1]``.
 """
 from __future__ import annotations
 
@@ -27,7 +27,8 @@ __all__ = ["StixelBoxes", "PoseChain", "frame_time", "optional_field", "referenc
 
 logger = logging.getLogger(__name__)
 
-#: Fields that the sequence layer adds to a StixelWorld (SPEC section 4), absent on single pairs.
+#: Fields that the sequence layer adds to a StixelWorld (docs/conventions.md, section 4.4), absent
+#: on single pairs.
 TEMPORAL_FIELDS = ("track_id", "velocity", "ttc_s")
 #: Pairs of ``FramePair.meta`` keys naming a pair's current and previous frame, by source:
 #: video and KITTI raw (frame numbers), image folders (paths), DDAD (timestamps).

@@ -9,8 +9,9 @@ viewing ray of the current camera and the ray of its flow correspondence in the 
 are intersected in the least-squares sense, and the midpoint of their common perpendicular is
 taken. With exact flow from a static scene the rays intersect and the midpoint is the true point.
 
-Convention (SPEC section 2): flow maps current -> previous, ``x_prev = x + f(x)``; camera motion
-``X_prev = R X_cur + t`` (metres). The returned depth is ``z`` in the *current* camera.
+Convention (docs/conventions.md, section 2): flow maps current -> previous, ``x_prev = x + f(x)``;
+camera motion ``X_prev = R X_cur + t`` (metres). The returned depth is ``z`` in the *current*
+camera.
 
 Failure mode by design (what the paper shows): a point that moves in the world is triangulated
 as if it were static. An epipolar-conformant mover (e.g. a vehicle driving ahead along the

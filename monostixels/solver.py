@@ -6,10 +6,10 @@ Structure (paper section C; Cordts et al. 2017 simplification):
    bottom (cell 0). Flow, covariance and semantic scores are averaged per cell; every data term
    of a cell is weighted by its number of rows, so energies are per pixel row as in the paper.
 2. Hypotheses. The paper's MLESAC step draws one homography from every flow vector of a segment
-   and keeps the best. We use the per-column superset (SPEC section 3): one hypothesis from every
-   ``hypothesis_stride``-th cell of the column (``A p = b`` for ground and static objects,
-   ``A (t̃x, t̃y) = b`` for dynamic objects), plus the reference ground for the ground type. The
-   flow cost of every hypothesis on every cell is prefix-summed over the cells.
+   and keeps the best. We use the per-column superset (docs/conventions.md, section 3): one
+   hypothesis from every ``hypothesis_stride``-th cell of the column (``A p = b`` for ground and
+   static objects, ``A (t̃x, t̃y) = b`` for dynamic objects), plus the reference ground for the
+   ground type. The flow cost of every hypothesis on every cell is prefix-summed over the cells.
 3. Labels of a segment. The paper picks the hypothesis with the lowest flow term, then adds the
    priors. We pick the hypothesis (and class) that minimise the segment's whole energy — flow,
    semantic and structural prior given the best predecessor. This never gives a higher energy

@@ -32,8 +32,8 @@ this one) and computes its flow and semantics in a second thread while this pair
 pipeline takes them (:meth:`StreamState.take_inputs`) if that is the pair asked for next and the state
 has not changed since, else computes them itself. The results are the same either way.
 
-Convention (SPEC section 2): flow ``x_prev = x + f(x)`` from the current to the previous image, pixels;
-camera motion ``X_prev = R X_cur + t`` (metres).
+Convention (docs/conventions.md, section 2): flow ``x_prev = x + f(x)`` from the current to the
+previous image, pixels; camera motion ``X_prev = R X_cur + t`` (metres).
 """
 from __future__ import annotations
 

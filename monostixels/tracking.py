@@ -2,10 +2,10 @@
 
 A track follows one stixel (ground or object) from frame to frame, after the stixel literature
 (Pfeiffer & Franke 2011). An object track's state is the stixel's position and velocity on the
-ground plane of the world (the first camera of the sequence, SPEC section 2: x right, y down,
-z forward): ``x = (X, Z, V_X, V_Z)`` metres and m/s, a constant-velocity model driven by white
-acceleration. A ground track filters the distance of its plane (the camera's height above the road
-under it).
+ground plane of the world (the first camera of the sequence, docs/conventions.md, section 2:
+x right, y down, z forward): ``x = (X, Z, V_X, V_Z)`` metres and m/s, a constant-velocity model
+driven by white acceleration. A ground track filters the distance of its plane (the camera's height
+above the road under it).
 
 Per frame, for the pair (current ``t``, earlier ``k``):
 

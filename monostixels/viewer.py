@@ -7,7 +7,7 @@ Entities, per frame on the ``frame`` timeline (the pair's index in the run) and,
 ``time`` (seconds into the video):
 
 - ``world``: the first camera's frame, declared to the viewer as x right, y down, z forward (RDF,
-  SPEC section 2); ``world/trajectory``: the camera centres so far.
+  docs/conventions.md, section 2); ``world/trajectory``: the camera centres so far.
 - ``world/camera``: the camera pose (camera-to-world, chained ego-motion, see
   :class:`monostixels.scene3d.PoseChain`); ``world/camera/image``: its pinhole (K, image size) with
   ``rgb`` (the image) and ``depth`` (the stixel depth map, metres) below it;

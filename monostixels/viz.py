@@ -9,11 +9,11 @@ All functions return RGB ``uint8`` arrays (H, W, 3); files are written with Open
 :func:`monostixels.io.write_image` (RGB -> BGR at that boundary). No screen is needed: figures use
 matplotlib's Agg canvas directly (no pyplot state).
 
-Colour conventions (paper figures, SPEC section 2): depth is coloured by *inverse* depth with
-matplotlib's ``jet``: close = red, far = dark blue, invalid (``<= 0``, NaN, inf, or 0 = no ground
-truth) = black. Semantic classes use the Cityscapes palette (:data:`monostixels.classes.PALETTE`).
-Optical flow uses the Middlebury colour wheel (Baker et al., "A Database and Evaluation
-Methodology for Optical Flow", IJCV 2011).
+Colour conventions (paper figures, docs/conventions.md, section 2): depth is coloured by *inverse*
+depth with matplotlib's ``jet``: close = red, far = dark blue, invalid (``<= 0``, NaN, inf, or 0 =
+no ground truth) = black. Semantic classes use the Cityscapes palette
+(:data:`monostixels.classes.PALETTE`). Optical flow uses the Middlebury colour wheel (Baker et al.,
+"A Database and Evaluation Methodology for Optical Flow", IJCV 2011).
 """
 from __future__ import annotations
 
@@ -337,11 +337,11 @@ def mover_groups(stixels: Any, moving: np.ndarray | None = None) -> list[np.ndar
 def frame_notes(stixels: Any) -> list[str]:
     """What a reader must know about a frame before trusting its depths, as short lines.
 
-    A frame flagged ``degenerate_motion`` (the camera barely translates, SPEC section 7) has its
-    depths from the scene model: ground at the camera height, objects standing on it; on sequences
-    static objects seen before with a baseline keep their tracks' depths (``carried_stixels``). A frame
-    whose camera motion is unknown (``flags["camera_motion"]`` ``scale_unknown`` / ``unknown``) says that
-    it shows no movers and raises no collision warning.
+    A frame flagged ``degenerate_motion`` (the camera barely translates, docs/conventions.md,
+    section 7) has its depths from the scene model: ground at the camera height, objects standing on
+    it; on sequences static objects seen before with a baseline keep their tracks' depths
+    (``carried_stixels``). A frame whose camera motion is unknown (``flags["camera_motion"]``
+    ``scale_unknown`` / ``unknown``) says that it shows no movers and raises no collision warning.
     """
     flags = getattr(stixels, "flags", None) or {}
     if flags.get("camera_motion") in ("scale_unknown", "unknown"):

@@ -51,7 +51,8 @@ def _world(types: tuple[int, ...] | None = None, motion: torch.Tensor | None = N
 
 
 def _jet_of_depth(z: float) -> np.ndarray:
-    """The SPEC's depth colour, computed here independently: inverse depth, jet, 3..80 m."""
+    """The depth colour of docs/conventions.md, section 2, computed here independently: inverse
+    depth, jet, 3..80 m."""
     x = np.clip((1 / z - 1 / HI) / (1 / LO - 1 / HI), 0.0, 1.0)
     return np.asarray(colormaps["jet"](x)[:3]) * 255.0
 

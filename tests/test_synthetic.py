@@ -1,4 +1,4 @@
-"""Validity of the synthetic street-scene renderer (SPEC section 6).
+"""Validity of the synthetic street-scene renderer (docs/conventions.md, section 6).
 
 The renderer's ground truth is checked against quantities computed independently here:
 photometric consistency of the two rendered images under the ground-truth flow, analytic

@@ -1,6 +1,6 @@
 """File reading helpers shared by the data sources, each failing with an ``InputError`` that names
-the file (SPEC section 7): images, 16-bit PNG ground truth, KITTI calibration files, intrinsics
-files and pose files.
+the file (docs/conventions.md, section 7): images, 16-bit PNG ground truth, KITTI calibration files,
+intrinsics files and pose files.
 
 Images are read with OpenCV and converted from BGR to RGB here, at the boundary.
 """
@@ -361,9 +361,9 @@ def read_poses_file(path: str | Path) -> tuple[list[str] | None, np.ndarray]:
 def relative_motion(T_w_cur: np.ndarray, T_w_prev: np.ndarray) -> Motion:
     """Camera motion of a pair from two camera-to-world poses.
 
-    Convention: ``X_prev = R X_cur + t`` (SPEC section 2); ``T_prev_cur = T_w_prev^-1 T_w_cur``,
-    ``R = T_prev_cur[:3, :3]``, ``t = T_prev_cur[:3, 3]`` (metres). The rotation is
-    re-orthonormalised (SVD) to remove the rounding of text files.
+    Convention: ``X_prev = R X_cur + t`` (docs/conventions.md, section 2);
+    ``T_prev_cur = T_w_prev^-1 T_w_cur``, ``R = T_prev_cur[:3, :3]``, ``t = T_prev_cur[:3, 3]``
+    (metres). The rotation is re-orthonormalised (SVD) to remove the rounding of text files.
     """
     T = np.linalg.solve(T_w_prev, T_w_cur)
     U, _, Vt = np.linalg.svd(T[:3, :3])

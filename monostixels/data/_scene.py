@@ -1,10 +1,10 @@
 """Seeded layout of a synthetic street scene: road frame, ground pieces, boxes, ego-motion.
 
 Everything here is geometry only (no colours). The world frame is the *current* camera frame
-(x right, y down, z forward, metres; SPEC section 2), so "current-camera coordinates" and "world"
-coincide. The road runs along the unit vector ``f = Ry(a) e_z`` (road yaw ``a``) with lateral unit
-``r = Ry(a) e_x``; road coordinates are ``e = r.X + e_off`` (lateral, right positive, 0 = ego lane
-centre) and ``l = f.X`` (longitudinal, metres ahead).
+(x right, y down, z forward, metres; docs/conventions.md, section 2), so "current-camera
+coordinates" and "world" coincide. The road runs along the unit vector ``f = Ry(a) e_z`` (road yaw
+``a``) with lateral unit ``r = Ry(a) e_x``; road coordinates are ``e = r.X + e_off`` (lateral, right
+positive, 0 = ego lane centre) and ``l = f.X`` (longitudinal, metres ahead).
 
 Motion between the previous and the current frame:
 

@@ -25,8 +25,8 @@ JSON structure read here (dgp protos, as JSON):
   "instance_id", "class_id", "num_points"}``.
 
 Pairs: current = sample ``i``, previous = sample ``i - 1`` (consecutive timesteps). Camera motion
-from the camera datum poses (``X_prev = R X_cur + t``, SPEC section 2): no translation is faked —
-the shared sample's ego vehicle stands still and ``|t|`` is millimetres.
+from the camera datum poses (``X_prev = R X_cur + t``, docs/conventions.md, section 2): no
+translation is faked — the shared sample's ego vehicle stands still and ``|t|`` is millimetres.
 """
 from __future__ import annotations
 

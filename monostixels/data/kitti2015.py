@@ -11,8 +11,9 @@ the folder that holds ``training/`` or the split folder itself)::
     training/obj_map/NNNNNN_10.png       foreground-object ids of frame 10 (0 = background)
     training/flow_occ/NNNNNN_10.png      flow 10 -> 11 (uint16 u, v, valid)
 
-Direction (our flow convention maps current -> previous, SPEC section 2): the reference frame
-``_10`` is always the *current* image. Its partner ("previous") is chosen by ``previous``:
+Direction (our flow convention maps current -> previous, docs/conventions.md, section 2): the
+reference frame ``_10`` is always the *current* image. Its partner ("previous") is chosen by
+``previous``:
 
 - ``"11"``: the ``_11`` frame, i.e. the pair is used **time-reversed** (the "previous" image is
   one frame in the future). KITTI's ``flow_occ`` (forward flow 10 -> 11) is then exactly our
@@ -119,9 +120,10 @@ class Kitti2015Source(LazySource):
         pitch: camera pitch (radians, positive = looking down).
 
     Ground truth (where the files exist): ``gt.depth`` from ``disp_occ_0`` (fx * 0.54 m /
-    disparity, 0 = none), ``gt.instances`` and ``gt.moving`` from ``obj_map`` (SPEC: the KITTI
-    moving-object mask = obj_map > 0), ``gt.flow``/``gt.flow_valid`` from ``flow_occ`` only for
-    the time-reversed ``_11`` pairs. ``motion`` is None (no poses in KITTI 2015).
+    disparity, 0 = none), ``gt.instances`` and ``gt.moving`` from ``obj_map`` (the KITTI
+    moving-object mask = obj_map > 0, docs/conventions.md, section 4.8),
+    ``gt.flow``/``gt.flow_valid`` from ``flow_occ`` only for the time-reversed ``_11`` pairs.
+    ``motion`` is None (no poses in KITTI 2015).
 
     Raises:
         InputError: missing root / image folder / calibration file, no intrinsics at all, no

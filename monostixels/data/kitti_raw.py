@@ -22,10 +22,10 @@ Depth ground truth: the LiDAR depth of the current frame (``proj_depth/velodyne`
 the depth-benchmark PNG), 0 = no return. KITTI raw has no moving-object mask, so ``gt.moving`` is
 None and only the ``overall`` split is scored.
 
-Convention: camera motion ``X_prev = R X_cur + t`` (SPEC section 2) of *camera 2*. The poses give
-``T_w_cam0`` (rectified camera 0 to world, the KITTI odometry ground truth). Camera 2 is rectified
-with camera 0 (same rotation): ``P_rect_02 = K [I | b]`` so ``X_cam2 = X_cam0 + b`` with
-``b = K^-1 P_rect_02[:, 3]`` (about 6 cm along x), hence ``T_w_cam2 = T_w_cam0 [I | -b]`` and
+Convention: camera motion ``X_prev = R X_cur + t`` (docs/conventions.md, section 2) of *camera 2*.
+The poses give ``T_w_cam0`` (rectified camera 0 to world, the KITTI odometry ground truth). Camera 2
+is rectified with camera 0 (same rotation): ``P_rect_02 = K [I | b]`` so ``X_cam2 = X_cam0 + b``
+with ``b = K^-1 P_rect_02[:, 3]`` (about 6 cm along x), hence ``T_w_cam2 = T_w_cam0 [I | -b]`` and
 ``T_prev_cur = T_w_cam2(prev)^-1 T_w_cam2(cur)``. A forward-driving camera gives ``t_z > 0``: the
 static scene is farther away in the previous frame.
 """

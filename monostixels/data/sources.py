@@ -1,8 +1,9 @@
 """The one factory that turns the ``data`` config group into a sequence of frame pairs.
 
-``make_source(cfg)`` dispatches on ``cfg.name`` (SPEC section 4): ``synthetic``, ``kitti2015``,
-``kitti_raw``, ``ddad``, ``frames``, ``video``. ``cfg`` is either the ``data`` group or the whole config (with
-``data`` and ``camera`` entries); the camera group supplies the default mounting height and pitch.
+``make_source(cfg)`` dispatches on ``cfg.name`` (docs/conventions.md, section 4.8): ``synthetic``,
+``kitti2015``, ``kitti_raw``, ``ddad``, ``frames``, ``video``. ``cfg`` is either the ``data`` group
+or the whole config (with ``data`` and ``camera`` entries); the camera group supplies the default
+mounting height and pitch.
 """
 from __future__ import annotations
 

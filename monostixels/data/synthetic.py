@@ -1,4 +1,4 @@
-"""Built-in synthetic street-scene benchmark (SPEC section 6).
+"""Built-in synthetic street-scene benchmark (docs/conventions.md, section 6).
 
 A seeded renderer of textured street scenes by vectorised torch ray casting against analytic
 primitives: the ground (road plane, raised sidewalk/terrain plane at kerb height, vertical kerb
@@ -7,7 +7,7 @@ the vertical) and the sky at infinity. Every surface carries a procedural textur
 surface (multi-octave value noise in the primitive's local coordinates plus per-class patterns:
 lane markings, paving, windows, clothes) with Lambert shading, so real optical-flow methods work.
 
-Conventions (SPEC section 2), restated where they are used:
+Conventions (docs/conventions.md, section 2), restated where they are used:
 
 - camera frame x right, y down, z forward; the *current* camera frame is the world frame;
 - pixel centres at integer coordinates ``(u, v)``; ``x = (u, v, 1)``;
@@ -880,7 +880,8 @@ def render_pair(seed: int, *, scale: float = 1.0, density: float = 1.0,
 
 
 class SyntheticSource:
-    """A sequence of independent synthetic frame pairs (SPEC section 6; config group ``data``).
+    """A sequence of independent synthetic frame pairs (docs/conventions.md, section 6; config group
+    ``data``).
 
     Frame ``i`` of source seed ``s`` is scene seed ``s * 100_000 + i``; its name is
     ``synthetic_{s}_{i:06d}``.

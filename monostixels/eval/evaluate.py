@@ -1,4 +1,5 @@
-"""`monostixels eval`: run the pipeline over a data source and score it (SPEC section 4 contract)."""
+"""`monostixels eval`: run the pipeline over a data source and score it (docs/conventions.md,
+section 4.5)."""
 from __future__ import annotations
 
 import json
@@ -115,7 +116,7 @@ def write_report(report: dict, path: str | Path) -> Path:
 
 def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, progress: bool = True,
              on_result: Any = None) -> dict:
-    """Run the pipeline on every pair of ``source`` and build the SPEC section 4 report.
+    """Run the pipeline on every pair of ``source`` and build the report (docs/conventions.md, 4.5).
 
     Args:
         cfg: composed config (flow, semantic, motion, prior, solver, eval groups).

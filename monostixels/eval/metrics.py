@@ -4,10 +4,10 @@ Depth metrics follow the paper's "Metric and Baseline" section (Eigen et al., NI
 ``rel = mean |y - y*| / y*``, ``rmse = sqrt(mean (y - y*)^2)`` and the threshold accuracies
 ``% of pixels with max(y / y*, y* / y) < thr`` for ``thr`` in 1.1, 1.25, 1.25^2, 1.25^3.
 
-Convention (SPEC section 4): *every* pixel with ground truth counts for *every* method. An
-estimate that is not a valid depth (NaN, inf, zero or negative — e.g. a triangulation behind
-the camera, a sky stixel, a pixel without an estimate) is set to ``max_depth``; finite positive
-estimates are clamped into ``[min_depth, max_depth]``. Nothing is dropped, so methods are
+Convention (docs/conventions.md, section 4.5): *every* pixel with ground truth counts for *every*
+method. An estimate that is not a valid depth (NaN, inf, zero or negative — e.g. a triangulation
+behind the camera, a sky stixel, a pixel without an estimate) is set to ``max_depth``; finite
+positive estimates are clamped into ``[min_depth, max_depth]``. Nothing is dropped, so methods are
 compared on identical pixel sets.
 
 Overall numbers over a data set are computed over all pixels of all frames (the accumulators

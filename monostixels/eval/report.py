@@ -1,4 +1,5 @@
-"""Paper-style result tables from the evaluation report (SPEC section 4, paper Table II).
+"""Paper-style result tables from the evaluation report (docs/conventions.md, section 4.5, paper
+Table II).
 
 The report dict is what ``monostixels eval ... out=FILE.json`` writes::
 
@@ -139,7 +140,7 @@ def format_table(report: dict) -> str:
     """The report as plain-text tables (paper Table II layout, then the optional sections).
 
     Args:
-        report: the evaluation report dict (module docstring; SPEC section 4).
+        report: the evaluation report dict (module docstring; docs/conventions.md, section 4.5).
 
     Returns:
         Multi-line text for a terminal.

@@ -3,8 +3,8 @@
 No flow, motion or stixels: each image goes through the configured ``semantic`` backend
 (:func:`monostixels.inputs.semantic.estimate_semantics`, the same call the pipeline makes), its
 argmax is compared with the labels mapped to our classes, and the report carries the ``semantic``
-section of SPEC section 4 (``miou``, ``per_class_iou`` over our classes present in the dataset)
-plus the pixel accuracy.
+section of docs/conventions.md, section 4.5 (``miou``, ``per_class_iou`` over our classes present in
+the dataset) plus the pixel accuracy.
 """
 from __future__ import annotations
 

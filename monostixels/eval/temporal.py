@@ -1,4 +1,5 @@
-"""The ``temporal`` section of the eval report on sequences (SPEC section 4): velocities, TTC, depth jitter.
+"""The ``temporal`` section of the eval report on sequences (docs/conventions.md, section 4.5):
+velocities, TTC, depth jitter.
 
 Per frame, every pixel takes the values of the stixel covering it (``velocity`` rotated from the world
 into the current camera's axes, ``ttc_s``, the depth of the ray-plane intersection):

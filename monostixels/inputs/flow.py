@@ -13,7 +13,7 @@ Backends (``cfg.name``):
   Runtime on a CPU, the INT8 copy beside the weights where ``cfg.precision: int8``).
 
 Convention: every backend returns the flow from the *current* to the *previous* image,
-``x_prev = x + f(x)`` (SPEC section 2), in pixels; OpenCV backends are called as
+``x_prev = x + f(x)`` (docs/conventions.md, section 2), in pixels; OpenCV backends are called as
 ``calc(current, previous)``. The covariance comes from
 :func:`monostixels.inputs.confidence.flow_covariance` (``cfg.confidence``), optionally with
 forward-backward consistency (``cfg.fb_consistency: true`` runs the backend both ways).

@@ -1,8 +1,8 @@
 """Camera motion (config group ``motion``): ground truth, a poses file, or monocular estimation.
 
-Convention (SPEC section 2): the motion ``(R, t)`` of a frame pair maps current-camera
-coordinates of a static point to previous-camera coordinates, ``X_prev = R X_cur + t``, metres;
-flow maps current to previous pixels, ``x_prev = x + f``.
+Convention (docs/conventions.md, section 2): the motion ``(R, t)`` of a frame pair maps
+current-camera coordinates of a static point to previous-camera coordinates,
+``X_prev = R X_cur + t``, metres; flow maps current to previous pixels, ``x_prev = x + f``.
 
 Backends (``cfg.name``):
 

@@ -7,7 +7,7 @@ or a plain state dict a user saved from ``torchvision.models.optical_flow.raft_*
 
 Convention: :class:`RaftFlow` takes the *current* image as ``image1`` and the *previous* image
 as ``image2``; RAFT's output maps a pixel of ``image1`` into ``image2`` so the result is the flow
-current -> previous, ``x_prev = x + f`` (SPEC section 2).
+current -> previous, ``x_prev = x + f`` (docs/conventions.md, section 2).
 
 Input sizes: RAFT needs H and W divisible by 8; its 4-level correlation pyramid at 1/8
 resolution needs at least 16 cells per side, so inputs are padded (edge replication) to

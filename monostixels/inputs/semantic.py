@@ -1,7 +1,8 @@
 """Semantic backends: 10-class pixel-wise scores for the stixel energy (config group ``semantic``).
 
 Every backend returns a (10, H, W) float32 tensor of pseudo-probabilities (each pixel sums to 1)
-in ``monostixels.classes.CLASS_NAMES`` order, or None for ``none`` (SPEC sections 4-5):
+in ``monostixels.classes.CLASS_NAMES`` order, or None for ``none``
+(docs/conventions.md, sections 4.9 and 5):
 
 - ``gt``: one-hot ground-truth labels, softened: the true class gets ``confidence``, the others
   ``(1 - confidence) / 9``; pixels with ``IGNORE_LABEL`` get the uniform 0.1.
