@@ -303,12 +303,14 @@ def _run(cfg: DictConfig) -> None:
     live = hasattr(src, "indices")  # a camera, a URL or data.realtime: frames as they come, no length
     if not live and len(src) == 0:
         raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
-    pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False)  # the SfM baseline is for eval/demo only
+    # The SfM baseline is for eval/demo only; with a given motion the camera height the road implies is reported.
+    pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, report_height=True)
     runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences
     out = Path(cfg.outputs) / "run"
     lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
     videos: dict[str, Any] = {}
     written = 0
+    camera: list[dict[str, Any]] = []  # each pair's flags: its camera-motion kind, scale source, height fit
     recorder = open_recorder(cfg, out, src)  # output.rerun=true: a 3D recording, else a no-op
     bar = tqdm(total=None if live else len(src), desc="run", unit="frame")
     for step in runner.run(src, progress=bar):
@@ -342,6 +344,7 @@ def _run(cfg: DictConfig) -> None:
                 videos[name].write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if st.flags.get("degenerate_motion"):
             logger.warning("%s: %s", pair.name, st.flags.get("reason"))
+        camera.append(st.flags)
         written += 1
     bar.close()
     for v in videos.values():
@@ -364,6 +367,48 @@ def _run(cfg: DictConfig) -> None:
           f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else "")
           + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else "")
           + (f"; processed frames {stream}" if stream else ""))
+    for line in camera_summary(camera, _camera_height(cfg)):
+        print(f"run: {line}")
+
+
+def _camera_height(cfg: DictConfig) -> float:
+    """The camera height (metres) a run assumes: ``data.camera_height`` where the source has it, else ``camera.height``."""
+    h = cfg.data.get("camera_height") if "data" in cfg else None
+    return float(h if h is not None else cfg.camera.height)
+
+
+#: A camera height the road implies that differs from the setting by more than this share is warned about.
+HEIGHT_WARN_SHARE = 0.2
+
+
+def camera_summary(flags: list[dict[str, Any]], height: float) -> list[str]:
+    """The run's summary of its camera: how many pairs had a metric motion (and where the scale came from),
+    and the camera height assumed beside the one the road implies where a given motion lets it say.
+
+    A height that differs from the implied one by more than :data:`HEIGHT_WARN_SHARE` is also logged as a
+    warning: every depth and speed of a monocular run scales with it.
+    """
+    n = len(flags)
+    kinds = [f.get("camera_motion", "metric") for f in flags]
+    metric = sum(k in ("metric", "standing") for k in kinds)
+    sources: dict[str, int] = {}
+    for f in flags:
+        if f.get("scale_from"):
+            sources[f["scale_from"]] = sources.get(f["scale_from"], 0) + 1
+    by = ", ".join(f"{v} {k}" for k, v in sorted(sources.items()))
+    unknown = n - metric
+    lines = [f"camera motion metric on {metric} of {n} pair(s)" + (f" (scale: {by})" if by else "")
+             + (f"; {unknown} without a metric motion (no movers, no collision warnings there)" if unknown else "")]
+    fits = [float(f["camera_height_fit_m"]) for f in flags if f.get("camera_height_fit_m") is not None]
+    line = f"camera height {height:.2f} m (camera.height; depths and speeds scale with it)"
+    if fits:
+        med = float(np.median(fits))
+        line += f"; the road implies {med:.2f} m (median of {len(fits)} pair(s))"
+        if abs(med / height - 1.0) > HEIGHT_WARN_SHARE:
+            logger.warning("camera.height %.2f m differs from the %.2f m the road implies by %.0f %%: set camera.height",
+                           height, med, 100.0 * abs(med / height - 1.0))
+    lines.append(line)
+    return lines
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from importlib import resources
 import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
@@ -32,7 +33,7 @@ from monostixels.energy import PriorParams
 from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
-from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion
+from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion, implied_height
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers, static_only
 from monostixels.solver import SolverConfig, solve
@@ -100,6 +101,9 @@ class Pipeline:
         cfg: the composed config (see :func:`load_config`).
         allow_motion_failure: see :meth:`motion_for`.
         sfm: also triangulate the SfM baseline (``eval``, ``demo``); ``run`` does not read it.
+        report_height: with a metric motion from elsewhere (``motion=gt`` / ``file``), also estimate the camera
+            height the road implies (:func:`~monostixels.inputs.motion.implied_height`), in
+            ``flags["camera_height_fit_m"]`` (``monostixels run``).
         overlap: estimate the semantics in a second thread while the flow is computed (they are
             independent; OpenCV's flow and ONNX Runtime release the GIL, and DeepFlow runs on one
             core). Results are the same either way; ``seconds`` then holds each stage's own wall
@@ -107,8 +111,12 @@ class Pipeline:
     """
 
     def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False, sfm: bool = True,
-                 overlap: bool = True) -> None:
+                 overlap: bool = True, report_height: bool = False) -> None:
         self.cfg = cfg
+        self.report_height = report_height
+        # The monocular estimator's own settings, for the camera height the road implies beside a given motion.
+        self._mono_cfg = OmegaConf.load(str(resources.files("monostixels.conf") / "motion" / "mono.yaml")) \
+            if report_height else None
         self.sfm = sfm
         self.overlap = overlap
         prior = OmegaConf.to_container(cfg.prior, resolve=True)
@@ -285,6 +293,11 @@ class Pipeline:
                                          self.solver_cfg.top_refine_depth_ratio, float(self.prior.alpha_L),
                                          self.solver_cfg.top_refine_objects)
             sec["tops"] = time.perf_counter() - t0
+        if self.report_height and motion.scale_from == "given" and not motion.degenerate:
+            # A metric motion from elsewhere (gt / file): the camera height the road implies beside the setting.
+            h_fit = implied_height(pair, flow, self._mono_cfg, semantic, motion.motion)
+            if h_fit is not None:
+                stixels.flags["camera_height_fit_m"] = round(h_fit, 3)
         if motion.kind in ("scale_unknown", "unknown"):
             # The camera's motion is not known: the flow cannot tell an object's motion from the camera's.
             stixels = static_only(stixels)

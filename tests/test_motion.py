@@ -434,3 +434,28 @@ def test_motion_track_filters_the_normal_over_chained_pairs():
     # Another sequence starts again: its first fit is its own.
     out = tr.update(pair(5, 4, seq="other"), dataclasses.replace(_est(0.3), ground_normal=tilted(1.5)))
     assert torch.allclose(out.ground_normal, tilted(1.5), atol=1e-9)
+
+
+def test_the_road_implies_the_camera_height_beside_a_given_motion():
+    """With a metric motion from elsewhere (motion=gt), a wrong camera.height shows: the road implies the true one."""
+    import dataclasses
+
+    from monostixels.cli import camera_summary
+    from monostixels.data.synthetic import render_pair
+    from monostixels.pipeline import Pipeline, load_config
+
+    pair = render_pair(2, scale=0.5)
+    true_h = pair.camera.height
+    wrong = dataclasses.replace(pair, camera=dataclasses.replace(pair.camera, height=true_h * 1.3))
+    cfg = load_config(["data.scale=0.5", "flow=gt", "semantic=gt", "motion=gt"])
+    res = Pipeline(cfg, sfm=False, report_height=True).run(wrong)
+    fit = res.stixels.flags["camera_height_fit_m"]
+    assert abs(fit / true_h - 1) < 0.03, (fit, true_h)
+    assert "camera_height_fit_m" not in Pipeline(cfg, sfm=False).run(wrong).stixels.flags  # only when asked
+    lines = camera_summary([res.stixels.flags], wrong.camera.height)
+    assert lines[0].startswith("camera motion metric on 1 of 1 pair(s) (scale: 1 given)")
+    assert f"the road implies {fit:.2f} m" in lines[1] and f"camera height {wrong.camera.height:.2f} m" in lines[1]
+    mixed = [{"camera_motion": "metric", "scale_from": "photometric"}, {"camera_motion": "metric", "scale_from": "sequence"},
+             {"camera_motion": "scale_unknown"}, {"camera_motion": "standing"}]
+    assert camera_summary(mixed, 1.4)[0] == ("camera motion metric on 3 of 4 pair(s) (scale: 1 photometric, 1 sequence); "
+                                             "1 without a metric motion (no movers, no collision warnings there)")

@@ -80,6 +80,7 @@ __all__ = [
     "load_poses",
     "relative_motion",
     "motion_errors",
+    "implied_height",
     "MotionTrack",
     "TrackParams",
 ]
@@ -996,6 +997,28 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
             ignore=pair.meta.get("ignore_pixels"),
         )
     raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
+
+
+def implied_height(pair: FramePair, flow: Any, mono_cfg: Any, semantic: torch.Tensor | None,
+                   given: Motion) -> float | None:
+    """The camera height (metres) that the road implies, given a metric camera motion from elsewhere.
+
+    The monocular scale is ``camera.height`` times what the road's motion says (:func:`estimate_mono`):
+    run with the pair's ``camera.height`` against a translation of known length (``motion=gt`` / ``file``),
+    the height that would have made the two agree is ``height * |t_given| / |t_mono|``. None where the
+    road gives no scale, the pair has no translation, or the two directions disagree (more than 10 deg).
+    ``mono_cfg``: the settings of the estimate (the ``motion=mono`` config group).
+    """
+    if given.translation_norm < MIN_TRANSLATION_M or flow is None:
+        return None
+    est = estimate_mono(pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov,
+                        _mono_params(mono_cfg), semantic, images=(pair.image, pair.image_prev),
+                        ignore=pair.meta.get("ignore_pixels"))
+    if est.motion is None or est.degenerate or est.scale_from not in ("photometric", "ground_flow"):
+        return None
+    if _angle_deg(est.motion.t.double(), given.t.double()) > 10.0:
+        return None
+    return float(pair.camera.height * given.translation_norm / float(est.motion.t.norm()))
 
 
 # ----------------------------------------------------------------------------------------------
