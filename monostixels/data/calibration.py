@@ -149,7 +149,7 @@ def calibrate_images(images: str | Path | Sequence[str | Path], board: Sequence[
         W, H = want
     elif len(sizes) > 1:
         common = max(sizes, key=lambda s: len(sizes[s]))
-        raise InputError(f"calibrate.images: {what} matches images of different sizes ({_sizes_text(sizes)}); "
+        raise InputError(f"calibrate.images: {what} holds images of different sizes ({_sizes_text(sizes)}); "
                          f"intrinsics hold for one size: set calibrate.size=[{common[0]},{common[1]}] to use only "
                          f"those, or remove the others")
     grid = np.zeros((rows * cols, 3), np.float32)
