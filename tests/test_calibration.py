@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from monostixels._checks import InputError
-from monostixels.data._io import read_distortion, read_intrinsics_file
+from monostixels.data._io import check_intrinsics_size, read_distortion, read_intrinsics_file
 from monostixels.data.calibration import MIN_BOARDS, calibrate_images, write_intrinsics_file
 from tests._boards import write_board_views
 
@@ -47,6 +47,10 @@ def test_intrinsics_file_round_trip(views, tmp_path):
     assert read_intrinsics_file(path) == (cal.fx, cal.fy, cal.cx, cal.cy)
     assert read_distortion(path).tolist() == list(cal.distortion)
     assert "RMS reprojection error" in path.read_text()
+    # It says which image size it holds for: frames of another size are refused.
+    check_intrinsics_size(path, SIZE, "the frames")
+    with pytest.raises(InputError, match=r"holds for 400x300 images .*the frames are 800x600"):
+        check_intrinsics_size(path, (600, 800), "the frames")
 
 
 @pytest.mark.skipif(not CAMERA_CAL.is_dir(), reason="shared dashcam chessboards (../shared/data/dashcam/camera_cal) not present")

@@ -294,6 +294,12 @@ def test_intrinsics_bad_distortion_fails_naming_file_and_key(tmp_path, value, wa
         assert "\n" not in str(err.value)
 
 
+def test_intrinsics_bad_image_size_keys(tmp_path):
+    (tmp_path / "k.yaml").write_text("fx: 400\ncx: 6\ncy: 3\nwidth: 1280\n")
+    with pytest.raises(InputError, match=r"k\.yaml keys width, height must both be positive integers"):
+        read_intrinsics_file(tmp_path / "k.yaml")
+
+
 def test_frames_folder_undistorts_and_carries_the_mask(tmp_path):
     rng = np.random.default_rng(0)
     H, W = 48, 64
@@ -320,6 +326,13 @@ def test_frames_folder_undistorts_and_carries_the_mask(tmp_path):
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((H // 2, W // 2), np.uint8))
     with pytest.raises(InputError, match=rf"data.mask: .*small\.png is {W // 2}x{H // 2} pixels, the frames are {W}x{H}"):
         make_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "small.png")})
+    # An intrinsics file for another image size is refused (also without distortion or mask).
+    (tmp_path / "other.yaml").write_text("fx: 60\nfy: 58\ncx: 30.5\ncy: 24\nwidth: 128\nheight: 96\n")
+    with pytest.raises(InputError, match=rf"other\.yaml holds for 128x96 images .* are {W}x{H}"):
+        make_source({"name": "frames", "root": str(tmp_path), "intrinsics": str(tmp_path / "other.yaml")})
+    (tmp_path / "other.yaml").write_text(f"fx: 60\nfy: 58\ncx: 30.5\ncy: 24\nwidth: {W}\nheight: {H}\n")
+    assert "ignore_mask" not in make_source({"name": "frames", "root": str(tmp_path),
+                                             "intrinsics": str(tmp_path / "other.yaml")})[0].meta
     # Every image must have the size the tables were set up for.
     assert cv2.imwrite(str(tmp_path / "01.png"), img[:40]) and cv2.imwrite(str(tmp_path / "02.png"), img[:40])
     with pytest.raises(InputError, match=r"02\.png is 64x40, the first image 00\.png 64x48"):

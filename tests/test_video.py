@@ -244,7 +244,7 @@ def test_resize_auto_is_the_video_default_and_bad_values_fail(tmp_path):
             make_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": bad})
 
 
-@pytest.mark.parametrize("case", ["mask_size", "mask_missing", "mask_all", "distortion_length"])
+@pytest.mark.parametrize("case", ["mask_size", "mask_missing", "mask_all", "distortion_length", "intrinsics_size"])
 def test_lens_and_mask_bad_input_fails_clearly(tmp_path, case):
     v = write_video(tmp_path / "c.mp4", 3)
     kw: dict = {"hfov_deg": 90.0}
@@ -259,10 +259,14 @@ def test_lens_and_mask_bad_input_fails_clearly(tmp_path, case):
     if case == "distortion_length":
         (tmp_path / "k.yaml").write_text("fx: 40\nfy: 40\ncx: 40\ncy: 24\ndistortion: [-0.2, 0.01, 0]\n")
         kw = {"intrinsics": tmp_path / "k.yaml"}
+    if case == "intrinsics_size":  # a calibration of a 1280x720 mode for 80x48 frames
+        (tmp_path / "k.yaml").write_text("fx: 900\nfy: 900\ncx: 640\ncy: 360\nwidth: 1280\nheight: 720\n")
+        kw = {"intrinsics": tmp_path / "k.yaml"}
     want = {"mask_size": rf"data.mask: .*mask\.png is 40x30 pixels, the frames are {W}x{H}",
             "mask_missing": r"data.mask: file .*nomask\.png does not exist",
             "mask_all": r"mask\.png ignores every pixel",
-            "distortion_length": r"intrinsics: .*k\.yaml key distortion holds 3 numbers"}[case]
+            "distortion_length": r"intrinsics: .*k\.yaml key distortion holds 3 numbers",
+            "intrinsics_size": rf"intrinsics: .*k\.yaml holds for 1280x720 images .*the video's frames are {W}x{H}"}[case]
     with pytest.raises(InputError, match=want) as err:
         VideoSource(v, **kw)
     assert "\n" not in str(err.value)

@@ -11,7 +11,7 @@ import math
 import threading
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping, NamedTuple, Sequence
 
 import cv2
 import numpy as np
@@ -31,6 +31,7 @@ __all__ = [
     "projection_matrix",
     "read_intrinsics_file",
     "read_distortion",
+    "check_intrinsics_size",
     "read_mask_file",
     "DISTORTION_LENGTHS",
     "read_poses_file",
@@ -267,7 +268,8 @@ def read_intrinsics_file(path: str | Path) -> tuple[float, float, float, float]:
 
     - YAML or JSON mapping with keys ``fx, fy, cx, cy`` (``fy`` may be omitted: ``fy = fx``), or
       with a key ``K`` holding the 3x3 matrix (nested list or 9 numbers, row-major); optionally a key
-      ``distortion`` with the lens distortion coefficients (see :func:`read_distortion`);
+      ``distortion`` with the lens distortion coefficients (see :func:`read_distortion`) and keys
+      ``width``, ``height``: the image size they hold for (see :func:`check_intrinsics_size`);
     - text with ``key: value`` / ``key = value`` lines for ``fx, fy, cx, cy`` (and ``distortion``);
     - text with just numbers: 4 numbers ``fx fy cx cy`` or 9 numbers (K row-major).
 
@@ -275,7 +277,7 @@ def read_intrinsics_file(path: str | Path) -> tuple[float, float, float, float]:
         InputError: missing file, unparsable content, missing keys, non-positive focal lengths, or a
             malformed ``distortion`` entry.
     """
-    return _read_intrinsics(path)[0]
+    return _read_intrinsics(path).pinhole
 
 
 def read_distortion(path: str | Path) -> np.ndarray | None:
@@ -294,21 +296,50 @@ def read_distortion(path: str | Path) -> np.ndarray | None:
         InputError: as :func:`read_intrinsics_file`; a ``distortion`` entry that is not a list of
             4, 5 or 8 finite numbers (naming the file and the key).
     """
-    return _read_intrinsics(path)[1]
+    return _read_intrinsics(path).distortion
 
 
-def _read_intrinsics(path: str | Path) -> tuple[tuple[float, float, float, float], np.ndarray | None]:
+def check_intrinsics_size(path: str | Path, size: tuple[int, int], what: str) -> None:
+    """Fail when an intrinsics file says which image size it holds for and ``size`` differs.
+
+    The optional keys ``width`` and ``height`` (pixels; ``monostixels calibrate`` writes them) give
+    that size: intrinsics and distortion of one size do not fit frames of another (a different
+    sensor mode may crop as well as scale), so they are not rescaled silently.
+
+    Args:
+        path: the intrinsics file.
+        size: (H, W) of the stored frames.
+        what: the frames' name for the message (``"the video's frames"``).
+
+    Raises:
+        InputError: the sizes differ (both named), or ``width`` / ``height`` are not positive integers.
+    """
+    p = Path(path).expanduser()
+    stated = _read_intrinsics(p).size
+    if stated is not None and tuple(stated) != tuple(size):
+        raise InputError(f"intrinsics: {p} holds for {stated[1]}x{stated[0]} images (width, height), {what} are "
+                         f"{size[1]}x{size[0]}; calibrate at that size (or scale fx, fy, cx, cy and drop width, height)")
+
+
+class _IntrinsicsFile(NamedTuple):
+    pinhole: tuple[float, float, float, float]
+    distortion: np.ndarray | None
+    size: tuple[int, int] | None  # (H, W) from the width / height keys
+
+
+def _read_intrinsics(path: str | Path) -> _IntrinsicsFile:
     p = require_file(path, "intrinsics")
     text = p.read_text(errors="replace")
-    vals, distortion = _parse_intrinsics(text, p)
-    fx, fy, cx, cy = vals
-    if not all(math.isfinite(v) for v in vals) or fx <= 0 or fy <= 0:
+    got = _parse_intrinsics(text, p)
+    fx, fy, cx, cy = got.pinhole
+    if not all(math.isfinite(v) for v in got.pinhole) or fx <= 0 or fy <= 0:
         raise InputError(f"intrinsics: {p} gives fx={fx}, fy={fy}, cx={cx}, cy={cy}; need finite values, fx, fy > 0")
-    return vals, distortion
+    return got
 
 
-def _parse_intrinsics(text: str, p: Path) -> tuple[tuple[float, float, float, float], np.ndarray | None]:
-    """(fx, fy, cx, cy) and the distortion coefficients (None: none given) of an intrinsics file's text."""
+def _parse_intrinsics(text: str, p: Path) -> _IntrinsicsFile:
+    """(fx, fy, cx, cy), the distortion coefficients and the stated image size (None: not given) of an
+    intrinsics file's text."""
     data: Any = None
     stripped = text.strip()
     if not stripped:
@@ -325,7 +356,7 @@ def _parse_intrinsics(text: str, p: Path) -> tuple[tuple[float, float, float, fl
         except ValueError:
             numbers = None
         if numbers is not None:
-            return _from_numbers(numbers, p), None
+            return _IntrinsicsFile(_from_numbers(numbers, p), None, None)
         import yaml  # PyYAML ships with Hydra (omegaconf)
 
         try:
@@ -334,15 +365,18 @@ def _parse_intrinsics(text: str, p: Path) -> tuple[tuple[float, float, float, fl
             raise InputError(f"intrinsics: {p} is neither YAML/JSON nor 'fx fy cx cy' numbers ({e})") from e
     if isinstance(data, list):
         try:
-            return _from_numbers([float(x) for x in np.asarray(data, dtype=np.float64).ravel()], p), None
+            return _IntrinsicsFile(_from_numbers([float(x) for x in np.asarray(data, dtype=np.float64).ravel()], p),
+                                   None, None)
         except (TypeError, ValueError) as e:
             raise InputError(f"intrinsics: {p} holds a list that is not numbers") from e
     if not isinstance(data, dict):
         raise InputError(f"intrinsics: {p} must be a mapping with fx, fy, cx, cy (or K)")
     distortion = _distortion(data.get("distortion"), p)
+    size = _stated_size(data, p)
     if "K" in data:
         try:
-            return _from_numbers([float(x) for x in np.asarray(data["K"], dtype=np.float64).ravel()], p), distortion
+            K = _from_numbers([float(x) for x in np.asarray(data["K"], dtype=np.float64).ravel()], p)
+            return _IntrinsicsFile(K, distortion, size)
         except (TypeError, ValueError) as e:
             raise InputError(f"intrinsics: {p} entry K is not a 3x3 matrix of numbers") from e
     if "fy" not in data and "fx" in data:
@@ -351,9 +385,19 @@ def _parse_intrinsics(text: str, p: Path) -> tuple[tuple[float, float, float, fl
     if missing:
         raise InputError(f"intrinsics: {p} lacks {', '.join(missing)} (need fx, fy, cx, cy in pixels, or K)")
     try:
-        return tuple(float(data[k]) for k in _INTRINSIC_KEYS), distortion  # type: ignore[return-value]
+        return _IntrinsicsFile(tuple(float(data[k]) for k in _INTRINSIC_KEYS), distortion, size)  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
         raise InputError(f"intrinsics: {p} has a non-numeric value among fx, fy, cx, cy") from e
+
+
+def _stated_size(data: Mapping[str, Any], p: Path) -> tuple[int, int] | None:
+    """(H, W) from the optional ``width`` and ``height`` keys of an intrinsics mapping."""
+    if data.get("width") is None and data.get("height") is None:
+        return None
+    w, h = data.get("width"), data.get("height")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (w, h)):
+        raise InputError(f"intrinsics: {p} keys width, height must both be positive integers (pixels), got {w!r}, {h!r}")
+    return int(h), int(w)  # type: ignore[arg-type]
 
 
 def _distortion(value: Any, p: Path) -> np.ndarray | None:

@@ -189,8 +189,9 @@ def calibrate_images(images: str | Path | Sequence[str | Path], board: Sequence[
 def write_intrinsics_file(cal: Calibration, path: str | Path) -> Path:
     """Write a calibration as an intrinsics file (YAML) that ``data.intrinsics`` reads.
 
-    Keys ``fx, fy, cx, cy`` (pixels) and ``distortion: [k1, k2, p1, p2, k3]``; comments say where it
-    came from (image size, views, RMS error). Parent folders are created.
+    Keys ``fx, fy, cx, cy`` (pixels), ``distortion: [k1, k2, p1, p2, k3]`` and ``width``, ``height``
+    (the image size they hold for); comments say where it came from (views, RMS error). Parent folders
+    are created.
 
     Returns:
         The path written.
@@ -209,6 +210,9 @@ def write_intrinsics_file(cal: Calibration, path: str | Path) -> Path:
         f"cx: {cal.cx!r}",
         f"cy: {cal.cy!r}",
         f"distortion: [{', '.join(repr(v) for v in cal.distortion)}]",
+        "# The image size these hold for: frames of another size are refused.",
+        f"width: {W}",
+        f"height: {H}",
     ]
     p.write_text("\n".join(lines) + "\n")
     return p

@@ -18,9 +18,9 @@ undistorts every image, keeping the file's camera matrix (:mod:`monostixels.data
 
 Optional mask (``data.mask``): an image of the images' size, non-zero = ignore, undistorted with
 them (nearest neighbour); each pair then carries it as ``meta["ignore_mask"]`` ((H, W) torch bool,
-True = ignore; also True where undistortion leaves a pixel without a source). With a distortion or a
-mask, the first image is read when the source is made (its size sets up the tables) and every image
-must have its size.
+True = ignore; also True where undistortion leaves a pixel without a source). With a distortion, a
+mask or an intrinsics file that states its image size (``width``, ``height``), the first image is read
+when the source is made (its size sets up the tables and is checked) and every image must have its size.
 
 With ``data.intrinsics`` unset, ``root/intrinsics.{yaml,yml,json,txt}`` is used (the first that
 exists). Camera height from ``data.camera_height`` (metres), else the camera config.
@@ -43,6 +43,8 @@ import torch
 from monostixels._checks import InputError
 from monostixels.data._io import (
     LazySource,
+    _read_intrinsics,
+    check_intrinsics_size,
     limit_frames,
     list_images,
     make_camera,
@@ -122,8 +124,9 @@ class FramesSource(LazySource):
         fx, fy, cx, cy = read_intrinsics_file(self.intrinsics_path)
         distortion = read_distortion(self.intrinsics_path)
         self._warp: FrameWarp | None = None
-        if distortion is not None or mask is not None:
+        if distortion is not None or mask is not None or _read_intrinsics(self.intrinsics_path).size is not None:
             size = tuple(read_rgb(images[0]).shape[-2:])  # decoded once: the first pair reads it from the cache
+            check_intrinsics_size(self.intrinsics_path, size, f"the images of {self.root}")  # type: ignore[arg-type]
             user_mask = None if mask is None else read_mask_file(mask, size)  # type: ignore[arg-type]
             self._warp = FrameWarp((fx, fy, cx, cy), distortion, size, size, user_mask)  # type: ignore[arg-type]
             fx, fy, cx, cy = self._warp.intrinsics

@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import (LazySource, limit_frames, make_camera, read_distortion, read_intrinsics_file,
-                                  read_mask_file, require_file)
+from monostixels.data._io import (LazySource, check_intrinsics_size, limit_frames, make_camera, read_distortion,
+                                  read_intrinsics_file, read_mask_file, require_file)
 from monostixels.data._lens import FrameWarp
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
@@ -278,6 +278,7 @@ def _video_camera(intrinsics: Path | None, hfov_deg: float | None, size_in: tupl
         source = str(intrinsics)
         fx, fy, cx, cy = read_intrinsics_file(intrinsics)
         distortion = read_distortion(intrinsics)
+        check_intrinsics_size(intrinsics, size_in, "the video's frames")
     elif hfov_deg is not None:
         source = f"hfov {float(hfov_deg):g} deg (approximate)"
         fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
