@@ -103,3 +103,44 @@ def test_bad_input_fails_clearly(tmp_path, views):
     (blank / "4.png").write_bytes(b"not a png")
     with pytest.raises(InputError, match=r"cannot read .*4\.png"):
         calibrate_images(str(blank / "*.png"))
+
+
+def _bend_px(gray: np.ndarray) -> float | None:
+    """Largest distance (px) of a 9x6 board's corners from the straight line fitted through their row
+    or column; None when the board is not found."""
+    from monostixels.data.calibration import find_board
+
+    c = find_board(gray, (9, 6))
+    if c is None:
+        return None
+    grid = c.reshape(6, 9, 2)
+    worst = 0.0
+    for line in [*grid, *grid.transpose(1, 0, 2)]:
+        centred = line - line.mean(0)
+        normal = np.linalg.svd(centred)[2][1]
+        worst = max(worst, float(np.abs(centred @ normal).max()))
+    return worst
+
+
+@pytest.mark.skipif(not CAMERA_CAL.is_dir(), reason="shared dashcam chessboards (../shared/data/dashcam/camera_cal) not present")
+def test_dashcam_calibration_straightens_the_boards_in_data_frames(tmp_path):
+    """The whole chain on the dashcam views: calibrate, write the file, data=frames undistorts with it:
+    the board's rows and columns come out straighter than through a pinhole with the same K."""
+    from monostixels.data.sources import make_source
+
+    cal = calibrate_images(str(CAMERA_CAL / "*.jpg"), size=(1280, 720))
+    lens = write_intrinsics_file(cal, tmp_path / "cam.yaml")
+    pinhole = tmp_path / "pinhole.yaml"
+    pinhole.write_text(f"fx: {cal.fx}\nfy: {cal.fy}\ncx: {cal.cx}\ncy: {cal.cy}\n")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for p in cal.boards:  # links, not copies, of the shared views
+        (frames / p.name).symlink_to(p)
+    bends = {}
+    for name, intr in (("lens", lens), ("pinhole", pinhole)):
+        src = make_source({"name": "frames", "root": str(frames), "intrinsics": str(intr)})
+        bends[name] = [_bend_px((src[i].image.mean(0).numpy() * 255).round().astype(np.uint8)) for i in range(len(src))]
+    both = [(a, b) for a, b in zip(bends["lens"], bends["pinhole"]) if a is not None and b is not None]
+    assert len(both) >= 10
+    lens_px, pin_px = np.array(both).T
+    assert np.median(lens_px) < 0.85 * np.median(pin_px) and lens_px.max() < 0.5 * pin_px.max()
