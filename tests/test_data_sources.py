@@ -294,6 +294,20 @@ def test_intrinsics_bad_distortion_fails_naming_file_and_key(tmp_path, value, wa
         assert "\n" not in str(err.value)
 
 
+def test_frame_pair_checks_its_ignore_mask():
+    from monostixels.data.base import FramePair
+    from monostixels.data._io import make_camera
+
+    cam = make_camera(50.0, 50.0, 6.0, 4.0, 1.5)
+    img = torch.zeros(3, 8, 12)
+    ok = FramePair(img, img, cam, meta={"ignore_mask": torch.zeros(8, 12, dtype=torch.bool)})
+    assert ok.meta["ignore_mask"].shape == (8, 12)
+    with pytest.raises(InputError, match=r"ignore_mask.*expected shape \(8, 12\)"):
+        FramePair(img, img, cam, meta={"ignore_mask": torch.zeros(12, 8, dtype=torch.bool)})
+    with pytest.raises(InputError, match=r"ignore_mask.*bool"):
+        FramePair(img, img, cam, meta={"ignore_mask": torch.zeros(8, 12)})
+
+
 def test_intrinsics_bad_image_size_keys(tmp_path):
     (tmp_path / "k.yaml").write_text("fx: 400\ncx: 6\ncy: 3\nwidth: 1280\n")
     with pytest.raises(InputError, match=r"k\.yaml keys width, height must both be positive integers"):
