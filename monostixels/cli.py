@@ -1,4 +1,4 @@
-"""The ``monostixels`` command: ``demo``, ``eval``, ``run`` and ``batch``, configured through Hydra.
+"""The ``monostixels`` command: ``demo``, ``eval``, ``run``, ``batch`` and ``calibrate``, configured through Hydra.
 
 Usage::
 
@@ -11,6 +11,8 @@ Usage::
     monostixels run data=kitti_raw data.root=drives preset=accurate   # the best inputs instead of preset=fast
     monostixels eval data=kitti_raw data.root=drives preset=fast      # measures exactly what `run` does
     monostixels batch batch.inputs='clips/*.mp4' batch.output=fleet data.hfov_deg=90  # many clips on Ray
+    monostixels calibrate calibrate.images='camera_cal/*.jpg' calibrate.board=[9,6] calibrate.out=cam.yaml
+    monostixels run data=video data.path=clip.mp4 data.intrinsics=cam.yaml   # undistorted with it
     monostixels eval --multirun prior.beta_mc=4,8,16   # any Hydra flag works after the sub-command
 """
 from __future__ import annotations
@@ -33,6 +35,7 @@ COMMANDS = {
     "eval": "evaluate on a data source (data=...), print the paper's table, write out=FILE.json",
     "run": "stixels, pictures, depth, point clouds (and a video) for a data source, under outputs/run",
     "batch": "many clips (batch.inputs=DIR_OR_GLOB) in parallel on Ray into batch.output/stixels.parquet",
+    "calibrate": "intrinsics and lens distortion from chessboard views (calibrate.images=GLOB) into calibrate.out",
 }
 
 #: The preset (conf/preset/) each command starts from unless ``preset=...`` is given: ``fast`` keeps up
@@ -89,8 +92,10 @@ def command_overrides(cmd: str, args: list[str]) -> list[str]:
 
 def _usage() -> str:
     lines = ["usage: monostixels COMMAND [key=value ...] [hydra flags]", "", "commands:"]
-    lines += [f"  {k:<5} {v}" for k, v in COMMANDS.items()]
-    lines += ["", "Config groups: preset camera prior solver data flow semantic motion stream eval output batch (see conf/).",
+    width = max(len(k) for k in COMMANDS)
+    lines += [f"  {k:<{width}} {v}" for k, v in COMMANDS.items()]
+    lines += ["", "Config groups: preset camera prior solver data flow semantic motion stream eval output batch "
+              "calibrate (see conf/).",
               "Show the composed config: monostixels eval --cfg job"]
     return "\n".join(lines)
 
@@ -137,6 +142,8 @@ def _run_command(cfg: DictConfig) -> Any:
             from monostixels.batch import run_batch
 
             return run_batch(cfg)
+        if cfg.command == "calibrate":
+            return _calibrate(cfg)
         return _run(cfg)
     except InputError as e:
         # A user's bad input: one clear line, no traceback.
@@ -274,6 +281,31 @@ def _eval_semantics(cfg: DictConfig) -> float:
         print(f"wrote {write_report(report, cfg.out)}")
     # The objective of Hydra sweepers is minimised.
     return 1.0 - float(report["semantic"]["miou"])
+
+
+def _calibrate(cfg: DictConfig) -> float:
+    """`calibrate`: chessboard views -> an intrinsics file with distortion; returns the RMS error (px)."""
+    from omegaconf import OmegaConf
+
+    from monostixels.data.calibration import calibrate_images, write_intrinsics_file
+
+    c = cfg.calibrate
+    board = OmegaConf.to_container(c.board) if OmegaConf.is_config(c.board) else c.board
+    size = OmegaConf.to_container(c.size) if OmegaConf.is_config(c.size) else c.size
+    cal = calibrate_images(None if c.images is None else str(c.images), board=board, size=size)
+    path = write_intrinsics_file(cal, str(c.out))
+    H, W = cal.size
+    k1, k2, p1, p2, k3 = cal.distortion
+    print(f"calibrate: {cal.board[0]}x{cal.board[1]} board found in {len(cal.boards)} of {len(cal.images)} images "
+          f"({W}x{H}); RMS reprojection error {cal.rms_px:.3f} px")
+    if cal.no_board:
+        print(f"  no board in: {', '.join(p.name for p in cal.no_board)}")
+    if cal.other_size:
+        print(f"  skipped (not {W}x{H}): {', '.join(p.name for p in cal.other_size)}")
+    print(f"  fx {cal.fx:.2f}  fy {cal.fy:.2f}  cx {cal.cx:.2f}  cy {cal.cy:.2f} px; "
+          f"distortion k1 {k1:.4f} k2 {k2:.4f} p1 {p1:.5f} p2 {p2:.5f} k3 {k3:.4f}")
+    print(f"wrote {path} (use it: data.intrinsics={path})")
+    return cal.rms_px
 
 
 #: Frame rate of `run`'s overlay video when the source has none (image folders): slow enough to look at.

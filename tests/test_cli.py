@@ -184,3 +184,38 @@ def test_run_video_fails_clearly(tmp_path, case):
     err = p.stderr.lower()
     assert p.returncode != 0 and "error" in err and "traceback" not in err
     assert {"missing": "does not exist", "no_intrinsics": "hfov_deg", "one_frame": "at least two"}[case] in err
+
+
+def test_calibrate_writes_an_intrinsics_file(tmp_path):
+    """`monostixels calibrate`: chessboard views -> intrinsics.yaml (fx fy cx cy distortion), the RMS error and
+    the boards found printed, the views without a board named."""
+    from monostixels.data._io import read_distortion, read_intrinsics_file
+    from tests._boards import write_board_views
+
+    K = np.array([[330.0, 0.0, 203.0], [0.0, 325.0, 148.0], [0.0, 0.0, 1.0]])
+    views = tmp_path / "cal"
+    write_board_views(views, K, np.array([-0.22, 0.04, 0.0, 0.0, 0.0]), (300, 400), n=4)
+    cv2.imwrite(str(views / "view_blank.png"), np.full((300, 400), 128, np.uint8))
+    p = _cli(["calibrate", f"calibrate.images={views}/*.png", "calibrate.board=[9,6]", "calibrate.out=cam/intr.yaml"],
+             tmp_path)
+    assert "board found in 4 of 5 images" in p.stdout and "no board in: view_blank.png" in p.stdout
+    rms = float(re.search(r"RMS reprojection error ([0-9.]+) px", p.stdout).group(1))
+    assert rms < 0.5
+    fx, fy, cx, cy = read_intrinsics_file(tmp_path / "cam" / "intr.yaml")
+    assert fx == pytest.approx(330.0, rel=0.02) and read_distortion(tmp_path / "cam" / "intr.yaml")[0] < 0
+
+
+@pytest.mark.parametrize("case", ["no_match", "no_board"])
+def test_calibrate_fails_clearly(tmp_path, case):
+    images = tmp_path / "imgs"
+    images.mkdir()
+    if case == "no_board":
+        for k in range(3):
+            cv2.imwrite(str(images / f"{k}.jpg"), np.full((60, 80, 3), 50 * k, np.uint8))
+    p = _cli(["calibrate", f"calibrate.images={images}/*.jpg"], tmp_path, check=False)
+    err = p.stderr.lower()
+    assert p.returncode == 1 and "traceback" not in err
+    line = next(ln for ln in p.stderr.splitlines() if "error" in ln)
+    assert line.startswith("monostixels calibrate: error: calibrate.images:") and f"{images}/*.jpg" in line
+    assert {"no_match": "no image file matches", "no_board": "found in 0 of the 3 images"}[case] in line
+    assert not (tmp_path / "intrinsics.yaml").exists()

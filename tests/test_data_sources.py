@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import read_intrinsics_file, read_poses_file
+from monostixels.data._io import read_distortion, read_intrinsics_file, read_poses_file
 from monostixels.data.ddad import DDADSource, pose_matrix, project_points
 from monostixels.data.frames import FramesSource
 from monostixels.data.kitti2015 import KITTI_STEREO_BASELINE_M, Kitti2015Source
@@ -260,6 +260,97 @@ def test_kitti2015_tiny_ground_truth_decoding(tmp_path):
 def test_intrinsics_formats(tmp_path, name, text):
     (tmp_path / name).write_text(text)
     assert read_intrinsics_file(tmp_path / name) == (400.5, 410.0, 6.5, 3.5)
+
+
+@pytest.mark.parametrize(
+    "name,text,want",
+    [
+        ("k.yaml", "fx: 400.5\nfy: 410\ncx: 6.5\ncy: 3.5\ndistortion: [-0.25, 0.05, 0.001, -0.002, 0.01]\n",
+         [-0.25, 0.05, 0.001, -0.002, 0.01]),
+        ("k.json", json.dumps({"K": [[400.5, 0, 6.5], [0, 410, 3.5], [0, 0, 1]], "distortion": [-0.1, 0.02, 0, 0]}),
+         [-0.1, 0.02, 0, 0]),
+        ("k.txt", "fx = 400.5\nfy = 410\ncx = 6.5\ncy = 3.5\ndistortion = [[-0.2, 0.1, 0, 0, 0, 0.01, 0, 0]]\n",
+         [-0.2, 0.1, 0, 0, 0, 0.01, 0, 0]),  # OpenCV's 1 x N print of the rational model
+        ("k.yaml", "fx: 400.5\nfy: 410\ncx: 6.5\ncy: 3.5\n", None),
+        ("k.yaml", "fx: 400.5\nfy: 410\ncx: 6.5\ncy: 3.5\ndistortion: null\n", None),
+        ("k.txt", "400.5 410 6.5 3.5\n", None),
+    ],
+)
+def test_intrinsics_distortion_key(tmp_path, name, text, want):
+    (tmp_path / name).write_text(text)
+    assert read_intrinsics_file(tmp_path / name) == (400.5, 410.0, 6.5, 3.5)
+    d = read_distortion(tmp_path / name)
+    assert (d is None) if want is None else (d.dtype == np.float64 and d.tolist() == want)
+
+
+@pytest.mark.parametrize("value,want", [("[-0.2, 0.1, 0]", "holds 3 numbers"), ("[1, 2, 3, 4, 5, 6]", "holds 6 numbers"),
+                                        ("-0.2", "must be a list"), ("[a, b, c, d, e]", "non-number"),
+                                        ("[.nan, 0, 0, 0, 0]", "NaN")])
+def test_intrinsics_bad_distortion_fails_naming_file_and_key(tmp_path, value, want):
+    (tmp_path / "k.yaml").write_text(f"fx: 400\ncx: 6\ncy: 3\ndistortion: {value}\n")
+    for read in (read_intrinsics_file, read_distortion):
+        with pytest.raises(InputError, match=rf"intrinsics: .*k\.yaml key distortion .*{want}") as err:
+            read(tmp_path / "k.yaml")
+        assert "\n" not in str(err.value)
+
+
+def test_frame_pair_checks_its_ignore_mask():
+    from monostixels.data.base import FramePair
+    from monostixels.data._io import make_camera
+
+    cam = make_camera(50.0, 50.0, 6.0, 4.0, 1.5)
+    img = torch.zeros(3, 8, 12)
+    ok = FramePair(img, img, cam, meta={"ignore_mask": torch.zeros(8, 12, dtype=torch.bool)})
+    assert ok.meta["ignore_mask"].shape == (8, 12)
+    with pytest.raises(InputError, match=r"ignore_mask.*expected shape \(8, 12\)"):
+        FramePair(img, img, cam, meta={"ignore_mask": torch.zeros(12, 8, dtype=torch.bool)})
+    with pytest.raises(InputError, match=r"ignore_mask.*bool"):
+        FramePair(img, img, cam, meta={"ignore_mask": torch.zeros(8, 12)})
+
+
+def test_intrinsics_bad_image_size_keys(tmp_path):
+    (tmp_path / "k.yaml").write_text("fx: 400\ncx: 6\ncy: 3\nwidth: 1280\n")
+    with pytest.raises(InputError, match=r"k\.yaml keys width, height must both be positive integers"):
+        read_intrinsics_file(tmp_path / "k.yaml")
+
+
+def test_frames_folder_undistorts_and_carries_the_mask(tmp_path):
+    rng = np.random.default_rng(0)
+    H, W = 48, 64
+    img = cv2.GaussianBlur(rng.integers(0, 256, (H, W, 3)).astype(np.uint8), (5, 5), 1.5)
+    for i in range(3):
+        assert cv2.imwrite(str(tmp_path / f"{i:02d}.png"), img)
+    K = np.array([[60.0, 0, 30.5], [0, 58.0, 24.0], [0, 0, 1]])
+    d = np.array([-0.3, 0.08, 0.002, -0.001, 0.0])
+    (tmp_path / "intrinsics.yaml").write_text("fx: 60\nfy: 58\ncx: 30.5\ncy: 24\ndistortion: [-0.3, 0.08, 0.002, -0.001, 0]\n")
+    mask = np.zeros((H, W), np.uint8)
+    mask[40:] = 255
+    cv2.imwrite(str(tmp_path / "bonnet.png"), mask)
+    src = make_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "bonnet.png")})
+    p = src[0]
+    # OpenCV's own undistortion with the same camera matrix is the reference.
+    want = cv2.cvtColor(cv2.undistort(img, K, d), cv2.COLOR_BGR2RGB).transpose(2, 0, 1) / 255.0
+    got = p.image.double().numpy()
+    assert np.abs(got - want)[:, 2:-2, 2:-2].max() < 3 / 255
+    assert np.abs(got - img.transpose(2, 0, 1)[::-1] / 255.0).max() > 0.1  # it did change the image
+    assert torch.allclose(p.camera.K, torch.from_numpy(K).to(p.camera.K.dtype))
+    ignore = p.meta["ignore_mask"]
+    assert ignore.dtype == torch.bool and tuple(ignore.shape) == (H, W)
+    assert bool(ignore[-1].all()) and not bool(ignore[:30].any())
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((H // 2, W // 2), np.uint8))
+    with pytest.raises(InputError, match=rf"data.mask: .*small\.png is {W // 2}x{H // 2} pixels, the frames are {W}x{H}"):
+        make_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "small.png")})
+    # An intrinsics file for another image size is refused (also without distortion or mask).
+    (tmp_path / "other.yaml").write_text("fx: 60\nfy: 58\ncx: 30.5\ncy: 24\nwidth: 128\nheight: 96\n")
+    with pytest.raises(InputError, match=rf"other\.yaml holds for 128x96 images .* are {W}x{H}"):
+        make_source({"name": "frames", "root": str(tmp_path), "intrinsics": str(tmp_path / "other.yaml")})
+    (tmp_path / "other.yaml").write_text(f"fx: 60\nfy: 58\ncx: 30.5\ncy: 24\nwidth: {W}\nheight: {H}\n")
+    assert "ignore_mask" not in make_source({"name": "frames", "root": str(tmp_path),
+                                             "intrinsics": str(tmp_path / "other.yaml")})[0].meta
+    # Every image must have the size the tables were set up for.
+    assert cv2.imwrite(str(tmp_path / "01.png"), img[:40]) and cv2.imwrite(str(tmp_path / "02.png"), img[:40])
+    with pytest.raises(InputError, match=r"02\.png is 64x40, the first image 00\.png 64x48"):
+        src[1]
 
 
 def test_frames_folder_pairs_intrinsics_and_poses(tmp_path):

@@ -11,7 +11,7 @@ import math
 import threading
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping, NamedTuple, Sequence
 
 import cv2
 import numpy as np
@@ -30,6 +30,10 @@ __all__ = [
     "read_kitti_calib",
     "projection_matrix",
     "read_intrinsics_file",
+    "read_distortion",
+    "check_intrinsics_size",
+    "read_mask_file",
+    "DISTORTION_LENGTHS",
     "read_poses_file",
     "relative_motion",
     "make_camera",
@@ -165,6 +169,35 @@ def read_png16(path: str | Path, channels: int) -> np.ndarray:
     return img
 
 
+def read_mask_file(path: str | Path, size: tuple[int, int], what: str = "data.mask") -> np.ndarray:
+    """Read a user's mask image: non-zero (in any colour channel; alpha is not looked at) = ignore.
+
+    Args:
+        path: the image (a PNG drawn on a frame as stored: before undistortion and ``data.resize``).
+        size: (H, W) the frames' stored size, which the mask must have.
+        what: the input's name for messages.
+
+    Returns:
+        (H, W) bool, True = ignore.
+
+    Raises:
+        InputError: missing or undecodable file, a size other than ``size`` (both sizes named), or a mask
+            that ignores every pixel.
+    """
+    p = require_file(path, what)
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise InputError(f"{what}: cannot read {p} (not an image file OpenCV can decode)")
+    H, W = size
+    if img.shape[:2] != (H, W):
+        raise InputError(f"{what}: {p} is {img.shape[1]}x{img.shape[0]} pixels, the frames are {W}x{H} "
+                         f"(draw the mask on a frame as stored, before data.resize)")
+    mask = (img[..., :3].max(axis=2) if img.ndim == 3 else img) > 0
+    if mask.all():
+        raise InputError(f"{what}: {p} ignores every pixel (non-zero = ignore; leave the pixels to use at 0)")
+    return mask
+
+
 def list_images(folder: str | Path, what: str = "image folder") -> list[Path]:
     """Image files of ``folder`` sorted by name; ``InputError`` when the folder is missing or empty."""
     d = require_dir(folder, what)
@@ -222,6 +255,11 @@ def projection_matrix(calib: Mapping[str, np.ndarray], key: str, path: str | Pat
 
 _INTRINSIC_KEYS = ("fx", "fy", "cx", "cy")
 
+#: Lengths of an OpenCV distortion vector accepted in an intrinsics file: ``k1 k2 p1 p2`` (4),
+#: ``k1 k2 p1 p2 k3`` (5, what ``monostixels calibrate`` writes), ``k1 k2 p1 p2 k3 k4 k5 k6`` (8, the
+#: rational model).
+DISTORTION_LENGTHS: tuple[int, ...] = (4, 5, 8)
+
 
 def read_intrinsics_file(path: str | Path) -> tuple[float, float, float, float]:
     """Read pinhole intrinsics ``(fx, fy, cx, cy)`` (pixels) from a small file.
@@ -229,23 +267,79 @@ def read_intrinsics_file(path: str | Path) -> tuple[float, float, float, float]:
     Accepted formats (chosen by the file's content, not only its ending):
 
     - YAML or JSON mapping with keys ``fx, fy, cx, cy`` (``fy`` may be omitted: ``fy = fx``), or
-      with a key ``K`` holding the 3x3 matrix (nested list or 9 numbers, row-major);
-    - text with ``key: value`` / ``key = value`` lines for ``fx, fy, cx, cy``;
+      with a key ``K`` holding the 3x3 matrix (nested list or 9 numbers, row-major); optionally a key
+      ``distortion`` with the lens distortion coefficients (see :func:`read_distortion`) and keys
+      ``width``, ``height``: the image size they hold for (see :func:`check_intrinsics_size`);
+    - text with ``key: value`` / ``key = value`` lines for ``fx, fy, cx, cy`` (and ``distortion``);
     - text with just numbers: 4 numbers ``fx fy cx cy`` or 9 numbers (K row-major).
 
     Raises:
-        InputError: missing file, unparsable content, missing keys, or non-positive focal lengths.
+        InputError: missing file, unparsable content, missing keys, non-positive focal lengths, or a
+            malformed ``distortion`` entry.
     """
+    return _read_intrinsics(path).pinhole
+
+
+def read_distortion(path: str | Path) -> np.ndarray | None:
+    """The lens distortion coefficients of an intrinsics file (its ``distortion`` key), if any.
+
+    Convention: OpenCV's order and model, ``distortion: [k1, k2, p1, p2, k3]`` (radial ``k``,
+    tangential ``p``; 4 or 8 numbers are accepted too, see :data:`DISTORTION_LENGTHS`), for the
+    normalised coordinates of the file's ``fx, fy, cx, cy``. Barrel distortion (dashcams) has
+    ``k1 < 0``.
+
+    Returns:
+        (N,) float64 coefficients, N in :data:`DISTORTION_LENGTHS`; None where the file has no
+        ``distortion`` key (or ``distortion: null``) or holds only numbers.
+
+    Raises:
+        InputError: as :func:`read_intrinsics_file`; a ``distortion`` entry that is not a list of
+            4, 5 or 8 finite numbers (naming the file and the key).
+    """
+    return _read_intrinsics(path).distortion
+
+
+def check_intrinsics_size(path: str | Path, size: tuple[int, int], what: str) -> None:
+    """Fail when an intrinsics file says which image size it holds for and ``size`` differs.
+
+    The optional keys ``width`` and ``height`` (pixels; ``monostixels calibrate`` writes them) give
+    that size: intrinsics and distortion of one size do not fit frames of another (a different
+    sensor mode may crop as well as scale), so they are not rescaled silently.
+
+    Args:
+        path: the intrinsics file.
+        size: (H, W) of the stored frames.
+        what: the frames' name for the message (``"the video's frames"``).
+
+    Raises:
+        InputError: the sizes differ (both named), or ``width`` / ``height`` are not positive integers.
+    """
+    p = Path(path).expanduser()
+    stated = _read_intrinsics(p).size
+    if stated is not None and tuple(stated) != tuple(size):
+        raise InputError(f"intrinsics: {p} holds for {stated[1]}x{stated[0]} images (width, height), {what} are "
+                         f"{size[1]}x{size[0]}; calibrate at that size (or scale fx, fy, cx, cy and drop width, height)")
+
+
+class _IntrinsicsFile(NamedTuple):
+    pinhole: tuple[float, float, float, float]
+    distortion: np.ndarray | None
+    size: tuple[int, int] | None  # (H, W) from the width / height keys
+
+
+def _read_intrinsics(path: str | Path) -> _IntrinsicsFile:
     p = require_file(path, "intrinsics")
     text = p.read_text(errors="replace")
-    vals = _parse_intrinsics(text, p)
-    fx, fy, cx, cy = vals
-    if not all(math.isfinite(v) for v in vals) or fx <= 0 or fy <= 0:
+    got = _parse_intrinsics(text, p)
+    fx, fy, cx, cy = got.pinhole
+    if not all(math.isfinite(v) for v in got.pinhole) or fx <= 0 or fy <= 0:
         raise InputError(f"intrinsics: {p} gives fx={fx}, fy={fy}, cx={cx}, cy={cy}; need finite values, fx, fy > 0")
-    return fx, fy, cx, cy
+    return got
 
 
-def _parse_intrinsics(text: str, p: Path) -> tuple[float, float, float, float]:
+def _parse_intrinsics(text: str, p: Path) -> _IntrinsicsFile:
+    """(fx, fy, cx, cy), the distortion coefficients and the stated image size (None: not given) of an
+    intrinsics file's text."""
     data: Any = None
     stripped = text.strip()
     if not stripped:
@@ -262,7 +356,7 @@ def _parse_intrinsics(text: str, p: Path) -> tuple[float, float, float, float]:
         except ValueError:
             numbers = None
         if numbers is not None:
-            return _from_numbers(numbers, p)
+            return _IntrinsicsFile(_from_numbers(numbers, p), None, None)
         import yaml  # PyYAML ships with Hydra (omegaconf)
 
         try:
@@ -271,14 +365,18 @@ def _parse_intrinsics(text: str, p: Path) -> tuple[float, float, float, float]:
             raise InputError(f"intrinsics: {p} is neither YAML/JSON nor 'fx fy cx cy' numbers ({e})") from e
     if isinstance(data, list):
         try:
-            return _from_numbers([float(x) for x in np.asarray(data, dtype=np.float64).ravel()], p)
+            return _IntrinsicsFile(_from_numbers([float(x) for x in np.asarray(data, dtype=np.float64).ravel()], p),
+                                   None, None)
         except (TypeError, ValueError) as e:
             raise InputError(f"intrinsics: {p} holds a list that is not numbers") from e
     if not isinstance(data, dict):
         raise InputError(f"intrinsics: {p} must be a mapping with fx, fy, cx, cy (or K)")
+    distortion = _distortion(data.get("distortion"), p)
+    size = _stated_size(data, p)
     if "K" in data:
         try:
-            return _from_numbers([float(x) for x in np.asarray(data["K"], dtype=np.float64).ravel()], p)
+            K = _from_numbers([float(x) for x in np.asarray(data["K"], dtype=np.float64).ravel()], p)
+            return _IntrinsicsFile(K, distortion, size)
         except (TypeError, ValueError) as e:
             raise InputError(f"intrinsics: {p} entry K is not a 3x3 matrix of numbers") from e
     if "fy" not in data and "fx" in data:
@@ -287,9 +385,39 @@ def _parse_intrinsics(text: str, p: Path) -> tuple[float, float, float, float]:
     if missing:
         raise InputError(f"intrinsics: {p} lacks {', '.join(missing)} (need fx, fy, cx, cy in pixels, or K)")
     try:
-        return tuple(float(data[k]) for k in _INTRINSIC_KEYS)  # type: ignore[return-value]
+        return _IntrinsicsFile(tuple(float(data[k]) for k in _INTRINSIC_KEYS), distortion, size)  # type: ignore[arg-type]
     except (TypeError, ValueError) as e:
         raise InputError(f"intrinsics: {p} has a non-numeric value among fx, fy, cx, cy") from e
+
+
+def _stated_size(data: Mapping[str, Any], p: Path) -> tuple[int, int] | None:
+    """(H, W) from the optional ``width`` and ``height`` keys of an intrinsics mapping."""
+    if data.get("width") is None and data.get("height") is None:
+        return None
+    w, h = data.get("width"), data.get("height")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (w, h)):
+        raise InputError(f"intrinsics: {p} keys width, height must both be positive integers (pixels), got {w!r}, {h!r}")
+    return int(h), int(w)  # type: ignore[arg-type]
+
+
+def _distortion(value: Any, p: Path) -> np.ndarray | None:
+    """The ``distortion`` entry of an intrinsics mapping, checked (None when absent or null)."""
+    if value is None:
+        return None
+    want = "a list of 5 numbers [k1, k2, p1, p2, k3] (OpenCV's order; 4 or 8 also accepted)"
+    if not isinstance(value, (list, tuple)):
+        raise InputError(f"intrinsics: {p} key distortion must be {want}, got {value!r}")
+    try:
+        d = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"intrinsics: {p} key distortion must be {want}; it holds a non-number") from e
+    if d.ndim == 2 and 1 in d.shape:  # OpenCV prints its coefficients as a 1 x N matrix
+        d = d.ravel()
+    if d.ndim != 1 or d.size not in DISTORTION_LENGTHS:
+        raise InputError(f"intrinsics: {p} key distortion holds {d.size} numbers; it must be {want}")
+    if not np.all(np.isfinite(d)):
+        raise InputError(f"intrinsics: {p} key distortion holds NaN/inf: {d.tolist()}")
+    return d
 
 
 def _from_numbers(numbers: Sequence[float], p: Path) -> tuple[float, float, float, float]:

@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import check_finite, check_same_size, check_shape
+from monostixels._checks import InputError, check_finite, check_same_size, check_shape
 from monostixels.geometry import Camera, Motion
 
 __all__ = ["GroundTruth", "FramePair", "PreviousFrame"]
@@ -71,7 +71,10 @@ class FramePair:
         motion: camera motion ``X_prev = R X_cur + t`` (ground truth or from a poses file), or None.
         gt: ground truth, fields absent where the source lacks them.
         name: a stable identifier (file stem, ``synthetic_000003``...).
-        meta: anything else a source wants to pass on (seed, timestamps).
+        meta: anything else a source wants to pass on (seed, timestamps). Keys with a fixed meaning:
+            ``"ignore_mask"``: (H, W) torch bool, True = pixels to ignore (the user's ``data.mask``, and
+            pixels that undistortion leaves without a source; ``data=video`` / ``data=frames``), at the
+            image's size; absent = use every pixel.
     """
 
     image: torch.Tensor
@@ -89,6 +92,11 @@ class FramePair:
         check_finite(self.image, "image")
         if self.gt.depth is not None:
             check_same_size(self.gt.depth, self.image, "gt.depth", "image")
+        ignore = self.meta.get("ignore_mask")
+        if ignore is not None:
+            check_shape(ignore, list(self.image.shape[-2:]), f"{self.name or 'frame'}: meta['ignore_mask']")
+            if ignore.dtype != torch.bool:
+                raise InputError(f"{self.name or 'frame'}: meta['ignore_mask'] must be a bool tensor, got {ignore.dtype}")
 
     @property
     def size(self) -> tuple[int, int]:

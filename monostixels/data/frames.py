@@ -13,6 +13,15 @@ Intrinsics file formats (see :func:`monostixels.data._io.read_intrinsics_file`),
   or ``K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``;
 - text: ``fx fy cx cy`` (4 numbers) or the 9 numbers of K (row-major), or ``key: value`` lines.
 
+A ``distortion: [k1, k2, p1, p2, k3]`` key (OpenCV's order; what ``monostixels calibrate`` writes)
+undistorts every image, keeping the file's camera matrix (:mod:`monostixels.data._lens`).
+
+Optional mask (``data.mask``): an image of the images' size, non-zero = ignore, undistorted with
+them (nearest neighbour); each pair then carries it as ``meta["ignore_mask"]`` ((H, W) torch bool,
+True = ignore; also True where undistortion leaves a pixel without a source). With a distortion, a
+mask or an intrinsics file that states its image size (``width``, ``height``), the first image is read
+when the source is made (its size sets up the tables and is checked) and every image must have its size.
+
 With ``data.intrinsics`` unset, ``root/intrinsics.{yaml,yml,json,txt}`` is used (the first that
 exists). Camera height from ``data.camera_height`` (metres), else the camera config.
 
@@ -29,19 +38,26 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from monostixels._checks import InputError
 from monostixels.data._io import (
     LazySource,
+    _read_intrinsics,
+    check_intrinsics_size,
     limit_frames,
     list_images,
     make_camera,
+    read_distortion,
     read_image_pair,
     read_intrinsics_file,
+    read_mask_file,
     read_poses_file,
+    read_rgb,
     relative_motion,
     require_dir,
 )
+from monostixels.data._lens import FrameWarp
 from monostixels.data.base import FramePair, GroundTruth
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
@@ -73,10 +89,12 @@ class FramesSource(LazySource):
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down).
         poses: optional poses file (see the module docstring).
+        mask: optional mask image, non-zero = ignore (see the module docstring).
 
     Raises:
-        InputError: missing root, empty folder, missing / malformed intrinsics or poses file,
-            fewer than ``step + 1`` images; at access: unreadable image, images of different sizes.
+        InputError: missing root, empty folder, missing / malformed intrinsics (or distortion) or poses
+            file, fewer than ``step + 1`` images, a mask of another size than the first image; at access:
+            unreadable image, images of different sizes.
     """
 
     def __init__(
@@ -89,6 +107,7 @@ class FramesSource(LazySource):
         camera_height: float = KITTI_CAMERA_HEIGHT_M,
         pitch: float = 0.0,
         poses: str | Path | None = None,
+        mask: str | Path | None = None,
     ) -> None:
         self.root = require_dir(root, "frames data.root")
         if int(step) < 1:
@@ -103,6 +122,14 @@ class FramesSource(LazySource):
             intrinsics = found[0]
         self.intrinsics_path = Path(intrinsics).expanduser()
         fx, fy, cx, cy = read_intrinsics_file(self.intrinsics_path)
+        distortion = read_distortion(self.intrinsics_path)
+        self._warp: FrameWarp | None = None
+        if distortion is not None or mask is not None or _read_intrinsics(self.intrinsics_path).size is not None:
+            size = tuple(read_rgb(images[0]).shape[-2:])  # decoded once: the first pair reads it from the cache
+            check_intrinsics_size(self.intrinsics_path, size, f"the images of {self.root}")  # type: ignore[arg-type]
+            user_mask = None if mask is None else read_mask_file(mask, size)  # type: ignore[arg-type]
+            self._warp = FrameWarp((fx, fy, cx, cy), distortion, size, size, user_mask)  # type: ignore[arg-type]
+            fx, fy, cx, cy = self._warp.intrinsics
         self.camera: Camera = make_camera(fx, fy, cx, cy, camera_height, pitch)
         pose_of: list[np.ndarray | None] = [None] * len(images)
         if poses is not None:
@@ -158,10 +185,26 @@ class FramesSource(LazySource):
 
     def _load(self, item: _Pair) -> FramePair:
         image, image_prev = read_image_pair(item.path, item.path_prev)
+        if self._warp is not None:
+            image, image_prev = self._warped(image, item.path), self._warped(image_prev, item.path_prev)
         motion = self._pair_motion(item)
         meta = {"source": "frames", "index": item.index, "path": str(item.path), "path_prev": str(item.path_prev),
                 "intrinsics": str(self.intrinsics_path), "sequence": self._sequence_key(item),
                 "frame": item.index, "frame_prev": self._index_of[item.path_prev],
                 "name_prev": self._prev_name(item)}
+        ignore = None if self._warp is None else self._warp.ignore_mask()
+        if ignore is not None:
+            meta["ignore_mask"] = ignore
         return FramePair(image=image, image_prev=image_prev, camera=self.camera, motion=motion, gt=GroundTruth(),
                          name=item.path.stem, meta=meta)
+
+    def _warped(self, image: torch.Tensor, path: Path) -> torch.Tensor:
+        """(3, H, W) float RGB undistorted (the size checked against the first image's)."""
+        assert self._warp is not None
+        H, W = image.shape[-2:]
+        if (H, W) != self._warp.size_in:
+            raise InputError(f"frames: image {path} is {W}x{H}, the first image {self._images[0].name} "
+                             f"{self._warp.size_in[1]}x{self._warp.size_in[0]} (the distortion and mask tables are "
+                             f"set up for that size)")
+        hwc = np.ascontiguousarray(image.permute(1, 2, 0).numpy())
+        return torch.from_numpy(np.ascontiguousarray(self._warp.image(hwc).transpose(2, 0, 1)))

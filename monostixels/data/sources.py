@@ -127,6 +127,7 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
     height, pitch = _camera_mount(data, camera)
     intr = _get(data, "intrinsics")
     poses = _get(data, "poses")
+    mask = _get(data, "mask")
     return FramesSource(
         _get(data, "root"),
         intrinsics=None if intr is None else Path(str(intr)),
@@ -134,6 +135,7 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
         frames=_frames(data),
         camera_height=height, pitch=pitch,
         poses=None if poses is None else Path(str(poses)),
+        mask=None if mask is None else Path(str(mask)),
     )
 
 
@@ -141,8 +143,8 @@ def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
     from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
     height, pitch = _camera_mount(data, camera)
-    intr, hfov, end, resize = (_get(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize"))
-    if resize is not None and not isinstance(resize, (int, float)):
+    intr, hfov, end, resize, mask = (_get(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize", "mask"))
+    if resize is not None and not isinstance(resize, (int, float, str)):
         resize = list(resize)
     realtime = _get(data, "realtime", False)
     if not isinstance(realtime, bool):
@@ -157,6 +159,7 @@ def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
         resize=resize,
         frames=_frames(data),
         camera_height=height, pitch=pitch,
+        mask=None if mask is None else Path(str(mask)),
     )
     if realtime or is_live_path(path):
         # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).

@@ -7,16 +7,22 @@ access, as ``monostixels run`` and ``eval`` do, decodes every frame once).
 
 Intrinsics, pixels of the video as stored (before ``resize``):
 
-- a file (``intrinsics``), in the formats of :func:`monostixels.data._io.read_intrinsics_file`;
+- a file (``intrinsics``), in the formats of :func:`monostixels.data._io.read_intrinsics_file`
+  (``monostixels calibrate`` writes one from chessboard views). With a ``distortion`` key every
+  frame is undistorted, keeping the file's camera matrix (:mod:`monostixels.data._lens`);
 - else a horizontal field of view ``hfov_deg``: ``fx = fy = (W / 2) / tan(hfov / 2)``, principal
   point at the image centre ``((W - 1) / 2, (H - 1) / 2)``. **Approximate**: real lenses have
   their principal point off-centre, non-square pixels and distortion (dashcams: strong barrel
-  distortion, not modelled). A wrong focal length scales depths and bends the road plane; use a
-  calibration file where you can.
+  distortion, not modelled on this path). A wrong focal length scales depths and bends the road
+  plane; use a calibration file where you can.
 - neither: an error.
 
-``resize`` scales the frames (and the intrinsics with them): a number (factor) or ``[W, H]``
-(pixels). Frame interval ``meta["dt"] = step / fps`` (seconds; fps from the file).
+``resize`` scales the (undistorted) frames and the intrinsics with them: ``"auto"`` (about
+:data:`AUTO_PIXELS`, never upscaled), a number (factor) or ``[W, H]`` (pixels). ``mask``: an image
+of the stored size, non-zero = ignore, undistorted and resized with the frames (nearest neighbour);
+each pair then carries it as ``meta["ignore_mask"]`` ((H, W) torch bool at the working size, True =
+ignore; also True where undistortion leaves a pixel without a source). Frame interval
+``meta["dt"] = step / fps`` (seconds; fps from the file).
 """
 from __future__ import annotations
 
@@ -34,16 +40,25 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import LazySource, limit_frames, make_camera, read_intrinsics_file, require_file
+from monostixels.data._io import (LazySource, check_intrinsics_size, limit_frames, make_camera, read_distortion,
+                                  read_intrinsics_file, read_mask_file, require_file)
+from monostixels.data._lens import FrameWarp
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
 
-__all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path"]
+__all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path", "AUTO_PIXELS"]
 
 logger = logging.getLogger(__name__)
 
 #: Largest value of an 8-bit channel, to scale frames to [0, 1].
 _MAX_U8 = 255.0
+#: ``resize="auto"``: frames are scaled to about this many pixels (0.5 MP, e.g. 942x530 from 720p or
+#: 1080p): flow, semantics and the solver take time in proportion to the pixels, and KITTI's 1242x375
+#: (0.47 MP), the size the defaults are tuned at, is about as many.
+AUTO_PIXELS = 500_000
+#: ``resize="auto"`` keeps frames of up to this factor above :data:`AUTO_PIXELS` as they are (960x540 is
+#: 0.52 MP): a resample that small costs sharpness for little time.
+_AUTO_KEEP = 1.1
 
 
 def intrinsics_from_hfov(width: int, height: int, hfov_deg: float) -> tuple[float, float, float, float]:
@@ -77,14 +92,17 @@ class VideoSource(LazySource):
         step: video frames between the two frames of a pair (and between used frames).
         start: first video frame used (0-based).
         end: video frames from ``end`` on are not used (None = to the end).
-        resize: None, a factor (e.g. 0.5), or ``(W, H)`` pixels.
+        resize: None, ``"auto"`` (about :data:`AUTO_PIXELS`, never upscaled), a factor (e.g. 0.5), or
+            ``(W, H)`` pixels.
         frames: at most this many pairs (None = all).
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down).
+        mask: an image of the stored frame size, non-zero = ignore (see the module docstring), or None.
 
     Raises:
         InputError: missing file, a file OpenCV cannot decode, fewer than two frames in the chosen
-            range, neither intrinsics nor ``hfov_deg``, a bad ``step`` / ``start`` / ``end`` / ``resize``.
+            range, neither intrinsics nor ``hfov_deg``, a bad ``step`` / ``start`` / ``end`` / ``resize``,
+            a malformed distortion entry, a mask of another size.
     """
 
     def __init__(
@@ -100,6 +118,7 @@ class VideoSource(LazySource):
         frames: int | None = None,
         camera_height: float = KITTI_CAMERA_HEIGHT_M,
         pitch: float = 0.0,
+        mask: str | Path | None = None,
     ) -> None:
         if path is None or str(path) == "":
             raise InputError("video data.path: no video file given (data.path=clip.mp4)")
@@ -134,8 +153,8 @@ class VideoSource(LazySource):
             )
         self.size_in = (H0, W0)
         self.size = self._out_size(resize, W0, H0)
-        self.camera, self.intrinsics_source = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
-                                                            camera_height, pitch)
+        self.camera, self.intrinsics_source, self._warp = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
+                                                                        camera_height, pitch, mask)
         items = [_Pair(used[k], used[k - 1]) for k in range(1, len(used))]
         self._items = limit_frames(items, frames, f"video {self.path}")
         self._cap: Any = None
@@ -148,9 +167,17 @@ class VideoSource(LazySource):
 
     @staticmethod
     def _out_size(resize: Any, W: int, H: int) -> tuple[int, int]:
-        """(H, W) after ``resize``."""
+        """(H, W) after ``resize`` (``"auto"``, a factor or ``[W, H]``) of ``W x H`` frames."""
         if resize is None:
             return H, W
+        if isinstance(resize, str):
+            if resize.strip().lower() != "auto":
+                raise InputError(f"data.resize: expected auto, a factor or [W, H] pixels, got {resize!r}")
+            if W * H <= AUTO_PIXELS * _AUTO_KEEP:
+                return H, W
+            s = math.sqrt(AUTO_PIXELS / (W * H))
+            # Even sizes: video encoders (the overlay video) and 2x pyramids want them.
+            return max(2, 2 * round(H * s / 2)), max(2, 2 * round(W * s / 2))
         if isinstance(resize, (int, float)) and not isinstance(resize, bool):
             f = float(resize)
             if not (f > 0 and math.isfinite(f)):
@@ -159,13 +186,13 @@ class VideoSource(LazySource):
         try:
             w, h = (int(x) for x in resize)
         except (TypeError, ValueError) as e:
-            raise InputError(f"data.resize: expected a factor or [W, H] pixels, got {resize!r}") from e
+            raise InputError(f"data.resize: expected auto, a factor or [W, H] pixels, got {resize!r}") from e
         if w < 1 or h < 1:
             raise InputError(f"data.resize: [W, H] must be positive, got {resize!r}")
         return h, w
 
     def _frame(self, index: int) -> torch.Tensor:
-        """Video frame ``index`` as (3, H, W) float32 RGB in [0, 1] (resized)."""
+        """Video frame ``index`` as (3, H, W) float32 RGB in [0, 1] (undistorted, resized)."""
         if index in self._cache:
             return self._cache[index]
         if self._cap is None or index < self._pos:
@@ -191,8 +218,7 @@ class VideoSource(LazySource):
         if img.shape[:2] != self.size_in:
             raise InputError(f"video: frame {index} of {self.path} is {img.shape[1]}x{img.shape[0]}, the first frame "
                              f"{self.size_in[1]}x{self.size_in[0]}")
-        if img.shape[:2] != self.size:
-            img = cv2.resize(img, (self.size[1], self.size[0]), interpolation=cv2.INTER_AREA)
+        img = self._warp.image(img)
         rgb = np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).transpose(2, 0, 1))
         t = torch.from_numpy(rgb).float() / _MAX_U8
         self._cache = {k: v for k, v in self._cache.items() if k >= index - self._keep} | {index: t}
@@ -224,6 +250,9 @@ class VideoSource(LazySource):
                                 "intrinsics": self.intrinsics_source}
         if dt is not None:
             meta["dt"] = dt
+        ignore = self._warp.ignore_mask()
+        if ignore is not None:
+            meta["ignore_mask"] = ignore
         return FramePair(image=image, image_prev=image_prev, camera=self.camera, motion=None, gt=GroundTruth(),
                          name=f"{self.path.stem}_{item.frame:06d}", meta=meta)
 
@@ -237,14 +266,19 @@ class VideoSource(LazySource):
 
 
 def _video_camera(intrinsics: Path | None, hfov_deg: float | None, size_in: tuple[int, int],
-                  size: tuple[int, int], camera_height: float, pitch: float) -> tuple[Camera, str]:
-    """The camera of a video's frames resized from ``size_in`` to ``size`` (H, W) pixels, and where its
-    intrinsics came from: an intrinsics file (fx fy cx cy of the stored frames) or, approximate, a
-    horizontal field of view (degrees)."""
+                  size: tuple[int, int], camera_height: float, pitch: float,
+                  mask: str | Path | None = None) -> tuple[Camera, str, FrameWarp]:
+    """The camera of a video's frames undistorted and resized from ``size_in`` to ``size`` (H, W) pixels,
+    where its intrinsics came from (an intrinsics file: fx fy cx cy and the distortion of the stored
+    frames, or, approximate, a horizontal field of view in degrees) and the warp that makes the frames
+    (with the user's mask, read and checked against ``size_in``)."""
     H0, W0 = size_in
+    distortion = None
     if intrinsics is not None:
         source = str(intrinsics)
         fx, fy, cx, cy = read_intrinsics_file(intrinsics)
+        distortion = read_distortion(intrinsics)
+        check_intrinsics_size(intrinsics, size_in, "the video's frames")
     elif hfov_deg is not None:
         source = f"hfov {float(hfov_deg):g} deg (approximate)"
         fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
@@ -253,9 +287,9 @@ def _video_camera(intrinsics: Path | None, hfov_deg: float | None, size_in: tupl
     else:
         raise InputError("video: no intrinsics: set data.intrinsics=FILE (fx fy cx cy) or data.hfov_deg=DEGREES "
                          "(horizontal field of view, approximate)")
-    sx, sy = size[1] / W0, size[0] / H0
-    # Pixel centres at integers: u' + 0.5 = s (u + 0.5).
-    return make_camera(fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, camera_height, pitch), source
+    user_mask = None if mask is None else read_mask_file(mask, size_in)
+    warp = FrameWarp((fx, fy, cx, cy), distortion, size_in, size, user_mask)
+    return make_camera(*warp.intrinsics, camera_height, pitch), source, warp
 
 
 def is_live_path(path: Any) -> bool:
@@ -303,7 +337,8 @@ class LiveVideoSource:
     Args:
         path: a camera index (int or digits), a URL, or a video file.
         realtime: drop the frames that arrive while one is being solved (see above).
-        intrinsics, hfov_deg, resize, camera_height, pitch: as for :class:`VideoSource`.
+        intrinsics, hfov_deg, resize, camera_height, pitch, mask: as for :class:`VideoSource` (a mask then
+            has the stream's frame size).
         step: frames read per frame offered (1 = every frame).
         start: frames skipped at the start; end: stop before this capture index (None = the end).
         frames: at most this many pairs (None = until the stream ends).
@@ -311,7 +346,8 @@ class LiveVideoSource:
 
     Raises:
         InputError: a camera or URL that cannot be opened, a file that cannot be decoded, a stream that
-            ends before two frames, no intrinsics, a bad ``step`` / ``start`` / ``end`` / ``resize``.
+            ends before two frames, no intrinsics, a bad ``step`` / ``start`` / ``end`` / ``resize``, a
+            malformed distortion entry, a mask of another size.
     """
 
     #: Frames the reader may queue ahead of the consumer without ``realtime``.
@@ -322,7 +358,8 @@ class LiveVideoSource:
     def __init__(self, path: Any, *, realtime: bool = False, intrinsics: str | Path | None = None,
                  hfov_deg: float | None = None, step: int = 1, start: int = 0, end: int | None = None,
                  resize: float | Sequence[int] | None = None, frames: int | None = None,
-                 camera_height: float = KITTI_CAMERA_HEIGHT_M, pitch: float = 0.0, window: int = 10) -> None:
+                 camera_height: float = KITTI_CAMERA_HEIGHT_M, pitch: float = 0.0, window: int = 10,
+                 mask: str | Path | None = None) -> None:
         if path is None or str(path) == "":
             raise InputError("video data.path: no camera, URL or video file given (data.path=0, data.path=rtsp://..., "
                              "data.path=clip.mp4)")
@@ -362,10 +399,10 @@ class LiveVideoSource:
             raise InputError(f"data.realtime: {self.path} stores no frame rate, so its frames cannot arrive in time")
         H0, W0 = first.shape[:2]
         self.size_in = (H0, W0)
-        self.size = VideoSource._out_size(resize, W0, H0)
         try:
-            self.camera, self.intrinsics_source = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
-                                                                camera_height, pitch)
+            self.size = VideoSource._out_size(resize, W0, H0)
+            self.camera, self.intrinsics_source, self._warp = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
+                                                                            camera_height, pitch, mask)
         except InputError:
             cap.release()
             raise
@@ -398,8 +435,7 @@ class LiveVideoSource:
         if img.shape[:2] != self.size_in:
             raise InputError(f"video: a frame of {self.path} is {img.shape[1]}x{img.shape[0]}, the first "
                              f"{self.size_in[1]}x{self.size_in[0]}")
-        if img.shape[:2] != self.size:
-            img = cv2.resize(img, (self.size[1], self.size[0]), interpolation=cv2.INTER_AREA)
+        img = self._warp.image(img)
         return torch.from_numpy(np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB).transpose(2, 0, 1)))
 
     def _read(self, cap: Any, first: np.ndarray) -> None:
@@ -535,6 +571,9 @@ class LiveVideoSource:
                                 "dropped_before": cur.dropped, "realtime": self.realtime, "back": int(back)}
         if cur.time > prev.time:
             meta["dt"] = cur.time - prev.time
+        ignore = self._warp.ignore_mask()
+        if ignore is not None:
+            meta["ignore_mask"] = ignore
         return FramePair(image=cur.image.float() / _MAX_U8, image_prev=prev.image.float() / _MAX_U8, camera=self.camera,
                          motion=None, gt=GroundTruth(), name=self._name(cur), meta=meta)
 
