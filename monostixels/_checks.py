@@ -11,12 +11,29 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import torch
 
-__all__ = ["InputError", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
+__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
            "check_rotation", "check_same_size", "params_from_config"]
 
 
 class InputError(ValueError):
     """A public entry point was given an input it cannot use; the message names the input."""
+
+
+#: Smallest frame ``(H, W)`` in pixels the pipeline solves. The binding limit is the flow pyramid:
+#: OpenCV's DIS (8-pixel patches; also DeepFlow's matches) kills the process with a segmentation fault
+#: on frames 12 rows high and fails on 16-24 px sides of wide frames (measured, OpenCV 5.1), while 32 px
+#: sides pass at any aspect ratio. 32 px is also the FCN-8s stride (a smaller side would be a single,
+#: mostly padded cell at its coarsest layer), and leaves at least 6 columns of ``w_s = 5`` px, 10 DP
+#: cells of 3 rows and room for the 13 px window of the flow confidence's structure tensor.
+MIN_FRAME_SIZE: tuple[int, int] = (32, 32)
+
+
+def check_frame_size(height: int, width: int, name: str) -> None:
+    """Fail unless a frame of ``height`` x ``width`` pixels is at least :data:`MIN_FRAME_SIZE`."""
+    min_h, min_w = MIN_FRAME_SIZE
+    if int(height) < min_h or int(width) < min_w:
+        raise InputError(f"{name}: frame of {int(width)}x{int(height)} pixels (W x H) is smaller than the "
+                         f"{min_w}x{min_h} the pipeline can solve (MIN_FRAME_SIZE: the flow pyramid needs it)")
 
 
 def check_shape(x: torch.Tensor, shape: Sequence[int | str | None], name: str) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from monostixels.stixels import StixelWorld
 
@@ -184,3 +185,41 @@ def test_run_video_fails_clearly(tmp_path, case):
     err = p.stderr.lower()
     assert p.returncode != 0 and "error" in err and "traceback" not in err
     assert {"missing": "does not exist", "no_intrinsics": "hfov_deg", "one_frame": "at least two"}[case] in err
+
+
+def _one_error_line(stderr: str) -> str:
+    """The stderr of a run that failed on a bad input: exactly one `error:` line, no traceback."""
+    lines = [ln for ln in stderr.splitlines() if "error:" in ln]
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("size", [(12, 40), (2, 2), (1, 1000)])
+def test_run_on_frames_below_the_minimum_size_fails_clearly(tmp_path, size):
+    """A 40x12 frame killed the process (a segfault in OpenCV); now one line naming the size and the minimum."""
+    from monostixels._checks import MIN_FRAME_SIZE
+
+    H, W = size
+    frames = tmp_path / "f"
+    frames.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        cv2.imwrite(str(frames / f"{k:04d}.png"), (rng.random((H, W, 3)) * 255).astype(np.uint8))
+    (frames / "intrinsics.yaml").write_text(f"fx: {W}\nfy: {W}\ncx: {W / 2}\ncy: {H / 2}\n")
+    p = _cli(["run", "data=frames", f"data.root={frames}", "flow=dis", "semantic=none"], tmp_path, check=False)
+    assert p.returncode == 1
+    line = _one_error_line(p.stderr)
+    assert f"{W}x{H}" in line and f"{MIN_FRAME_SIZE[1]}x{MIN_FRAME_SIZE[0]}" in line
+
+
+def test_pipeline_refuses_a_frame_below_the_minimum_size():
+    from monostixels._checks import MIN_FRAME_SIZE, InputError
+    from monostixels.data.base import FramePair
+    from monostixels.geometry import Camera, intrinsics
+    from monostixels.pipeline import Pipeline, load_config
+
+    H, W = MIN_FRAME_SIZE[0] - 1, 200
+    img = torch.rand(3, H, W)
+    pair = FramePair(image=img, image_prev=img.clone(), camera=Camera(K=intrinsics(100.0, 100.0, W / 2, H / 2)), name="tiny")
+    with pytest.raises(InputError, match=rf"tiny: frame of {W}x{H}"):
+        Pipeline(load_config(["flow=dis", "semantic=none", "motion=mono"])).run(pair)
