@@ -125,19 +125,27 @@ def main() -> None:
 
 
 def _run_command(cfg: DictConfig) -> Any:
-    from monostixels._checks import InputError
+    from monostixels._checks import InputError, numeric_text_error
 
     logging.getLogger("monostixels").setLevel(str(cfg.log_level))
     try:
-        if cfg.command == "demo":
-            return _demo(cfg)
-        if cfg.command == "eval":
-            return _eval(cfg)
-        if cfg.command == "batch":
-            from monostixels.batch import run_batch
+        try:
+            if cfg.command == "demo":
+                return _demo(cfg)
+            if cfg.command == "eval":
+                return _eval(cfg)
+            if cfg.command == "batch":
+                from monostixels.batch import run_batch
 
-            return run_batch(cfg)
-        return _run(cfg)
+                return run_batch(cfg)
+            return _run(cfg)
+        except ValueError as e:
+            # Options are converted where they are used (float(cfg.data.hfov_deg)): text given for a
+            # number (data.hfov_deg=wide) fails there without naming the option; name it here.
+            named = None if isinstance(e, InputError) else numeric_text_error(cfg, e)
+            if named is None:
+                raise
+            raise named from None
     except InputError as e:
         # A user's bad input: one clear line, no traceback.
         print(f"monostixels {cfg.command}: error: {e}", file=sys.stderr)

@@ -223,3 +223,48 @@ def test_pipeline_refuses_a_frame_below_the_minimum_size():
     pair = FramePair(image=img, image_prev=img.clone(), camera=Camera(K=intrinsics(100.0, 100.0, W / 2, H / 2)), name="tiny")
     with pytest.raises(InputError, match=rf"tiny: frame of {W}x{H}"):
         Pipeline(load_config(["flow=dis", "semantic=none", "motion=mono"])).run(pair)
+
+
+@pytest.mark.parametrize("option, key, what", [("data.hfov_deg=wide", "data.hfov_deg", "a number"),
+                                                ("data.step=two", "data.step", "an integer"),
+                                                ("prior.alpha_L=big", "prior.alpha_L", "a number")])
+def test_numeric_option_given_as_text_fails_clearly(tmp_path, option, key, what):
+    """Text for a number option: one line naming the option (was a bare 'could not convert string to float')."""
+    clip = tmp_path / "clip.mp4"
+    vw = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (64, 48))
+    for k in range(3):
+        vw.write(np.full((48, 64, 3), 60 + 20 * k, np.uint8))
+    vw.release()
+    p = _cli(["run", "data=video", f"data.path={clip}", "data.hfov_deg=90", option, "flow=dis", "semantic=none"],
+             tmp_path, check=False)
+    assert p.returncode == 1
+    value = option.split("=", 1)[1]
+    assert _one_error_line(p.stderr).endswith(f"error: {key}: expected {what}, got '{value}'")
+
+
+def test_number_checks_name_the_option():
+    from dataclasses import dataclass
+
+    from monostixels._checks import InputError, check_number, numeric_text_error, params_from_config
+
+    @dataclass
+    class P:
+        gain: float = 1.0
+        label: str = "x"
+
+    assert params_from_config(P, {"gain": "2.5", "label": "y"}, "grp") == P(2.5, "y")
+    with pytest.raises(InputError, match=r"^grp\.gain: expected a number, got 'wide'$"):
+        params_from_config(P, {"gain": "wide"}, "grp")
+    assert check_number("3", "n", int) == 3
+    with pytest.raises(InputError, match="n: expected an integer, got '2.5'"):
+        check_number("2.5", "n", int)
+    with pytest.raises(InputError, match="expected a number, got True"):
+        check_number(True, "flag")
+    cfg = {"data": {"hfov_deg": "wide", "name": "video"}, "prior": {"beta_mc": 25.0}}
+    try:
+        float(cfg["data"]["hfov_deg"])
+    except ValueError as e:
+        err = numeric_text_error(cfg, e)
+    assert str(err) == "data.hfov_deg: expected a number, got 'wide'"
+    assert numeric_text_error(cfg, ValueError("could not convert string to float: 'other'")) is None
+    assert numeric_text_error(cfg, ValueError("something else")) is None
