@@ -29,15 +29,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, check_same_size
 from monostixels.data._io import (
     LazySource,
+    UnreadableFrame,
     limit_frames,
     list_images,
     make_camera,
-    read_image_pair,
     read_intrinsics_file,
+    read_rgb,
     read_poses_file,
     relative_motion,
     require_dir,
@@ -156,8 +158,19 @@ class FramesSource(LazySource):
     def _prev_name(self, item: _Pair) -> str:
         return item.path_prev.stem
 
+    def _cur_name(self, item: _Pair) -> str:
+        return item.path.stem
+
+    def _read(self, path: Path, current: bool) -> torch.Tensor:
+        """:func:`read_rgb`; a file that cannot be decoded is an :class:`UnreadableFrame` (skipped by the pairs)."""
+        try:
+            return read_rgb(path)
+        except InputError as err:
+            raise UnreadableFrame(str(err), name=path.stem, label=path.name, current=current) from None
+
     def _load(self, item: _Pair) -> FramePair:
-        image, image_prev = read_image_pair(item.path, item.path_prev)
+        image, image_prev = self._read(item.path, True), self._read(item.path_prev, False)
+        check_same_size(image, image_prev, f"image {item.path} (current)", f"image {item.path_prev} (previous)")
         motion = self._pair_motion(item)
         meta = {"source": "frames", "index": item.index, "path": str(item.path), "path_prev": str(item.path_prev),
                 "intrinsics": str(self.intrinsics_path), "sequence": self._sequence_key(item),
