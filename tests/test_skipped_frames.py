@@ -79,7 +79,7 @@ def test_frames_pair_across_a_corrupt_image(tmp_path, caplog):
         pairs = list(src)
     assert [(p.name, p.meta["name_prev"], p.meta["back"]) for p in pairs] == [
         ("0001", "0000", 1), ("0004", "0001", 3), ("0005", "0004", 1)]
-    assert pairs[1].meta["skipped_before"] == ["0003.png", "0002.png"]
+    assert pairs[1].meta["skipped_before"] == ["0002.png", "0003.png"]
     assert src.skipped_frames == ["0002.png", "0003.png"] and src.restarts == []
     assert "skipping 0002.png" in caplog.text and "skipping 0003.png" in caplog.text
     assert len({src.sequence_key(i) for i in range(len(src))}) == 1
@@ -166,3 +166,15 @@ def test_run_fails_where_fewer_than_two_frames_can_be_read(tmp_path):
     lines = [ln for ln in p.stderr.splitlines() if "error:" in ln]
     assert p.returncode == 1 and len(lines) == 1 and "Traceback" not in p.stderr
     assert "0000.png, 0002.png" in lines[0] and "no frame pair could be made" in lines[0]
+
+
+def test_eval_counts_skipped_frames(tmp_path):
+    """`eval`'s report keeps its keys and adds the optional count of unreadable frames."""
+    from monostixels.eval.evaluate import evaluate
+    from monostixels.pipeline import load_config
+
+    cfg = load_config(["data=frames", f"data.root={_folder(tmp_path / 'f', 4, bad=[1])}", "flow=dis",
+                       "semantic=none", "motion=mono"])
+    report = evaluate(cfg, FramesSource(cfg.data.root), dataset="frames", progress=False)
+    assert report["skipped_frames"] == 1
+    assert {"dataset", "frames", "methods"} <= set(report) and "monostixels" in report["methods"]

@@ -462,6 +462,8 @@ class LazySource(Sequence[FramePair]):
         return list(self.__dict__.get("_restarts", {}).values())
 
     def _note_unreadable(self, err: UnreadableFrame) -> None:
+        # State kept in the instance's __dict__, created on first use: subclasses fill their own in
+        # __init__ and call no LazySource.__init__.
         unreadable = self.__dict__.setdefault("_unreadable", {})
         if err.name not in unreadable:
             unreadable[err.name] = err.label
@@ -492,7 +494,7 @@ class LazySource(Sequence[FramePair]):
                                    name, why)
                 raise PairSkipped(f"{name}: {why}")
             if self._prev_name(it) in unreadable:  # known: not decoded again (a video would seek back)
-                crossed.append(unreadable[self._prev_name(it)])
+                crossed.insert(0, unreadable[self._prev_name(it)])  # kept in time order
                 b += 1
                 continue
             try:
@@ -501,7 +503,7 @@ class LazySource(Sequence[FramePair]):
                 self._note_unreadable(err)
                 if err.current:
                     raise PairSkipped(f"{err.label} is unreadable: the pair of that frame is skipped") from None
-                crossed.append(err.label)
+                crossed.insert(0, err.label)
                 b += 1
                 continue
             pair.meta["back"] = b
