@@ -299,10 +299,13 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
             for k, v in rows.items():
                 columns[k].extend(v)
             frames += 1
+        skipped = list(getattr(src, "skipped_frames", []))  # unreadable frames, warned about and skipped
+        if skipped:
+            entry["skipped_frames"] = skipped
+            if frames == 0:
+                raise InputError(f"{clip.path}: no frame pair could be made: {len(skipped)} unreadable frame(s) skipped")
         table = pa.Table.from_pydict(columns, schema=arrow_schema())
         entry.update(frames=frames, rows=table.num_rows, status="ok")
-        if getattr(src, "skipped_frames", None):
-            entry["skipped_frames"] = list(src.skipped_frames)  # unreadable frames, warned about and skipped
         return entry, table
     except InputError as e:
         entry["error"] = str(e)
