@@ -11,12 +11,29 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import torch
 
-__all__ = ["InputError", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
+__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
            "check_rotation", "check_same_size", "params_from_config"]
 
 
 class InputError(ValueError):
     """A public entry point was given an input it cannot use; the message names the input."""
+
+
+#: Smallest frame ``(H, W)`` in pixels the pipeline solves. The binding limit is the flow pyramid:
+#: OpenCV's DIS (8-pixel patches; also DeepFlow's matches) kills the process with a segmentation fault
+#: on frames 12 rows high and fails on 16-24 px sides of wide frames (measured, OpenCV 5.1), while 32 px
+#: sides pass at any aspect ratio. 32 px is also the FCN-8s stride (a smaller side would be a single,
+#: mostly padded cell at its coarsest layer), and leaves at least 6 columns of ``w_s = 5`` px, 10 DP
+#: cells of 3 rows and room for the 13 px window of the flow confidence's structure tensor.
+MIN_FRAME_SIZE: tuple[int, int] = (32, 32)
+
+
+def check_frame_size(height: int, width: int, name: str) -> None:
+    """Fail unless a frame of ``height`` x ``width`` pixels is at least :data:`MIN_FRAME_SIZE`."""
+    min_h, min_w = MIN_FRAME_SIZE
+    if int(height) < min_h or int(width) < min_w:
+        raise InputError(f"{name}: frame of {int(width)}x{int(height)} pixels (W x H) is smaller than the "
+                         f"{min_w}x{min_h} the pipeline can solve (MIN_FRAME_SIZE: the flow pyramid needs it)")
 
 
 def check_shape(x: torch.Tensor, shape: Sequence[int | str | None], name: str) -> None:
@@ -104,6 +121,69 @@ def check_same_size(a: torch.Tensor, b: torch.Tensor, name_a: str, name_b: str) 
         )
 
 
+def check_number(value: Any, name: str, kind: type = float) -> float | int:
+    """``value`` as a ``float`` (or ``int`` with ``kind=int``), or an ``InputError`` naming the option.
+
+    A number, or text that is one (``"1.5"`` from a quoted YAML value), is converted; other text,
+    a bool or a list is an error such as ``data.hfov_deg: expected a number, got 'wide'``.
+    """
+    what = "an integer" if kind is int else "a number"
+    if isinstance(value, bool) or not isinstance(value, (int, float, str, np.integer, np.floating)):
+        raise InputError(f"{name}: expected {what}, got {value!r}")
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        # int("2.5") fails as well as int("wide"): both are not an integer.
+        raise InputError(f"{name}: expected {what}, got {value!r}") from None
+
+
+#: ``str(ValueError)`` of Python's number conversions of text (``float("wide")``, ``int("wide")``):
+#: the text is the ``repr`` after the colon.
+_CONVERSION_ERRORS = ("could not convert string to float: ", "invalid literal for int() with base 10: ")
+
+
+def numeric_text_error(cfg: Any, error: BaseException) -> InputError | None:
+    """The :class:`InputError` naming the option(s) of ``cfg`` behind a failed number conversion.
+
+    Options reach the code as config values and are converted where they are used
+    (``float(cfg.data.hfov_deg)``); text such as ``data.hfov_deg=wide`` then fails there with a bare
+    ``ValueError`` that names no option. Given that error, this finds the config leaves holding that
+    text and returns ``data.hfov_deg: expected a number, got 'wide'``; None when ``error`` is no such
+    conversion error or no option holds the text (then it is not a user's option: a real bug).
+    """
+    if not isinstance(error, ValueError):
+        return None
+    msg = str(error)
+    prefix = next((p for p in _CONVERSION_ERRORS if msg.startswith(p)), None)
+    if prefix is None:
+        return None
+    text = msg[len(prefix):]
+    names = [k for k, v in _leaves(cfg, "") if isinstance(v, str) and repr(v) == text]
+    if not names:
+        return None
+    what = "an integer" if "int()" in prefix else "a number"
+    return InputError(f"{', '.join(names)}: expected {what}, got {text}")
+
+
+def _leaves(node: Any, prefix: str) -> Iterable[tuple[str, Any]]:
+    """``(dotted key, value)`` of every leaf of a dict / list / OmegaConf node (interpolations unresolved
+    are skipped: they are no user's text)."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+    except ImportError:  # pragma: no cover - omegaconf ships with the package
+        DictConfig = ListConfig = ()  # type: ignore[assignment,misc]
+    if isinstance(node, (DictConfig, ListConfig)):
+        node = OmegaConf.to_container(node, resolve=False)
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _leaves(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            yield from _leaves(v, f"{prefix}[{i}]")
+    else:
+        yield prefix, node
+
+
 def check_keys(given: Iterable[str], expected: Iterable[str], name: str) -> None:
     """Fail unless a config node has exactly the ``expected`` keys, naming unknown and missing ones."""
     given, expected = set(given), set(expected)
@@ -117,7 +197,9 @@ def params_from_config(cls: type, cfg: Any, group: str) -> Any:
 
     A key the node leaves out takes the dataclass default; a key it sets, ``null`` included, is passed
     on for ``cls`` to validate (a ``null`` is never silently replaced by the default). An unknown key
-    fails with the known ones named (``name``, a config group's own label, is ignored).
+    fails with the known ones named (``name``, a config group's own label, is ignored). Text given for
+    a field typed ``float`` / ``int`` is converted where it is a number, else an error naming
+    ``group.key`` (:func:`check_number`).
     """
     if cfg is None:
         return cls()
@@ -128,4 +210,12 @@ def params_from_config(cls: type, cfg: Any, group: str) -> Any:
     extra = [k for k in keys if k not in known | {"name"}]
     if extra:
         raise InputError(f"{group}: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known))}")
-    return cls(**{k: cfg[k] for k in keys if k in known})
+    types = {f.name: str(f.type) for f in fields(cls)}
+    values = {k: cfg[k] for k in keys if k in known}
+    for k, v in values.items():
+        if isinstance(v, str):
+            # A number field given as text: name the option here, not in the dataclass's float().
+            kinds = set(types[k].replace("|", " ").replace(",", " ").split())
+            if kinds & {"float", "int"} and not kinds & {"str", "Any"}:
+                values[k] = check_number(v, f"{group}.{k}", float if "float" in kinds else int)
+    return cls(**values)

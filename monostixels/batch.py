@@ -6,7 +6,8 @@ folder of images with its intrinsics file) as one Ray task and writes
 
 - ``DIR/stixels.parquet/clip=<name>/part-0.parquet``: a Parquet dataset partitioned by clip
   (hive layout), one row per stixel per frame, columns :data:`SCHEMA`;
-- ``DIR/summary.json``: per clip its input, frames, status (``ok`` | ``failed``), error and seconds.
+- ``DIR/summary.json``: per clip its input, frames, status (``ok`` | ``failed``), error and seconds (and
+  ``skipped_frames``, the unreadable frames skipped, where there were any).
 
 A clip that fails (unreadable, too short, no intrinsics...) is recorded with its reason while the
 others go on. A second run into the same ``DIR`` skips the clips already there (and those that
@@ -299,6 +300,11 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
             for k, v in rows.items():
                 columns[k].extend(v)
             frames += 1
+        skipped = list(getattr(src, "skipped_frames", []))  # unreadable frames, warned about and skipped
+        if skipped:
+            entry["skipped_frames"] = skipped
+            if frames == 0:
+                raise InputError(f"{clip.path}: no frame pair could be made: {len(skipped)} unreadable frame(s) skipped")
         table = pa.Table.from_pydict(columns, schema=arrow_schema())
         entry.update(frames=frames, rows=table.num_rows, status="ok")
         return entry, table

@@ -17,6 +17,7 @@ Usage::
 """
 from __future__ import annotations
 
+import json
 import logging
 import sys
 from pathlib import Path
@@ -130,21 +131,29 @@ def main() -> None:
 
 
 def _run_command(cfg: DictConfig) -> Any:
-    from monostixels._checks import InputError
+    from monostixels._checks import InputError, numeric_text_error
 
     logging.getLogger("monostixels").setLevel(str(cfg.log_level))
     try:
-        if cfg.command == "demo":
-            return _demo(cfg)
-        if cfg.command == "eval":
-            return _eval(cfg)
-        if cfg.command == "batch":
-            from monostixels.batch import run_batch
+        try:
+            if cfg.command == "demo":
+                return _demo(cfg)
+            if cfg.command == "eval":
+                return _eval(cfg)
+            if cfg.command == "batch":
+                from monostixels.batch import run_batch
 
-            return run_batch(cfg)
-        if cfg.command == "calibrate":
-            return _calibrate(cfg)
-        return _run(cfg)
+                return run_batch(cfg)
+            if cfg.command == "calibrate":
+                return _calibrate(cfg)
+            return _run(cfg)
+        except ValueError as e:
+            # Options are converted where they are used (float(cfg.data.hfov_deg)): text given for a
+            # number (data.hfov_deg=wide) fails there without naming the option; name it here.
+            named = None if isinstance(e, InputError) else numeric_text_error(cfg, e)
+            if named is None:
+                raise
+            raise named from None
     except InputError as e:
         # A user's bad input: one clear line, no traceback.
         print(f"monostixels {cfg.command}: error: {e}", file=sys.stderr)
@@ -256,6 +265,9 @@ def _eval(cfg: DictConfig) -> float:
     if report.get("failed_frames"):
         print(f"camera motion could not be estimated on {len(report['failed_frames'])} frame(s), scored with no "
               f"estimate: {', '.join(report['failed_frames'])}")
+    if report.get("skipped_frames"):
+        skipped = list(getattr(src, "skipped_frames", []))
+        print(f"{len(skipped)} unreadable frame(s) skipped: {_listed(skipped)}")
     if cfg.out:
         path = write_report(report, cfg.out)
         print(f"wrote {path}")
@@ -325,6 +337,7 @@ def _run(cfg: DictConfig) -> None:
     from monostixels._checks import InputError
 
     from monostixels.bev import bev_image
+    from monostixels.data._io import MAX_SKIPPED_FRAMES
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
@@ -382,12 +395,15 @@ def _run(cfg: DictConfig) -> None:
     for v in videos.values():
         v.release()
     recording = recorder.close()
+    skipped = list(getattr(src, "skipped_frames", []))
+    if written == 0 and skipped:
+        raise InputError(f"run: no frame pair could be made: {len(skipped)} unreadable frame(s) skipped "
+                         f"({_listed(skipped)}); a pair needs two readable frames at most "
+                         f"{MAX_SKIPPED_FRAMES + 1} frames apart")
     stream = None
     if live:
         # Which frames were processed (and how many dropped): docs/conventions.md, section 4.3
         # (data.realtime).
-        import json
-
         stream = out / "stream.json"
         out.mkdir(parents=True, exist_ok=True)
         summary = src.summary()
@@ -395,10 +411,18 @@ def _run(cfg: DictConfig) -> None:
         if summary["realtime"]:
             print(f"run: {summary['frames_taken']} of {summary['frames_read']} frames taken, "
                   f"{summary['frames_dropped']} dropped while solving (realtime); {stream}")
+    out.mkdir(parents=True, exist_ok=True)
+    restarts = list(getattr(src, "restarts", []))
+    # What the run made of its input; unreadable frames are listed, never dropped silently.
+    run_summary = {"data": str(cfg.data.name), "frame_pairs": written, "skipped_frames": skipped,
+                   "sequence_restarts": restarts}
+    (out / "summary.json").write_text(json.dumps(run_summary, indent=2))
     print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png bev.png figure.png depth.png depth16.png "
           f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else "")
           + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else "")
-          + (f"; processed frames {stream}" if stream else ""))
+          + (f"; processed frames {stream}" if stream else "")
+          + (f"; {len(skipped)} unreadable frame(s) skipped: {_listed(skipped)}" if skipped else "")
+          + f"; {out / 'summary.json'}")
     for line in camera_summary(camera, _camera_height(cfg)):
         print(f"run: {line}")
 
@@ -441,6 +465,12 @@ def camera_summary(flags: list[dict[str, Any]], height: float) -> list[str]:
                            height, med, 100.0 * abs(med / height - 1.0))
     lines.append(line)
     return lines
+
+
+def _listed(names: list[str], most: int = 20) -> str:
+    """``a, b, c`` of the first ``most`` names, ``... (N more)`` for the rest: a line stays a line."""
+    return ", ".join(names[:most]) + (f", ... ({len(names) - most} more)" if len(names) > most else "")
+
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ from typing import Any, Mapping
 
 import torch
 
-from monostixels._checks import InputError, check_keys
+from monostixels._checks import InputError, check_keys, check_number
 
 __all__ = [
     "GRAVITY_TOLERANCE_M",
@@ -70,7 +70,7 @@ class PriorParams:
     def from_config(cls, cfg: Mapping[str, Any]) -> "PriorParams":
         """Build from the ``prior`` config node; unknown or missing keys are errors."""
         check_keys(cfg.keys(), cls.names(), "prior config")
-        values = {k: float(cfg[k]) for k in cls.names()}
+        values = {k: float(check_number(cfg[k], f"prior.{k}")) for k in cls.names()}
         for k, v in values.items():
             if not torch.isfinite(torch.tensor(v)):
                 raise InputError(f"prior.{k}: must be finite, got {v}")

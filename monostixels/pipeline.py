@@ -26,7 +26,7 @@ from typing import Sequence
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, check_frame_size
 from monostixels.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
 from monostixels.energy import PriorParams
@@ -194,6 +194,8 @@ class Pipeline:
                 last pair was solved. None, or a pair that does not continue the stream: every stage
                 from scratch.
         """
+        # Before any stage: OpenCV's flow kills the process on frames below MIN_FRAME_SIZE.
+        check_frame_size(*pair.size, pair.name or "frame")
         sec: dict[str, float] = {}
         start = time.perf_counter()
         full = pair
@@ -220,6 +222,7 @@ class Pipeline:
         stream (``stream.semantic_every``) follow the flow instead. A keyframe pair given the kept flows of
         the frames between (``carried.chain``) takes its flow chained through them.
         """
+        check_frame_size(*pair.size, pair.name or "frame")
         sec: dict[str, float] = {}
         # Beside an image flow backend, one ONNX Runtime thread: its default pool (one spinning
         # thread per core) took the cores of DeepFlow's strips. Same scores either way; the

@@ -43,6 +43,7 @@ from omegaconf import DictConfig
 
 from monostixels._checks import InputError, params_from_config
 from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.geometry import Motion
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
@@ -207,20 +208,27 @@ class SequenceRunner:
         # pairs' indices as frames arrive.
         for i in (source.indices() if hasattr(source, "indices") else range(len(source))):
             key = source.sequence_key(i) if sequential else None
-            if key is None:
-                self.reset()
-                pair = source[i]
-                step = self._solve(i, pair, None, None)
-            else:
-                if key != self.key:
+            try:
+                if key is None:
                     self.reset()
-                    self.key = key
-                cands = self._solved(source.previous_frames(i, self.keyframes.window), key)
-                back, driven = choose_keyframe(cands, self.keyframes, self.speed, self.use_gt_distance,
-                                               self.standing_m)
-                pair = source.pair_back(i, back) if back != 1 else source[i]
-                pair.meta.setdefault("back", back)
-                step = self._solve(i, pair, back, driven)
+                    pair = source[i]
+                    step = self._solve(i, pair, None, None)
+                else:
+                    if key != self.key:
+                        self.reset()
+                        self.key = key
+                    cands = self._solved(source.previous_frames(i, self.keyframes.window), key)
+                    back, driven = choose_keyframe(cands, self.keyframes, self.speed, self.use_gt_distance,
+                                                   self.standing_m)
+                    pair = source.pair_back(i, back) if back != 1 else source[i]
+                    # Paired across unreadable frames, the pair reaches further back than chosen.
+                    back = int(pair.meta.setdefault("back", back))
+                    step = self._solve(i, pair, back, driven)
+            except PairSkipped:
+                # Its frames could not be read: the source warned and lists them (skipped_frames).
+                if progress is not None:
+                    progress.update(1)
+                continue
             if progress is not None:
                 progress.update(1)
             yield step

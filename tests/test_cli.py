@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from monostixels.stixels import StixelWorld
 
@@ -219,3 +220,86 @@ def test_calibrate_fails_clearly(tmp_path, case):
     assert line.startswith("monostixels calibrate: error: calibrate.images:") and f"{images}/*.jpg" in line
     assert {"no_match": "no image file matches", "no_board": "found in 0 of the 3 images"}[case] in line
     assert not (tmp_path / "intrinsics.yaml").exists()
+
+
+def _one_error_line(stderr: str) -> str:
+    """The stderr of a run that failed on a bad input: exactly one `error:` line, no traceback."""
+    lines = [ln for ln in stderr.splitlines() if "error:" in ln]
+    assert len(lines) == 1 and "Traceback" not in stderr, stderr
+    return lines[0]
+
+
+@pytest.mark.parametrize("size", [(12, 40), (2, 2), (1, 1000)])
+def test_run_on_frames_below_the_minimum_size_fails_clearly(tmp_path, size):
+    """A 40x12 frame killed the process (a segfault in OpenCV); now one line naming the size and the minimum."""
+    from monostixels._checks import MIN_FRAME_SIZE
+
+    H, W = size
+    frames = tmp_path / "f"
+    frames.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        cv2.imwrite(str(frames / f"{k:04d}.png"), (rng.random((H, W, 3)) * 255).astype(np.uint8))
+    (frames / "intrinsics.yaml").write_text(f"fx: {W}\nfy: {W}\ncx: {W / 2}\ncy: {H / 2}\n")
+    p = _cli(["run", "data=frames", f"data.root={frames}", "flow=dis", "semantic=none"], tmp_path, check=False)
+    assert p.returncode == 1
+    line = _one_error_line(p.stderr)
+    assert f"{W}x{H}" in line and f"{MIN_FRAME_SIZE[1]}x{MIN_FRAME_SIZE[0]}" in line
+
+
+def test_pipeline_refuses_a_frame_below_the_minimum_size():
+    from monostixels._checks import MIN_FRAME_SIZE, InputError
+    from monostixels.data.base import FramePair
+    from monostixels.geometry import Camera, intrinsics
+    from monostixels.pipeline import Pipeline, load_config
+
+    H, W = MIN_FRAME_SIZE[0] - 1, 200
+    img = torch.rand(3, H, W)
+    pair = FramePair(image=img, image_prev=img.clone(), camera=Camera(K=intrinsics(100.0, 100.0, W / 2, H / 2)), name="tiny")
+    with pytest.raises(InputError, match=rf"tiny: frame of {W}x{H}"):
+        Pipeline(load_config(["flow=dis", "semantic=none", "motion=mono"])).run(pair)
+
+
+@pytest.mark.parametrize("option, key, what", [("data.hfov_deg=wide", "data.hfov_deg", "a number"),
+                                                ("data.step=two", "data.step", "an integer"),
+                                                ("prior.alpha_L=big", "prior.alpha_L", "a number")])
+def test_numeric_option_given_as_text_fails_clearly(tmp_path, option, key, what):
+    """Text for a number option: one line naming the option (was a bare 'could not convert string to float')."""
+    clip = tmp_path / "clip.mp4"
+    vw = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (64, 48))
+    for k in range(3):
+        vw.write(np.full((48, 64, 3), 60 + 20 * k, np.uint8))
+    vw.release()
+    p = _cli(["run", "data=video", f"data.path={clip}", "data.hfov_deg=90", option, "flow=dis", "semantic=none"],
+             tmp_path, check=False)
+    assert p.returncode == 1
+    value = option.split("=", 1)[1]
+    assert _one_error_line(p.stderr).endswith(f"error: {key}: expected {what}, got '{value}'")
+
+
+def test_number_checks_name_the_option():
+    from dataclasses import dataclass
+
+    from monostixels._checks import InputError, check_number, numeric_text_error, params_from_config
+
+    @dataclass
+    class P:
+        gain: float = 1.0
+        label: str = "x"
+
+    assert params_from_config(P, {"gain": "2.5", "label": "y"}, "grp") == P(2.5, "y")
+    with pytest.raises(InputError, match=r"^grp\.gain: expected a number, got 'wide'$"):
+        params_from_config(P, {"gain": "wide"}, "grp")
+    assert check_number("3", "n", int) == 3
+    with pytest.raises(InputError, match="n: expected an integer, got '2.5'"):
+        check_number("2.5", "n", int)
+    with pytest.raises(InputError, match="expected a number, got True"):
+        check_number(True, "flag")
+    cfg = {"data": {"hfov_deg": "wide", "name": "video"}, "prior": {"beta_mc": 25.0}}
+    try:
+        float(cfg["data"]["hfov_deg"])
+    except ValueError as e:
+        err = numeric_text_error(cfg, e)
+    assert str(err) == "data.hfov_deg: expected a number, got 'wide'"
+    assert numeric_text_error(cfg, ValueError("could not convert string to float: 'other'")) is None
+    assert numeric_text_error(cfg, ValueError("something else")) is None

@@ -533,3 +533,31 @@ def test_raft_forward_backward_refined_hands_on_its_grey_image(tmp_path):
     assert cold.grey is not None and np.array_equal(cold.grey, _gray_u8(a.float()))
     warm = estimate_flow(pair, cfg, grey_prev=_gray_u8(b.float()))
     assert torch.equal(warm.flow, cold.flow) and torch.equal(warm.cov, cold.cov)
+
+
+# --- tiny images: a clear error, never a crash ------------------------------------------------------
+
+
+@pytest.mark.parametrize("size", [(12, 40), (2, 2), (1, 1000)])
+def test_tiny_images_fail_clearly_in_the_low_level_functions(size):
+    """OpenCV's DIS and filters segfaulted on such images; the functions now raise InputError first."""
+    from monostixels.inputs.confidence import structure_tensor
+    from monostixels.inputs.flow import _dis_calc
+
+    H, W = size
+    grey = np.random.default_rng(0).random((H, W)).astype(np.float32)
+    with pytest.raises(InputError, match="structure tensor"):
+        structure_tensor(torch.from_numpy(grey), 2.0)
+    with pytest.raises(InputError, match=rf"{W}x{H}"):
+        _dis_calc(1, (grey * 255).astype(np.uint8), (grey * 255).astype(np.uint8), None)
+    with pytest.raises(InputError, match="structure tensor"):
+        flow_covariance(torch.from_numpy(grey)[None].repeat(3, 1, 1), ConfidenceParams())
+
+
+def test_dis_on_a_wide_low_image_fails_clearly():
+    """16 x 1000 px: OpenCV's DIS asserts in its resize (a cv2.error); it becomes a named InputError."""
+    from monostixels.inputs.flow import _dis_calc
+
+    a = (np.random.default_rng(1).random((16, 1000)) * 255).astype(np.uint8)
+    with pytest.raises(InputError, match="1000x16"):
+        _dis_calc(1, a, a, None)

@@ -40,16 +40,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, check_same_size
 from monostixels.data._io import (
     LazySource,
+    UnreadableFrame,
     _read_intrinsics,
     check_intrinsics_size,
     limit_frames,
     list_images,
     make_camera,
     read_distortion,
-    read_image_pair,
     read_intrinsics_file,
     read_mask_file,
     read_poses_file,
@@ -183,8 +183,19 @@ class FramesSource(LazySource):
     def _prev_name(self, item: _Pair) -> str:
         return item.path_prev.stem
 
+    def _cur_name(self, item: _Pair) -> str:
+        return item.path.stem
+
+    def _read(self, path: Path, current: bool) -> torch.Tensor:
+        """:func:`read_rgb`; a file that cannot be decoded is an :class:`UnreadableFrame` (skipped by the pairs)."""
+        try:
+            return read_rgb(path)
+        except InputError as err:
+            raise UnreadableFrame(str(err), name=path.stem, label=path.name, current=current) from None
+
     def _load(self, item: _Pair) -> FramePair:
-        image, image_prev = read_image_pair(item.path, item.path_prev)
+        image, image_prev = self._read(item.path, True), self._read(item.path_prev, False)
+        check_same_size(image, image_prev, f"image {item.path} (current)", f"image {item.path_prev} (previous)")
         if self._warp is not None:
             image, image_prev = self._warped(image, item.path), self._warped(image_prev, item.path_prev)
         motion = self._pair_motion(item)

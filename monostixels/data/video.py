@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import (LazySource, check_intrinsics_size, limit_frames, make_camera, read_distortion,
-                                  read_intrinsics_file, read_mask_file, require_file)
+from monostixels.data._io import (LazySource, UnreadableFrame, check_intrinsics_size, limit_frames, make_camera,
+                                  read_distortion, read_intrinsics_file, read_mask_file, require_file)
 from monostixels.data._lens import FrameWarp
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
@@ -208,13 +208,15 @@ class VideoSource(LazySource):
                     self._cap = cv2.VideoCapture(str(self.path))
                     self._pos = 0
         while self._pos < index:
-            if not self._cap.grab():
+            # A frame that fails to decode fails its grab too, but the capture moves past it: only the end counts.
+            if not self._cap.grab() and self._pos >= self.num_video_frames:
                 raise InputError(f"video: {self.path} ends before frame {index} (decoded {self._pos} frames)")
             self._pos += 1
         ok, img = self._cap.read()
+        self._pos += 1  # a frame that fails to decode is consumed all the same: the next read is the next frame
         if not ok or img is None:
-            raise InputError(f"video: cannot decode frame {index} of {self.path}")
-        self._pos += 1
+            raise UnreadableFrame(f"video: cannot decode frame {index} of {self.path}", name=self._name(index),
+                                  label=f"video frame {index}", current=index == getattr(self, "_reading", index))
         if img.shape[:2] != self.size_in:
             raise InputError(f"video: frame {index} of {self.path} is {img.shape[1]}x{img.shape[0]}, the first frame "
                              f"{self.size_in[1]}x{self.size_in[0]}")
@@ -236,11 +238,18 @@ class VideoSource(LazySource):
         return (item.frame - item.frame_prev) / self.fps if self.fps else None
 
     def _prev_name(self, item: _Pair) -> str:
-        return f"{self.path.stem}_{item.frame_prev:06d}"
+        return self._name(item.frame_prev)
+
+    def _cur_name(self, item: _Pair) -> str:
+        return self._name(item.frame)
+
+    def _name(self, frame: int) -> str:
+        return f"{self.path.stem}_{frame:06d}"
 
     def _load(self, item: _Pair) -> FramePair:
         # The oldest frame first: the capture decodes forward, and keyframes reach back several frames.
         self._keep = max(self._keep, item.frame - item.frame_prev)
+        self._reading = item.frame  # which of the two an unreadable frame is (UnreadableFrame.current)
         image_prev = self._frame(item.frame_prev)
         image = self._frame(item.frame)
         dt = self._pair_dt(item)
@@ -254,7 +263,7 @@ class VideoSource(LazySource):
         if ignore is not None:
             meta["ignore_mask"] = ignore
         return FramePair(image=image, image_prev=image_prev, camera=self.camera, motion=None, gt=GroundTruth(),
-                         name=f"{self.path.stem}_{item.frame:06d}", meta=meta)
+                         name=self._name(item.frame), meta=meta)
 
     def __del__(self) -> None:
         if getattr(self, "_cap", None) is not None:

@@ -128,7 +128,8 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     Returns:
         the report dict (metrics as fractions, rmse in metres). A frame whose camera motion
         cannot be estimated is scored with no estimate (every ground-truth pixel clamped as
-        invalid) and listed under ``failed_frames``.
+        invalid) and listed under ``failed_frames``. Frames the source could not read are skipped (their
+        pairs are not scored) and counted under ``skipped_frames``.
     """
     runner = SequenceRunner(cfg)
     lo, hi = float(cfg.eval.min_depth), float(cfg.eval.max_depth)
@@ -244,6 +245,10 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     report["methods"]["sfm"] = {**sfm, "compactness": dense_compactness(n_pixels)}
     if failed:
         report["failed_frames"] = failed
+    skipped = list(getattr(source, "skipped_frames", []))
+    if skipped:
+        # Unreadable frames the source skipped (monostixels.data._io.LazySource): counted, never silent.
+        report["skipped_frames"] = len(skipped)
     if flow_stats:
         report["flow"] = {str(cfg.flow.name): {k: float(np.mean([f[k] for f in flow_stats])) for k in ("epe", "fl_all")}}
     if motion_stats or degenerate:

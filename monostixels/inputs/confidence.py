@@ -122,9 +122,14 @@ def _structure_tensor_parts(gray: np.ndarray, window_sigma: float) -> tuple[np.n
     """``(J_xx, J_xy, J_yy)`` (H, W) float32 of :func:`structure_tensor` (OpenCV filters: single-threaded
     and ~20x faster than the same filters as torch ops on a full KITTI frame)."""
     g = np.ascontiguousarray(gray, dtype=np.float32)
+    k = _odd_kernel_size(window_sigma)
+    if g.ndim != 2 or min(g.shape) < k:
+        # OpenCV's border handling is not safe for a window larger than the image (a segfault on
+        # 40 x 12 frames): fail with the sizes instead.
+        raise InputError(f"structure tensor: grey image of shape {g.shape} is smaller than its {k}x{k} window "
+                         f"(window_sigma {window_sigma} px); need a 2-D image of at least {k}x{k} px")
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0, borderType=cv2.BORDER_REPLICATE)
-    k = _odd_kernel_size(window_sigma)
     prods = np.dstack([gx * gx, gx * gy, gy * gy])  # H x W x 3
     prods = cv2.GaussianBlur(prods, (k, k), window_sigma, sigmaY=window_sigma, borderType=cv2.BORDER_REPLICATE)
     return prods[..., 0].copy(), prods[..., 1].copy(), prods[..., 2].copy()

@@ -338,6 +338,11 @@ def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor, passes: int
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1)))
 
 
+#: Smallest side (pixels) of the images DIS is run on: below it OpenCV's DIS crashes the process
+#: (measured: 12 px segfaults, 16 px runs unless the image is very wide, which raises a cv2.error).
+_DIS_MIN_SIDE = 16
+
+
 def _dis_calc(preset: int, a: np.ndarray, b: np.ndarray, init: np.ndarray | None) -> np.ndarray:
     """DIS flow (H, W, 2) of grey images ``a`` -> ``b``; ``init`` (H, W, 2) float32 pixels: its start.
 
@@ -345,12 +350,19 @@ def _dis_calc(preset: int, a: np.ndarray, b: np.ndarray, init: np.ndarray | None
     every level still runs, so the result is DIS's, seeded (a stream's previous flow: the matches of
     large displacements then come from it rather than from the coarsest patches alone).
     """
+    if min(a.shape[:2]) < _DIS_MIN_SIDE:
+        # OpenCV's DIS segfaults on such images (12 x 40 px) instead of raising.
+        raise InputError(f"flow: DIS cannot run on {a.shape[1]}x{a.shape[0]} px grey images (at flow.scale); "
+                         f"it needs a side of at least {_DIS_MIN_SIDE} px")
     algo = cv2.DISOpticalFlow_create(preset)
-    if init is None:
-        return algo.calc(a, b, None)
-    if init.shape != (*a.shape, 2):
+    if init is not None and init.shape != (*a.shape, 2):
         raise InputError(f"flow init: shape {init.shape} for {a.shape[1]}x{a.shape[0]} images, expected (H, W, 2)")
-    return algo.calc(a, b, np.array(init, dtype=np.float32, order="C"))
+    try:
+        return algo.calc(a, b, None if init is None else np.array(init, dtype=np.float32, order="C"))
+    except cv2.error as e:
+        # A wide, low image leaves DIS's pyramid no level (16 x 1000 px); OpenCV asserts in its resize.
+        raise InputError(f"flow: DIS cannot run on {a.shape[1]}x{a.shape[0]} px grey images (at flow.scale): "
+                         f"{str(e).strip().splitlines()[-1]}") from None
 
 
 def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
