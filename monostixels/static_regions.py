@@ -34,10 +34,16 @@ import torch
 
 from monostixels._checks import InputError
 
-__all__ = ["find_static_region", "IgnoreMask", "apply_ignore_mask"]
+__all__ = ["AUTO_MASK", "AUTO_FRAMES", "AUTO_SPACING_S", "find_static_region", "with_static_region", "IgnoreMask",
+           "apply_ignore_mask"]
 
 logger = logging.getLogger(__name__)
 
+#: ``data.mask=auto``: the data source looks for a static region itself (:func:`with_static_region`).
+AUTO_MASK = "auto"
+#: Frames it reads for that from the start of the clip, and their spacing (seconds; the scene must move).
+AUTO_FRAMES = 6
+AUTO_SPACING_S = 0.2
 #: Grey-value gradient (Sobel 3x3 of a [0, 1] image) above which a pixel has texture to judge motion by.
 TEXTURE_GRAD = 0.25
 #: A textured pixel whose grey value changes by less than this between two frames is static in that pair.
@@ -130,6 +136,21 @@ def find_static_region(frames: Sequence[np.ndarray]) -> np.ndarray:
     logger.info("static region at the bottom: rows %d-%d of %d (%.1f %% of the image)",
                 int(smooth.min()), H - 1, H, 100.0 * mask.mean())
     return mask
+
+
+def with_static_region(ignore: torch.Tensor | None, frames: Sequence[np.ndarray], what: str) -> torch.Tensor | None:
+    """``ignore`` (H, W) bool or None, with the static region of ``frames`` (:func:`find_static_region`) added;
+    ``what`` names the clip in the log. Fewer than 3 frames: ``ignore`` as it is."""
+    if len(frames) < 3:
+        logger.info("%s: too few frames to look for a static region (bonnet)", what)
+        return ignore
+    found = find_static_region(frames)
+    if not found.any():
+        logger.info("%s: no static region (bonnet) found", what)
+        return ignore
+    logger.info("%s: static region (bonnet) ignored: %.1f %% of the image", what, 100.0 * found.mean())
+    mask = torch.from_numpy(found)
+    return mask if ignore is None else ignore | mask
 
 
 @dataclass

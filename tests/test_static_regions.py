@@ -96,3 +96,28 @@ def test_the_pipeline_leaves_the_bonnet_out_and_keeps_the_frame_size():
     assert not bool((depth[H - _BONNET_MIN:] > 0).any())
     # Above the cut the frame is solved: the ground and objects are there.
     assert int((st.type == 0).sum()) > 0 and int((st.type == 1).sum()) > 0
+
+
+def test_a_video_source_finds_the_bonnet_itself(tmp_path):
+    """data=video with data.mask=auto (the default): the pairs carry the bonnet as their ignore mask."""
+    import cv2
+
+    from monostixels.data.sources import make_source
+    from monostixels.pipeline import load_config
+
+    pair, frames = _clip()
+    H, W = pair.size
+    truth = _bonnet(H, W)
+    path = tmp_path / "bonnet.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (W, H))
+    for f in frames + frames[:2]:
+        writer.write(_bgr(_paint(f, truth)))
+    writer.release()
+    K = pair.camera.K
+    (tmp_path / "intr.yaml").write_text(f"fx: {float(K[0, 0])}\nfy: {float(K[1, 1])}\ncx: {float(K[0, 2])}\n"
+                                        f"cy: {float(K[1, 2])}\n")
+    common = ["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}", "data.resize=null"]
+    src = make_source(load_config(common).data)
+    ignore = src[0].meta["ignore_mask"]
+    assert (ignore.numpy() & truth).sum() >= 0.9 * truth.sum() and (ignore.numpy() & ~truth).sum() <= 3 * W
+    assert "ignore_mask" not in make_source(load_config(common + ["data.mask=null"]).data)[0].meta

@@ -37,6 +37,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -58,6 +59,7 @@ from monostixels.data._io import (
     require_dir,
 )
 from monostixels.data._lens import FrameWarp
+from monostixels.static_regions import AUTO_FRAMES, AUTO_MASK, with_static_region
 from monostixels.data.base import FramePair, GroundTruth
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
@@ -89,7 +91,8 @@ class FramesSource(LazySource):
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down).
         poses: optional poses file (see the module docstring).
-        mask: optional mask image, non-zero = ignore (see the module docstring).
+        mask: optional mask image, non-zero = ignore (see the module docstring), or ``auto``: a static
+            region at the bottom found from the first images (a bonnet, :mod:`monostixels.static_regions`).
 
     Raises:
         InputError: missing root, empty folder, missing / malformed intrinsics (or distortion) or poses
@@ -127,9 +130,13 @@ class FramesSource(LazySource):
         if distortion is not None or mask is not None or _read_intrinsics(self.intrinsics_path).size is not None:
             size = tuple(read_rgb(images[0]).shape[-2:])  # decoded once: the first pair reads it from the cache
             check_intrinsics_size(self.intrinsics_path, size, f"the images of {self.root}")  # type: ignore[arg-type]
-            user_mask = None if mask is None else read_mask_file(mask, size)  # type: ignore[arg-type]
+            auto = mask == AUTO_MASK
+            user_mask = None if mask is None or auto else read_mask_file(mask, size)  # type: ignore[arg-type]
             self._warp = FrameWarp((fx, fy, cx, cy), distortion, size, size, user_mask)  # type: ignore[arg-type]
             fx, fy, cx, cy = self._warp.intrinsics
+            if auto:
+                self._warp.ignore = with_static_region(self._warp.ignore, self._sample(images, int(step), size),
+                                                       f"frames {self.root}")
         self.camera: Camera = make_camera(fx, fy, cx, cy, camera_height, pitch)
         pose_of: list[np.ndarray | None] = [None] * len(images)
         if poses is not None:
@@ -192,6 +199,16 @@ class FramesSource(LazySource):
             return read_rgb(path)
         except InputError as err:
             raise UnreadableFrame(str(err), name=path.stem, label=path.name, current=current) from None
+
+    def _sample(self, images: list[Path], step: int, size: tuple[int, int]) -> list[np.ndarray]:
+        """Up to :data:`~monostixels.static_regions.AUTO_FRAMES` of the first images, ``step`` apart (BGR,
+        undistorted), for the static region search; unreadable ones and ones of another size are left out."""
+        out: list[np.ndarray] = []
+        for p in images[: step * AUTO_FRAMES: step]:
+            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if img is not None and img.shape[:2] == size:
+                out.append(self._warp.image(img))  # type: ignore[union-attr]
+        return out
 
     def _load(self, item: _Pair) -> FramePair:
         image, image_prev = self._read(item.path, True), self._read(item.path_prev, False)

@@ -14,6 +14,7 @@ from typing import Any, Callable, Mapping, Sequence
 from monostixels._checks import InputError
 from monostixels.data.base import FramePair
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M
+from monostixels.static_regions import AUTO_MASK
 
 __all__ = ["SOURCE_NAMES", "make_source"]
 
@@ -135,8 +136,15 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
         frames=_frames(data),
         camera_height=height, pitch=pitch,
         poses=None if poses is None else Path(str(poses)),
-        mask=None if mask is None else Path(str(mask)),
+        mask=_mask(mask),
     )
+
+
+def _mask(value: Any) -> str | Path | None:
+    """``data.mask``: None, ``auto`` (found from the frames: :mod:`monostixels.static_regions`) or an image file."""
+    if value is None:
+        return None
+    return AUTO_MASK if str(value).strip().lower() == AUTO_MASK else Path(str(value))
 
 
 def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
@@ -159,7 +167,7 @@ def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
         resize=resize,
         frames=_frames(data),
         camera_height=height, pitch=pitch,
-        mask=None if mask is None else Path(str(mask)),
+        mask=_mask(mask),
     )
     if realtime or is_live_path(path):
         # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).

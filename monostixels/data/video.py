@@ -45,6 +45,7 @@ from monostixels.data._io import (LazySource, UnreadableFrame, check_intrinsics_
 from monostixels.data._lens import FrameWarp
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
+from monostixels.static_regions import AUTO_FRAMES, AUTO_MASK, AUTO_SPACING_S, with_static_region
 
 __all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path", "AUTO_PIXELS"]
 
@@ -97,7 +98,9 @@ class VideoSource(LazySource):
         frames: at most this many pairs (None = all).
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down).
-        mask: an image of the stored frame size, non-zero = ignore (see the module docstring), or None.
+        mask: an image of the stored frame size, non-zero = ignore (see the module docstring), ``auto``
+            (a static region at the bottom found from the clip's first frames: a bonnet,
+            :mod:`monostixels.static_regions`), or None.
 
     Raises:
         InputError: missing file, a file OpenCV cannot decode, fewer than two frames in the chosen
@@ -153,8 +156,11 @@ class VideoSource(LazySource):
             )
         self.size_in = (H0, W0)
         self.size = self._out_size(resize, W0, H0)
+        auto = mask == AUTO_MASK
         self.camera, self.intrinsics_source, self._warp = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
-                                                                        camera_height, pitch, mask)
+                                                                        camera_height, pitch, None if auto else mask)
+        if auto:
+            self._warp.ignore = with_static_region(self._warp.ignore, self._sample_frames(used), f"video {self.path}")
         items = [_Pair(used[k], used[k - 1]) for k in range(1, len(used))]
         self._items = limit_frames(items, frames, f"video {self.path}")
         self._cap: Any = None
@@ -164,6 +170,26 @@ class VideoSource(LazySource):
         logger.info("video: %d frame pairs from %s (%dx%d -> %dx%d, %s fps, intrinsics %s)", len(self._items),
                     self.path, W0, H0, self.size[1], self.size[0], f"{self.fps:g}" if self.fps else "unknown",
                     self.intrinsics_source)
+
+    def _sample_frames(self, used: list[int]) -> list[np.ndarray]:
+        """Up to :data:`~monostixels.static_regions.AUTO_FRAMES` frames from the start of the used range,
+        :data:`~monostixels.static_regions.AUTO_SPACING_S` apart (BGR, undistorted and resized), for the static
+        region search; undecodable ones are left out."""
+        spacing = max(1, round(AUTO_SPACING_S * self.fps)) if self.fps else max(1, self.step)
+        wanted = set(range(used[0], used[-1] + 1, spacing)[:AUTO_FRAMES])
+        out: list[np.ndarray] = []
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            for k in range(max(wanted) + 1):
+                if k in wanted:
+                    ok, img = cap.read()
+                    if ok and img is not None and img.shape[:2] == self.size_in:
+                        out.append(self._warp.image(img))
+                elif not cap.grab():
+                    break
+        finally:
+            cap.release()
+        return out
 
     @staticmethod
     def _out_size(resize: Any, W: int, H: int) -> tuple[int, int]:
@@ -410,6 +436,11 @@ class LiveVideoSource:
         self.size_in = (H0, W0)
         try:
             self.size = VideoSource._out_size(resize, W0, H0)
+            if mask == AUTO_MASK:
+                # Frames as they come: none to look ahead at before the first pair.
+                logger.info("video: data.mask=auto looks for a bonnet in a file's first frames; a live source "
+                            "takes data.mask=FILE")
+                mask = None
             self.camera, self.intrinsics_source, self._warp = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
                                                                             camera_height, pitch, mask)
         except InputError:
