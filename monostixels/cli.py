@@ -414,17 +414,18 @@ def _run(cfg: DictConfig) -> None:
     out.mkdir(parents=True, exist_ok=True)
     restarts = list(getattr(src, "restarts", []))
     # What the run made of its input; unreadable frames are listed, never dropped silently.
+    cam = camera_report(camera, _camera_height(cfg))
     run_summary = {"data": str(cfg.data.name), "frame_pairs": written, "skipped_frames": skipped,
-                   "sequence_restarts": restarts}
+                   "sequence_restarts": restarts, "camera": cam}
     (out / "summary.json").write_text(json.dumps(run_summary, indent=2))
+    for line in camera_summary(cam):
+        print(f"run: {line}")
     print(f"run: {written} frame pair(s) -> {out}/<frame>/ overlay.png bev.png figure.png depth.png depth16.png "
           f"stixels.json stixels.npz points.ply" + (f"; videos {out / 'video.mp4'} {out / 'bev.mp4'}" if videos else "")
           + (f"; 3D recording {recording} (open it with: rerun {recording})" if recording else "")
           + (f"; processed frames {stream}" if stream else "")
           + (f"; {len(skipped)} unreadable frame(s) skipped: {_listed(skipped)}" if skipped else "")
           + f"; {out / 'summary.json'}")
-    for line in camera_summary(camera, _camera_height(cfg)):
-        print(f"run: {line}")
 
 
 def _camera_height(cfg: DictConfig) -> float:
@@ -437,29 +438,38 @@ def _camera_height(cfg: DictConfig) -> float:
 HEIGHT_WARN_SHARE = 0.2
 
 
-def camera_summary(flags: list[dict[str, Any]], height: float) -> list[str]:
-    """The run's summary of its camera: how many pairs had a metric motion (and where the scale came from),
-    and the camera height assumed beside the one the road implies where a given motion lets it say.
-
-    A height that differs from the implied one by more than :data:`HEIGHT_WARN_SHARE` is also logged as a
-    warning: every depth and speed of a monocular run scales with it.
-    """
-    n = len(flags)
+def camera_report(flags: list[dict[str, Any]], height: float) -> dict[str, Any]:
+    """What a run's pairs say about its camera (``run/summary.json`` ``camera``): the pairs, those with a
+    metric motion (``metric``, standing ones included) and without (``no_metric_motion``), where the metric
+    scales came from (``scale_from``: counts), the height assumed (``height_m``) and, where a given motion
+    let the road say, the median height it implies (``height_fit_m``, else None) over ``height_fits`` pairs."""
     kinds = [f.get("camera_motion", "metric") for f in flags]
     metric = sum(k in ("metric", "standing") for k in kinds)
     sources: dict[str, int] = {}
     for f in flags:
         if f.get("scale_from"):
             sources[f["scale_from"]] = sources.get(f["scale_from"], 0) + 1
-    by = ", ".join(f"{v} {k}" for k, v in sorted(sources.items()))
-    unknown = n - metric
-    lines = [f"camera motion metric on {metric} of {n} pair(s)" + (f" (scale: {by})" if by else "")
-             + (f"; {unknown} without a metric motion (no movers, no collision warnings there)" if unknown else "")]
     fits = [float(f["camera_height_fit_m"]) for f in flags if f.get("camera_height_fit_m") is not None]
+    return {"pairs": len(flags), "metric": metric, "no_metric_motion": len(flags) - metric,
+            "scale_from": dict(sorted(sources.items())), "height_m": height,
+            "height_fit_m": float(np.median(fits)) if fits else None, "height_fits": len(fits)}
+
+
+def camera_summary(report: dict[str, Any]) -> list[str]:
+    """The run's summary lines of its camera (:func:`camera_report`): how many pairs had a metric motion and
+    where the scale came from, and the camera height assumed beside the one the road implies.
+
+    A height that differs from the implied one by more than :data:`HEIGHT_WARN_SHARE` is also logged as a
+    warning: every depth and speed of a monocular run scales with it.
+    """
+    by = ", ".join(f"{v} {k}" for k, v in report["scale_from"].items())
+    unknown = report["no_metric_motion"]
+    lines = [f"camera motion metric on {report['metric']} of {report['pairs']} pair(s)" + (f" (scale: {by})" if by else "")
+             + (f"; {unknown} without a metric motion (no movers, no collision warnings there)" if unknown else "")]
+    height, med = report["height_m"], report["height_fit_m"]
     line = f"camera height {height:.2f} m (camera.height; depths and speeds scale with it)"
-    if fits:
-        med = float(np.median(fits))
-        line += f"; the road implies {med:.2f} m (median of {len(fits)} pair(s))"
+    if med is not None:
+        line += f"; the road implies {med:.2f} m (median of {report['height_fits']} pair(s))"
         if abs(med / height - 1.0) > HEIGHT_WARN_SHARE:
             logger.warning("camera.height %.2f m differs from the %.2f m the road implies by %.0f %%: set camera.height",
                            height, med, 100.0 * abs(med / height - 1.0))

@@ -440,7 +440,7 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     """With a metric motion from elsewhere (motion=gt), a wrong camera.height shows: the road implies the true one."""
     import dataclasses
 
-    from monostixels.cli import camera_summary
+    from monostixels.cli import camera_report, camera_summary
     from monostixels.data.synthetic import render_pair
     from monostixels.pipeline import Pipeline, load_config
 
@@ -452,10 +452,12 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     fit = res.stixels.flags["camera_height_fit_m"]
     assert abs(fit / true_h - 1) < 0.03, (fit, true_h)
     assert "camera_height_fit_m" not in Pipeline(cfg, sfm=False).run(wrong).stixels.flags  # only when asked
-    lines = camera_summary([res.stixels.flags], wrong.camera.height)
+    lines = camera_summary(camera_report([res.stixels.flags], wrong.camera.height))
     assert lines[0].startswith("camera motion metric on 1 of 1 pair(s) (scale: 1 given)")
     assert f"the road implies {fit:.2f} m" in lines[1] and f"camera height {wrong.camera.height:.2f} m" in lines[1]
     mixed = [{"camera_motion": "metric", "scale_from": "photometric"}, {"camera_motion": "metric", "scale_from": "sequence"},
              {"camera_motion": "scale_unknown"}, {"camera_motion": "standing"}]
-    assert camera_summary(mixed, 1.4)[0] == ("camera motion metric on 3 of 4 pair(s) (scale: 1 photometric, 1 sequence); "
+    rep = camera_report(mixed, 1.4)
+    assert rep["metric"] == 3 and rep["no_metric_motion"] == 1 and rep["height_fit_m"] is None
+    assert camera_summary(rep)[0] == ("camera motion metric on 3 of 4 pair(s) (scale: 1 photometric, 1 sequence); "
                                              "1 without a metric motion (no movers, no collision warnings there)")

@@ -235,7 +235,7 @@ def test_resize_auto_is_the_video_default_and_bad_values_fail(tmp_path):
     from omegaconf import OmegaConf
 
     conf = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "data" / "video.yaml")
-    assert conf.resize == "auto" and conf.mask is None
+    assert conf.resize == "auto" and conf.mask == "auto"  # the bonnet found from the first frames
     v = write_video(tmp_path / "c.mp4", 3)
     src = make_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": "auto"})
     assert src[0].size == (H, W)  # small frames stay as they are

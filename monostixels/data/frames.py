@@ -127,16 +127,25 @@ class FramesSource(LazySource):
         fx, fy, cx, cy = read_intrinsics_file(self.intrinsics_path)
         distortion = read_distortion(self.intrinsics_path)
         self._warp: FrameWarp | None = None
+        auto = mask == AUTO_MASK
+        if auto:
+            mask = None
         if distortion is not None or mask is not None or _read_intrinsics(self.intrinsics_path).size is not None:
             size = tuple(read_rgb(images[0]).shape[-2:])  # decoded once: the first pair reads it from the cache
             check_intrinsics_size(self.intrinsics_path, size, f"the images of {self.root}")  # type: ignore[arg-type]
-            auto = mask == AUTO_MASK
-            user_mask = None if mask is None or auto else read_mask_file(mask, size)  # type: ignore[arg-type]
+            user_mask = None if mask is None else read_mask_file(mask, size)  # type: ignore[arg-type]
             self._warp = FrameWarp((fx, fy, cx, cy), distortion, size, size, user_mask)  # type: ignore[arg-type]
             fx, fy, cx, cy = self._warp.intrinsics
-            if auto:
-                self._warp.ignore = with_static_region(self._warp.ignore, self._sample(images, int(step), size),
-                                                       f"frames {self.root}")
+        if auto:
+            sample = self._sample(images, int(step))
+            ignore = with_static_region(None if self._warp is None else self._warp.ignore, sample,
+                                        f"frames {self.root}")
+            if ignore is not None and self._warp is None:
+                # A mask to carry, without undistortion: a warp that only hands it on.
+                size = tuple(ignore.shape)
+                self._warp = FrameWarp((fx, fy, cx, cy), None, size, size)  # type: ignore[arg-type]
+            if self._warp is not None:
+                self._warp.ignore = ignore
         self.camera: Camera = make_camera(fx, fy, cx, cy, camera_height, pitch)
         pose_of: list[np.ndarray | None] = [None] * len(images)
         if poses is not None:
@@ -200,14 +209,20 @@ class FramesSource(LazySource):
         except InputError as err:
             raise UnreadableFrame(str(err), name=path.stem, label=path.name, current=current) from None
 
-    def _sample(self, images: list[Path], step: int, size: tuple[int, int]) -> list[np.ndarray]:
+    def _sample(self, images: list[Path], step: int) -> list[np.ndarray]:
         """Up to :data:`~monostixels.static_regions.AUTO_FRAMES` of the first images, ``step`` apart (BGR,
-        undistorted), for the static region search; unreadable ones and ones of another size are left out."""
+        undistorted where the folder's lens asks for it), for the static region search; unreadable ones and
+        ones of another size than the first readable one are left out (the pairs report them)."""
         out: list[np.ndarray] = []
         for p in images[: step * AUTO_FRAMES: step]:
             img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if img is not None and img.shape[:2] == size:
-                out.append(self._warp.image(img))  # type: ignore[union-attr]
+            if img is None or (out and img.shape != out[0].shape):
+                continue
+            if self._warp is not None:
+                if img.shape[:2] != self._warp.size_in:
+                    continue
+                img = self._warp.image(img)
+            out.append(img)
         return out
 
     def _load(self, item: _Pair) -> FramePair:
