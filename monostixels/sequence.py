@@ -49,7 +49,8 @@ from monostixels.geometry import Motion
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
 from monostixels.stixels import StixelWorld
 from monostixels.stream import StreamState
-from monostixels.tracking import Tracks, TrackParams, TtcParams, critical, stixel_points, time_to_collision
+from monostixels.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, stixel_points,
+                                   time_to_collision)
 
 __all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
 
@@ -350,6 +351,7 @@ class SequenceRunner:
         ttc = out["ttc"] if tracking else time_to_collision(torch.nan_to_num(X_cam, nan=-1.0), v_rel)
         ttc = torch.where(obj, ttc, torch.full((len(st),), math.inf, dtype=torch.float64))
         warn = obj & critical(torch.nan_to_num(X_cam, nan=-1.0), v_rel, ttc, self.ttc)
+        warn = confirmed(warn, out["age"] if tracking else None, self.ttc)
         st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
         st.ttc_warning = warn
         st.pose = pose

@@ -48,7 +48,7 @@ from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.geometry import Motion, ground_basis, pixel_rays
 from monostixels.stixels import StixelWorld
 
-__all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical"]
+__all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed"]
 
 #: Chi-square quantile of 4 degrees of freedom at 99.9 %: the association gate on position and velocity.
 _CHI2_4DOF_999 = 18.47
@@ -150,16 +150,23 @@ class TtcParams:
     Attributes:
         warn_s: a stixel closing in less than this (seconds) within the corridor is critical.
         corridor_m: half width of the camera's path (metres) a critical stixel's contact lies in.
+        confirm_frames: on a tracked sequence, a critical stixel is warned about only once its track has
+            continued this many frames: its closing rate is then filtered over them, not one pair's (a
+            sliver of road taken for an object for one frame raises nothing). 0 = every critical stixel.
     """
 
     warn_s: float = 2.0
     corridor_m: float = 1.5
+    confirm_frames: int = 2
 
     def __post_init__(self) -> None:
         for k in ("warn_s", "corridor_m"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0):
                 raise InputError(f"ttc.{k}: a number > 0, got {v!r}")
+        v = self.confirm_frames
+        if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
+            raise InputError(f"ttc.confirm_frames: a whole number >= 0, got {v!r}")
 
     @staticmethod
     def from_config(cfg: Any) -> "TtcParams":
@@ -251,6 +258,14 @@ def critical(X: torch.Tensor, v_rel: torch.Tensor, ttc: torch.Tensor, params: Tt
     """(N,) bool: closing within ``warn_s`` with the contact inside the corridor ``|X + v_rel,x ttc| < corridor_m``."""
     lateral = X[:, 0] + v_rel[:, 0] * torch.where(torch.isfinite(ttc), ttc, torch.zeros_like(ttc))
     return (ttc < params.warn_s) & (lateral.abs() < params.corridor_m)
+
+
+def confirmed(warn: torch.Tensor, age: torch.Tensor | None, params: TtcParams) -> torch.Tensor:
+    """(N,) bool: the critical stixels ``warn`` (N,) whose track has continued ``params.confirm_frames`` frames
+    (``age`` (N,), from :meth:`Tracks.update`); all of ``warn`` without tracks (``age`` None) or a count of 0."""
+    if age is None or params.confirm_frames <= 0:
+        return warn
+    return warn & (age >= params.confirm_frames)
 
 
 class Tracks:
@@ -392,7 +407,8 @@ class Tracks:
         if rows_all.numel() == 0:
             self._drop_old(frame)
             self.prev_frame, self.prev_index = frame, index
-            return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried}
+            return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried,
+                    "age": torch.zeros(N, dtype=torch.long)}
 
         n = rows_all.numel()
         pos = X_w[rows_all][:, [0, 2]]
@@ -495,8 +511,10 @@ class Tracks:
         out_vel[rows_all] = torch.stack([x_new[:, 2], torch.zeros_like(y), x_new[:, 3]], 1)
         out_ttc = torch.full((N,), math.inf, dtype=dtype)
         out_ttc[rows_all] = torch.where(eta_new > 1e-6, 1.0 / eta_new.clamp_min(1e-6), torch.full_like(eta_new, math.inf))
+        out_age = torch.zeros(N, dtype=torch.long)
+        out_age[rows_all] = age_new
         return {"track_id": out_id, "position": out_pos, "velocity": out_vel, "carried": carried, "ttc": out_ttc,
-                "point_cam": out_cam}
+                "point_cam": out_cam, "age": out_age}
 
     def _velocity_at_track_depth(self, world: StixelWorld, rows_all: torch.Tensor, has: torch.Tensor,
                                  x_pred: torch.Tensor, X_cam: torch.Tensor, Rwc: torch.Tensor, o: torch.Tensor,

@@ -261,6 +261,30 @@ def test_time_to_collision_of_a_hand_made_closing_object():
     assert warn.tolist() == [True, False, False, False]
 
 
+def test_a_warning_waits_for_its_track_to_be_confirmed():
+    """A car closing in the path is warned about once its track has continued ttc.confirm_frames frames; a
+    stixel critical in one frame only (a new track each time) never is."""
+    from monostixels.tracking import confirmed
+
+    params = TtcParams(confirm_frames=2)
+    tracks, warned = Tracks(TrackParams()), []
+    for f in range(5):  # 15 m ahead, closing at 10 m/s: TTC 1.5 s and less, in the path
+        w = _object_world([15.0 - 1.0 * f], [-1.0])
+        out = tracks.update(w, frame=f, time=0.1 * f, pose=torch.eye(4, dtype=torch.float64), dt_pair=0.1,
+                            degenerate=True)
+        X = torch.tensor([[0.0, 0.0, 15.0 - f]], dtype=torch.float64)
+        crit = critical(X, torch.tensor([[0.0, 0.0, -10.0]], dtype=torch.float64), out["ttc"], params)
+        assert bool(crit[0])  # critical in every frame ...
+        warned.append(bool(confirmed(crit, out["age"], params)[0]))
+    assert warned == [False, False, True, True, True]  # ... warned from the third frame on
+    assert out["age"].tolist() == [4]
+    one = torch.tensor([True])
+    assert not bool(confirmed(one, torch.tensor([0]), params)[0])  # seen once
+    assert bool(confirmed(one, None, params)[0]) and bool(confirmed(one, torch.tensor([0]), TtcParams(confirm_frames=0))[0])
+    with pytest.raises(InputError, match="ttc.confirm_frames"):
+        TtcParams(confirm_frames=-1)
+
+
 def _object_world(distances: list[float], motions: list[float]) -> StixelWorld:
     """One dynamic object: stixels in adjacent columns about the principal point, rows 100-140, each at its
     distance (m) with its motion along the optical axis over the pair (m)."""
