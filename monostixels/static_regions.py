@@ -16,8 +16,9 @@ highway speed the flow on the near road is unreliable, and a flow of zero there 
   its last static row (rows without texture in between are allowed, :data:`GAP_SHARE`); a strip without
   a moving row says nothing;
 - the region is kept only where it spans most of the width (:data:`MIN_WIDTH_SHARE` of the strips, as a
-  bonnet does) and stays below :data:`MAX_HEIGHT_SHARE` of the image (a standing camera, where nothing
-  moves, must not turn the whole picture into "bonnet").
+  bonnet does), stays below :data:`MAX_HEIGHT_SHARE` of the image, and the scene above it moves (most of
+  the texture in the :data:`ABOVE_SHARE` of the image above it changes, :data:`MIN_MOVING_ABOVE`): at a
+  standing camera, where nearly nothing moves, the road would look as still as a bonnet.
 
 Only regions touching the bottom edge are found; anything else (a logo, a timestamp) is for the user's
 own mask (``data.mask=FILE``).
@@ -57,6 +58,10 @@ MIN_EVIDENCE = 3
 #: Rows without evidence (no texture) that a strip's static part may hold above its last static row,
 #: as a share of the image height (at least 3 rows); the part ends there.
 GAP_SHARE = 0.05
+#: Above the region (this share of the image height), at least MIN_MOVING_ABOVE of the textured pixels must
+#: change: the scene moves past the camera.
+ABOVE_SHARE = 0.25
+MIN_MOVING_ABOVE = 0.5
 #: The region must cover at least this share of the strips (a bonnet spans the picture) ...
 MIN_WIDTH_SHARE = 0.6
 #: ... and no strip's part may reach above this share of the image height.
@@ -121,6 +126,12 @@ def find_static_region(frames: Sequence[np.ndarray]) -> np.ndarray:
     if decided.sum() == 0 or found.sum() < MIN_WIDTH_SHARE * len(strips):
         return mask
     if (H - top[found]).max() > MAX_HEIGHT_SHARE * H:
+        return mask
+    # The camera must be moving: above the region, most of the texture changes (a standing camera, where the
+    # whole scene keeps still, has no bonnet to tell apart).
+    above = slice(max(0, int(top[found].min()) - int(ABOVE_SHARE * H)), int(top[found].min()))
+    n_above = float(textured_n[above].sum())
+    if n_above < MIN_EVIDENCE or 1.0 - float(static[above].sum()) / n_above < MIN_MOVING_ABOVE:
         return mask
     # A bonnet's edge is smooth: each strip's top as the median over it and its decided neighbours.
     smooth = np.full(len(strips), H, dtype=np.int64)

@@ -1,6 +1,8 @@
 """Static image regions (a bonnet in view): found from the frames, and left out of every stage."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -121,3 +123,17 @@ def test_a_video_source_finds_the_bonnet_itself(tmp_path):
     ignore = src[0].meta["ignore_mask"]
     assert (ignore.numpy() & truth).sum() >= 0.9 * truth.sum() and (ignore.numpy() & ~truth).sum() <= 3 * W
     assert "ignore_mask" not in make_source(load_config(common + ["data.mask=null"]).data)[0].meta
+
+
+_SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.mark.skipif(not _SHARED.is_dir(), reason=f"the shared real samples are not at {_SHARED}")
+@pytest.mark.parametrize("pattern", ["kitti_raw/2011_09_30/2011_09_30_drive_0028_sync/image_02/data/*.jpg",
+                                     "ddad_dgp/scene_01/rgb/CAMERA_01/*.jpg"])  # driving; standing still
+def test_real_frames_without_a_bonnet_have_no_static_region(pattern):
+    import cv2
+
+    frames = [cv2.imread(str(p)) for p in sorted(_SHARED.glob(pattern))[:6]]
+    assert len(frames) >= 3
+    assert not find_static_region(frames).any()
