@@ -17,11 +17,11 @@ No ground truth exists for a user's dashcam footage; these numbers need none:
 Command (repository root; about 2 minutes for 40 pairs on 2 cores, the referee most of it)::
 
     python -m benchmarks.dashcam --json runs/eval/dashcam.json \\
-        --referee ../shared/models/espnetv2_cityscapes_640x1024.onnx -- \\
+        --referee ../shared/models/espnetv2_cityscapes_640x1024.onnx \\
         data.path=../shared/data/dashcam/highway_solid_white_right.mp4 data.hfov_deg=58 data.step=2 \\
         data.frames=40 camera.height=1.4
 
-Everything after ``--`` is a ``monostixels run`` override (``data=video`` and ``preset=fast`` are set first).
+The words after the flags are ``monostixels run`` overrides (``data=video`` and ``preset=fast`` are set first).
 """
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, help="write the report here")
     ap.add_argument("--referee", help="a Cityscapes ONNX model whose vehicles and persons referee the movers")
-    ap.add_argument("overrides", nargs="*", help="monostixels run overrides (after --)")
+    ap.add_argument("overrides", nargs="*", help="monostixels run overrides (key=value)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
