@@ -13,7 +13,7 @@ from monostixels import solver as solver_mod
 from monostixels.data.synthetic import render_pair
 from monostixels.energy import PriorParams
 from monostixels.inputs.semantic import gt_scores
-from monostixels.reference import reference_column
+from tests.reference import reference_column
 from monostixels.solver import SolverConfig, solve, solve_columns
 
 from tests.test_solver import random_problem

@@ -492,17 +492,23 @@ def read_poses_file(path: str | Path) -> tuple[list[str] | None, np.ndarray]:
     return (ids if width == 13 else None), np.stack(mats)
 
 
-def relative_motion(T_w_cur: np.ndarray, T_w_prev: np.ndarray) -> Motion:
-    """Camera motion of a pair from two camera-to-world poses.
+def relative_motion(T_w_cur: np.ndarray, T_w_prev: np.ndarray, offset: np.ndarray | None = None) -> Motion:
+    """Camera motion of a pair from two camera-to-world poses (4, 4).
 
     Convention: ``X_prev = R X_cur + t`` (docs/conventions.md, section 2);
     ``T_prev_cur = T_w_prev^-1 T_w_cur``, ``R = T_prev_cur[:3, :3]``, ``t = T_prev_cur[:3, 3]``
     (metres). The rotation is re-orthonormalised (SVD) to remove the rounding of text files.
+    ``offset`` (3,): the position of the image camera in the posed camera's frame, ``X_img = X_pose + offset``
+    (the same orientation; KITTI camera 2 against camera-0 poses), or None.
     """
     T = np.linalg.solve(T_w_prev, T_w_cur)
     U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    return Motion(R=torch.from_numpy(R), t=torch.from_numpy(T[:3, 3].copy()))
+    R = U @ np.diag([1.0, 1.0, float(np.sign(np.linalg.det(U @ Vt)))]) @ Vt  # a rotation, never a reflection
+    t = T[:3, 3].copy()
+    if offset is not None:
+        # X_img_prev = R (X_img_cur - o) + t + o.
+        t = t + (np.eye(3) - R) @ np.asarray(offset, dtype=np.float64)
+    return Motion(R=torch.from_numpy(R), t=torch.from_numpy(np.ascontiguousarray(t)))
 
 
 def make_camera(fx: float, fy: float, cx: float, cy: float, height: float, pitch: float = 0.0,

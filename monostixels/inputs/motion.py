@@ -65,6 +65,7 @@ import torch
 
 from monostixels._checks import InputError, check_finite, check_shape
 from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
+from monostixels.data._io import relative_motion
 from monostixels.data.base import FramePair
 from monostixels.geometry import Motion
 from monostixels.inputs.confidence import to_gray
@@ -243,23 +244,6 @@ def load_poses(path: str | Path) -> dict[int, np.ndarray]:
     if not p.is_file():
         raise InputError(f"motion.path: poses file not found: {str(p)!r}")
     return _load_poses_cached(str(p.resolve()), p.stat().st_mtime)
-
-
-def relative_motion(T_w_cur: np.ndarray, T_w_prev: np.ndarray, offset: np.ndarray | None = None) -> Motion:
-    """Camera motion ``X_prev = R X_cur + t`` from two poses ``T_w_cam`` (4, 4).
-
-    ``offset`` (3,): position of the image camera relative to the posed camera, ``X_img = X_pose + offset``
-    (same orientation).
-    """
-    T = np.linalg.inv(T_w_prev) @ T_w_cur  # current camera -> previous camera
-    R, t = T[:3, :3], T[:3, 3]
-    if offset is not None:
-        # X_img_prev = R (X_img_cur - o) + t + o.
-        t = t + (np.eye(3) - R) @ offset
-    # Re-orthonormalise: poses files are printed with ~7 digits.
-    U, _, Vt = np.linalg.svd(R)
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return Motion(R=torch.from_numpy(R), t=torch.from_numpy(np.ascontiguousarray(t)))
 
 
 def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
