@@ -32,8 +32,10 @@ from __future__ import annotations
 
 import os
 
-# Before torch loads OpenMP (monostixels sets the same default on import).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before torch and OpenCV load their pools: idle threads sleep (what `import monostixels` does first).
+from monostixels._threads import quiet_spinning
+
+quiet_spinning()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -52,6 +54,7 @@ import torch  # noqa: E402
 from monostixels import cli  # noqa: E402
 from monostixels import pipeline as pipeline_mod  # noqa: E402
 from monostixels.pipeline import Pipeline, load_config  # noqa: E402
+from monostixels._threads import set_threads, spinning  # noqa: E402
 from monostixels.sequence import SequenceRunner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -170,7 +173,8 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--set", dest="sets", nargs="*", default=[], metavar="KEY=VALUE",
                     help="config overrides after the preset, e.g. flow=dis stream.semantic_every=3")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--threads", type=int, default=None, help="threads of torch, OpenCV and ONNX Runtime (config key "
+                    "threads; default auto: the cores this process may use)")
     ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
                     help="cpu: stage times in CPU seconds of the process (all threads), which other jobs on a "
                          "shared machine inflate far less than wall time")
@@ -185,8 +189,8 @@ def main() -> None:
         # Pipeline.run times its stages with time.perf_counter: give it the CPU clock instead.
         pipeline_mod.time = types.SimpleNamespace(perf_counter=time.process_time)  # type: ignore[assignment]
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    # As `monostixels run` does at start-up (config key `threads`): torch, OpenCV, ONNX Runtime.
+    set_threads(args.threads or "auto")
     overlap = not (args.no_overlap or args.clock == "cpu")
     load0 = os.getloadavg()
     # The yardstick first and again at the end: the machine's speed while the presets ran lies between.
@@ -236,7 +240,7 @@ def main() -> None:
               f"motion={c['motion']} stream={c['stream']}")
     out = {"presets": results, "median_seconds": results[names[0]]["median_seconds"], "preset": names[0],
            "clock": args.clock, "torch_threads": torch.get_num_threads(),
-           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "loadavg": {"before": load0, "after": load1},
+           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "spinning": spinning(), "loadavg": {"before": load0, "after": load1},
            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "roots": args.roots}
     out["image_size"] = size
     out.update({"dis_ms": dis_s * 1000.0, "dis_ms_runs": [t * 1000.0 for t, _ in dis_times], "dis_pair": dis_times[0][1],
