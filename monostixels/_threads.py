@@ -9,7 +9,7 @@ a 2-core machine the spinning threads of one library take the cores the others w
 time per frame grows with no gain in speed, and more so the busier the machine.
 
 :func:`set_threads` (applied once at start-up from the config key ``threads``; ``auto`` = the cores
-this process may run on, ``len(os.sched_getaffinity(0))``) gives torch and OpenCV that many threads;
+this process may use: ``len(os.sched_getaffinity(0))``, or a container's CPU quota where lower) gives torch and OpenCV that many threads;
 :func:`onnx_session_options` gives each ONNX Runtime session as many intra-op threads, one inter-op
 thread, sequential execution and no spinning. :func:`quiet_spinning` (called on ``import monostixels``,
 before torch and OpenCV load) makes idle OpenMP and OpenCV threads sleep instead of spinning; both
@@ -21,11 +21,13 @@ comparison in docs/results.md, "Speed").
 from __future__ import annotations
 
 import logging
+import math
 import os
+from pathlib import Path
 from typing import Any
 
 __all__ = ["available_cores", "resolve_threads", "set_threads", "threads", "onnx_session_options", "thread_counts",
-           "ensure_threads", "quiet_spinning", "spinning"]
+           "ensure_threads", "cgroup_cpu_limit", "quiet_spinning", "spinning"]
 
 logger = logging.getLogger(__name__)
 
@@ -60,12 +62,37 @@ def quiet_spinning() -> None:
         os.environ.setdefault(key, value)
 
 
-def available_cores() -> int:
-    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where that is unknown)."""
+def cgroup_cpu_limit(root: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """Whole CPUs of the container's CPU quota (cgroup v2 ``cpu.max``, v1 ``cpu.cfs_quota_us``), None = no quota.
+
+    A container limited to 2 CPUs on a 64-core host sees 64 cores in its affinity: each library would
+    start 64 threads that share 2 CPUs' worth of time slices.
+    """
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        v2 = root / "cpu.max"
+        if v2.is_file():
+            quota, period = (v2.read_text().split() + ["100000"])[:2]
+            if quota == "max":
+                return None
+            return max(1, math.ceil(int(quota) / int(period)))
+        quota_f, period_f = root / "cpu" / "cpu.cfs_quota_us", root / "cpu" / "cpu.cfs_period_us"
+        if quota_f.is_file() and period_f.is_file():
+            quota, period = int(quota_f.read_text()), int(period_f.read_text())
+            return None if quota <= 0 or period <= 0 else max(1, math.ceil(quota / period))
+    except (OSError, ValueError):  # unreadable or unexpected: no quota known
+        return None
+    return None
+
+
+def available_cores() -> int:
+    """The cores this process may use: its CPU affinity (``os.cpu_count()`` where unknown), or a
+    container's CPU quota where that is lower (:func:`cgroup_cpu_limit`)."""
+    try:
+        cores = max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # not Linux
-        return max(1, os.cpu_count() or 1)
+        cores = max(1, os.cpu_count() or 1)
+    quota = cgroup_cpu_limit()
+    return min(cores, quota) if quota is not None else cores
 
 
 def resolve_threads(value: Any) -> int:

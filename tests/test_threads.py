@@ -23,10 +23,29 @@ def restore_threads():
 
 
 def test_auto_is_the_cores_this_process_may_use():
-    assert available_cores() == len(os.sched_getaffinity(0))
+    quota = _threads.cgroup_cpu_limit()
+    assert available_cores() == min(len(os.sched_getaffinity(0)), quota or 10**6)
     for auto in ("auto", "AUTO", None, 0):
         assert resolve_threads(auto) == available_cores()
     assert resolve_threads(3) == 3 and resolve_threads("2") == 2
+
+
+def test_a_container_quota_limits_auto(tmp_path, monkeypatch):
+    # cgroup v2: "quota period" in microseconds; 1.5 CPUs of quota -> 2 threads; "max" = no quota.
+    (tmp_path / "cpu.max").write_text("150000 100000\n")
+    assert _threads.cgroup_cpu_limit(tmp_path) == 2
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert _threads.cgroup_cpu_limit(tmp_path) is None
+    # cgroup v1: quota -1 = none.
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
+    assert _threads.cgroup_cpu_limit(v1) is None
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("100000\n")
+    assert _threads.cgroup_cpu_limit(v1) == 1
+    monkeypatch.setattr(_threads, "cgroup_cpu_limit", lambda: 1)
+    assert available_cores() == 1 and resolve_threads("auto") == 1
 
 
 @pytest.mark.parametrize("bad", [-1, 1.5, "many", True])
