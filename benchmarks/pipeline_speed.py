@@ -26,7 +26,11 @@ Usage::
 
 The JSON's ``median_seconds`` (SPEC section 4) is that of the first preset measured (``fast``, what
 ``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each preset's. Measured numbers:
-docs/results.md ("Speed") and docs/benchmarks.md.
+docs/results.md ("Speed", "Threads and the DIS yardstick") and docs/benchmarks.md. On 2026-12-04, on a 2-core
+machine shared with other jobs (load average 9-15, DIS itself 93-139 ms), ``preset=fast`` took 7.3-10.1x DIS
+after the thread budget (``python benchmarks/pipeline_speed.py --presets fast --json p.json``) and 9.8-10.5x
+before it, 0.67 against 0.66-0.73 CPU seconds a frame; with every pool left spinning (``MONOSTIXELS_SPIN=1``)
+14.7-17.6x and 0.79-0.80 CPU seconds.
 """
 from __future__ import annotations
 
