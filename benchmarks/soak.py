@@ -175,13 +175,13 @@ def run_soak(cfg: Any, frames: int | None = None, progress: bool = True,
         sizes = buffer_sizes(runner, runner.stream._lookahead or src)
         rec.tracks.append(sizes["tracks"])
         rec.buffers.append(sizes)
+        rec.tracks_born = int(runner.tracks.next_id)  # ids given so far (the sequence never restarts here)
         last = now
         if checkpoint is not None and len(rec.step_s) % every == 0:
             checkpoint(rec)
         if frames is not None and len(rec.step_s) >= frames:
             break
     bar.close()
-    rec.tracks_born = int(runner.tracks.next_id)
     if live:
         rec.summary = src.summary()
     return rec
