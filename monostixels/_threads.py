@@ -26,7 +26,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["available_cores", "resolve_threads", "set_threads", "threads", "onnx_session_options", "thread_counts",
+__all__ = ["available_cores", "resolve_threads", "set_threads", "threads", "onnx_session_options", "thread_counts", "auto_threads",
            "ensure_threads", "cgroup_cpu_limit", "quiet_spinning", "spinning"]
 
 logger = logging.getLogger(__name__)
@@ -95,18 +95,26 @@ def available_cores() -> int:
     return min(cores, quota) if quota is not None else cores
 
 
+def auto_threads() -> int:
+    """What ``threads: auto`` means: :func:`available_cores`, or ``OMP_NUM_THREADS`` where the
+    environment sets a lower count (a Ray worker with one CPU, a user's own limit: honoured as before)."""
+    cores = available_cores()
+    env = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return min(cores, int(env)) if env.isdigit() and int(env) > 0 else cores
+
+
 def resolve_threads(value: Any) -> int:
-    """The thread count a ``threads`` setting means: ``auto`` / None / 0 = :func:`available_cores`, else an int >= 1."""
+    """The thread count a ``threads`` setting means: ``auto`` / None / 0 = :func:`auto_threads`, else an int >= 1."""
     from monostixels._checks import InputError
 
     if value is None or (isinstance(value, str) and value.strip().lower() == "auto"):
-        return available_cores()
+        return auto_threads()
     if isinstance(value, str) and value.strip().isdigit():
         value = int(value.strip())
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise InputError(f"threads: 'auto' or a whole number >= 1 (threads of torch, OpenCV and ONNX Runtime), "
                          f"got {value!r}")
-    return value if value > 0 else available_cores()
+    return value if value > 0 else auto_threads()
 
 
 def set_threads(value: Any = "auto") -> int:

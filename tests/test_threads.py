@@ -22,12 +22,22 @@ def restore_threads():
     _threads._applied = before[2]
 
 
-def test_auto_is_the_cores_this_process_may_use():
+def test_auto_is_the_cores_this_process_may_use(monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     quota = _threads.cgroup_cpu_limit()
     assert available_cores() == min(len(os.sched_getaffinity(0)), quota or 10**6)
     for auto in ("auto", "AUTO", None, 0):
         assert resolve_threads(auto) == available_cores()
     assert resolve_threads(3) == 3 and resolve_threads("2") == 2
+
+
+def test_auto_honours_a_lower_omp_num_threads(monkeypatch):
+    # A Ray worker given one CPU (or a user's own limit) sets OMP_NUM_THREADS: auto keeps to it.
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert resolve_threads("auto") == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", str(10**4))
+    assert resolve_threads("auto") == available_cores()
+    assert resolve_threads(2) == 2  # an explicit count wins
 
 
 def test_a_container_quota_limits_auto(tmp_path, monkeypatch):
@@ -45,6 +55,7 @@ def test_a_container_quota_limits_auto(tmp_path, monkeypatch):
     (v1 / "cpu" / "cpu.cfs_quota_us").write_text("100000\n")
     assert _threads.cgroup_cpu_limit(v1) == 1
     monkeypatch.setattr(_threads, "cgroup_cpu_limit", lambda: 1)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert available_cores() == 1 and resolve_threads("auto") == 1
 
 
