@@ -126,7 +126,6 @@ def main() -> None:
 
 def _run_command(cfg: DictConfig) -> Any:
     from monostixels._checks import InputError
-
     from monostixels._threads import set_threads
 
     logging.getLogger("monostixels").setLevel(str(cfg.log_level))

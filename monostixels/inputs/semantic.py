@@ -90,9 +90,9 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) ->
         pair: the frame pair (only ``pair.image`` and, for ``gt``, ``pair.gt.labels`` are used).
         cfg: the ``semantic`` config node; ``cfg.name`` in ``gt | fcn8s | onnx | none``.
         threads: ONNX Runtime intra-op threads of the network (0 = the process's, config key
-            ``threads``: :func:`monostixels._threads.onnx_session_options`). The scores do not depend on it. The pipeline passes 1 when the semantics run
-            beside the flow: a pool of spinning ORT threads there takes the cores DeepFlow's strips
-            need.
+            ``threads``: :func:`monostixels._threads.onnx_session_options`). The scores do not
+            depend on it. The pipeline passes 1 when the semantics run beside the flow: a pool of
+            ORT threads there takes the cores DeepFlow's strips need.
 
     Returns:
         (10, H, W) float32 scores summing to 1 per pixel, classes in ``CLASS_NAMES`` order; or
