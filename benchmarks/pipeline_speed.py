@@ -24,16 +24,22 @@ Usage::
     python benchmarks/pipeline_speed.py --presets fast --set flow=dis --json p_dis.json   # any override
     python benchmarks/pipeline_speed.py --clock cpu --frames 6 --roots ../shared/data/kitti_raw
 
-The JSON's ``median_seconds`` (docs/conventions.md, section 4.7) is that of the first preset
-measured (``fast``, what ``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each
-preset's. Measured numbers: docs/results.md ("Speed") and docs/benchmarks.md.
+The JSON's ``median_seconds`` (docs/conventions.md, section 4.7) is that of the first preset measured
+(``fast``, what ``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each preset's. Measured numbers:
+docs/results.md ("Speed", "Threads and the DIS yardstick") and docs/benchmarks.md. On 2026-12-04, on a 2-core
+machine shared with other jobs (load average 9-15, DIS itself 93-139 ms), ``preset=fast`` took 7.3-10.1x DIS
+after the thread budget (``python benchmarks/pipeline_speed.py --presets fast --json p.json``) and 9.8-10.5x
+before it, 0.67 against 0.66-0.73 CPU seconds a frame; with every pool left spinning (``MONOSTIXELS_SPIN=1``)
+14.7-17.6x and 0.79-0.80 CPU seconds.
 """
 from __future__ import annotations
 
 import os
 
-# Before torch loads OpenMP (monostixels sets the same default on import).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before torch and OpenCV load their pools: idle threads sleep (what `import monostixels` does first).
+from monostixels._threads import quiet_spinning
+
+quiet_spinning()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
@@ -45,11 +51,14 @@ import types  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from monostixels import cli  # noqa: E402
 from monostixels import pipeline as pipeline_mod  # noqa: E402
 from monostixels.pipeline import Pipeline, load_config  # noqa: E402
+from monostixels._threads import set_threads, spinning  # noqa: E402
 from monostixels.sequence import SequenceRunner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,6 +67,60 @@ REPO = Path(__file__).resolve().parents[1]
 DEFAULT_ROOTS = (REPO.parent / "shared/data/kitti_raw", REPO.parent / "shared/data/kitti_raw_lidar")
 #: The presets measured by default: run's own first.
 PRESETS = ("fast", "accurate")
+#: The yardstick's frame size (KITTI's, width x height).
+DIS_SIZE = (1242, 375)
+
+
+def dis_pair(roots: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
+    """A KITTI-size (375, 1242) uint8 grey pair: the first two frames of the first drive found, else a render."""
+    for root in roots:
+        frames = sorted(p for p in Path(root).glob("*/*_sync/image_02/data/*") if p.suffix in (".png", ".jpg"))
+        if len(frames) >= 2:
+            a, b = (cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in frames[:2])
+            if a is not None and b is not None:
+                size = DIS_SIZE
+                return cv2.resize(a, size), cv2.resize(b, size), f"{frames[0].parent}: {frames[0].name}, {frames[1].name}"
+    from monostixels.data.synthetic import SyntheticSource
+    from monostixels.inputs.flow import _gray_u8
+
+    pair = SyntheticSource(1, seed=0)[0]
+    a, b = (cv2.resize(_gray_u8(x.float()), DIS_SIZE) for x in (pair.image, pair.image_prev))
+    return a, b, "synthetic scene 0"
+
+
+def time_dis(roots: list[str], repeats: int) -> tuple[float, str]:
+    """Median wall seconds of OpenCV DIS (medium preset) on a KITTI-size grey pair, after one warm-up."""
+    a, b, source = dis_pair(roots)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.calc(a, b, None)  # warm-up: allocation, the thread pool started
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        dis.calc(a, b, None)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), source
+
+
+def onnx_threads() -> int:
+    """Intra-op threads of the ONNX Runtime sessions alive in this process (their largest; 0 = none)."""
+    import gc
+
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        return 0
+    counts = []
+    for obj in gc.get_objects():
+        if isinstance(obj, ort.InferenceSession):
+            n = obj.get_session_options().intra_op_num_threads
+            # 0: ONNX Runtime's own default, one thread per physical core.
+            counts.append(n if n > 0 else (os.cpu_count() or 1))
+    return max(counts, default=0)
+
+
+def thread_counts() -> dict[str, int]:
+    """Threads in use now: torch's intra-op, OpenCV's pool, the ONNX Runtime sessions' intra-op."""
+    return {"torch": torch.get_num_threads(), "opencv": cv2.getNumThreads(), "onnxruntime": onnx_threads()}
 
 
 def run_overrides(preset: str, sets: list[str]) -> list[str]:
@@ -115,13 +178,15 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--set", dest="sets", nargs="*", default=[], metavar="KEY=VALUE",
                     help="config overrides after the preset, e.g. flow=dis stream.semantic_every=3")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--threads", type=int, default=None, help="threads of torch, OpenCV and ONNX Runtime (config key "
+                    "threads; default auto: the cores this process may use)")
     ap.add_argument("--clock", choices=["wall", "cpu"], default="wall",
                     help="cpu: stage times in CPU seconds of the process (all threads), which other jobs on a "
                          "shared machine inflate far less than wall time")
     ap.add_argument("--no-overlap", action="store_true",
                     help="semantics after the flow instead of beside it (Pipeline(overlap=False)); implied by --clock cpu, "
                          "where the stages' CPU seconds would otherwise mix (as would stream.overlap's, also off then)")
+    ap.add_argument("--dis-repeats", type=int, default=15, help="timed repeats of the DIS yardstick (after a warm-up)")
     ap.add_argument("--json", type=str, default=None, help="write the per-stage medians and all frame times here")
     args = ap.parse_args()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
@@ -129,10 +194,12 @@ def main() -> None:
         # Pipeline.run times its stages with time.perf_counter: give it the CPU clock instead.
         pipeline_mod.time = types.SimpleNamespace(perf_counter=time.process_time)  # type: ignore[assignment]
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    # As `monostixels run` does at start-up (config key `threads`): torch, OpenCV, ONNX Runtime.
+    set_threads(args.threads or "auto")
     overlap = not (args.no_overlap or args.clock == "cpu")
     load0 = os.getloadavg()
+    # The yardstick first and again at the end: the machine's speed while the presets ran lies between.
+    dis_times = [time_dis(args.roots, args.dis_repeats)]
     results: dict[str, dict[str, Any]] = {}
     size: list[int] = []
     for preset in args.presets:
@@ -147,7 +214,10 @@ def main() -> None:
             "config": {"flow": str(cfg.flow.name), "flow_preset": cfg.flow.get("preset"), "flow_scale": cfg.flow.get("scale"),
                        "semantic": str(cfg.semantic.name), "motion": str(cfg.motion.name),
                        "stream": dict(cfg.stream), "overrides": overrides, "overlap": overlap},
-            "frames": len(frames), "median_seconds": med, "per_frame": frames}
+            "frames": len(frames), "median_seconds": med, "per_frame": frames,
+            "cpu_seconds_per_frame": med.get("cpu"), "threads": thread_counts()}
+    dis_times.append(time_dis(args.roots, args.dis_repeats))
+    dis_s = statistics.median([t for t, _ in dis_times])
     load1 = os.getloadavg()
     print(f"\nmonostixels run, {args.clock} clock, medians over the frames after {args.warmup} warm-up frame(s) of each "
           f"drive, torch threads {torch.get_num_threads()}, load average {load0[0]:.2f} -> {load1[0]:.2f}")
@@ -165,14 +235,22 @@ def main() -> None:
             results[n]["idle_bound_seconds"] = bound
             print(f"{n}: idle {cores}-core bound max(cpu / {cores}, main thread) = {bound:.3f} s per frame")
     for n in names:
+        results[n]["total_per_dis"] = results[n]["median_seconds"]["total"] / dis_s
+        print(f"{n}: total {results[n]['median_seconds']['total']:.3f} s = {results[n]['total_per_dis']:.1f} x DIS "
+              f"({dis_s * 1000:.1f} ms, medium, {DIS_SIZE[0]}x{DIS_SIZE[1]}: {dis_times[0][1]}); "
+              f"CPU {results[n]['cpu_seconds_per_frame']:.3f} s per frame; threads {results[n]['threads']}")
+    for n in names:
         c = results[n]["config"]
         print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) semantic={c['semantic']} "
               f"motion={c['motion']} stream={c['stream']}")
     out = {"presets": results, "median_seconds": results[names[0]]["median_seconds"], "preset": names[0],
            "clock": args.clock, "torch_threads": torch.get_num_threads(),
-           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "loadavg": {"before": load0, "after": load1},
+           "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "spinning": spinning(), "loadavg": {"before": load0, "after": load1},
            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "roots": args.roots}
     out["image_size"] = size
+    out.update({"dis_ms": dis_s * 1000.0, "dis_ms_runs": [t * 1000.0 for t, _ in dis_times], "dis_pair": dis_times[0][1],
+                "total_per_dis": results[names[0]]["total_per_dis"], "threads": results[names[0]]["threads"],
+                "cpu_seconds_per_frame": results[names[0]]["cpu_seconds_per_frame"]})
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

@@ -33,6 +33,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from monostixels._checks import InputError
+from monostixels._threads import set_threads
 from monostixels.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.data._io import IMAGE_EXTENSIONS
 from monostixels.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
@@ -267,9 +268,7 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
         ``(summary, table)``: the clip's summary entry, and its rows as a ``pyarrow.Table`` (None
         where it failed). Never raises for a bad clip: the error goes into the summary.
     """
-    import cv2
     import pyarrow as pa
-    import torch
     from omegaconf import OmegaConf
 
     from monostixels.data.sources import make_source
@@ -277,8 +276,7 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
     from monostixels.sequence import SequenceRunner
 
     logging.getLogger("monostixels").setLevel(str(cfg.get("log_level", "INFO")))
-    torch.set_num_threads(max(1, int(threads)))
-    cv2.setNumThreads(max(1, int(threads)))
+    set_threads(max(1, int(threads)))  # the clip's CPUs: torch, OpenCV and ONNX Runtime alike
     start = time.perf_counter()
     entry: dict[str, Any] = {"input": clip.path, "kind": clip.kind, "frames": 0, "rows": 0, "status": "failed",
                              "error": None, "seconds": 0.0}

@@ -132,10 +132,13 @@ def main() -> None:
 
 def _run_command(cfg: DictConfig) -> Any:
     from monostixels._checks import InputError, numeric_text_error
+    from monostixels._threads import set_threads
 
     logging.getLogger("monostixels").setLevel(str(cfg.log_level))
     try:
         try:
+            # One thread budget for torch, OpenCV and ONNX Runtime before any of them starts its pool.
+            set_threads(cfg.get("threads", "auto"))
             if cfg.command == "demo":
                 return _demo(cfg)
             if cfg.command == "eval":

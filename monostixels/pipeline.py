@@ -27,6 +27,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from monostixels._checks import InputError, check_frame_size
+from monostixels._threads import ensure_threads
 from monostixels.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
 from monostixels.energy import PriorParams
@@ -119,6 +120,8 @@ class Pipeline:
             if report_height else None
         self.sfm = sfm
         self.overlap = overlap
+        # The config's thread budget, unless the command line (or a library user) already set one.
+        ensure_threads(cfg.get("threads", "auto"))
         prior = OmegaConf.to_container(cfg.prior, resolve=True)
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.

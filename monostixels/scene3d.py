@@ -12,6 +12,7 @@ so poses chain as ``T_w_cur = T_w_prev @ [R t; 0 1]``.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Hashable
 
@@ -160,17 +161,23 @@ def _motion_matrix(res: Any) -> np.ndarray:
     return T
 
 
+#: Frames whose pose a :class:`PoseChain` keeps: a pair's previous frame is one of the last few current
+#: frames (``keyframes.window`` back at most, 10 by default); older ones are forgotten, so a recording of
+#: a camera left running does not grow with every frame.
+_KEPT_POSES = 64
+
+
 class PoseChain:
     """Camera-to-world poses (4, 4) of the frames of a clip, world = the first camera.
 
     Takes ``result.pose`` where the pipeline provides it (the sequence layer); otherwise chains
     the pairs' camera motions: a pair's previous frame is found by its ``meta`` keys (video frame
     number, image path), or, where a source names none, taken to be the previous pair's current
-    frame.
+    frame. The poses of the last :data:`_KEPT_POSES` frames are kept.
     """
 
     def __init__(self) -> None:
-        self._poses: dict[Hashable, np.ndarray] = {}
+        self._poses: OrderedDict[Hashable, np.ndarray] = OrderedDict()
         self._last: np.ndarray | None = None
         self._warned = False
 
@@ -203,5 +210,8 @@ class PoseChain:
                     self._poses[prev] = T_prev  # the first pair's previous frame is the world
             T = T_prev @ _motion_matrix(res)
         self._poses[cur] = T
+        self._poses.move_to_end(cur)
+        while len(self._poses) > _KEPT_POSES:
+            self._poses.popitem(last=False)
         self._last = T
         return T

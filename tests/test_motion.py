@@ -135,6 +135,22 @@ def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
     assert Pipeline(load_config(["motion=mono"])).camera_for(pair, est_gt) is pair.camera
 
 
+def test_mono_reports_an_opencv_failure_of_the_essential_matrix(monkeypatch):
+    # OpenCV's 5-point solver can assert on a near-degenerate sample (solvePoly); the pair fails, the run goes on.
+    import cv2
+
+    from monostixels.inputs import motion as motion_mod
+
+    def fails(*args, **kwargs):
+        raise cv2.error("OpenCV(5.1.0) mathfuncs.cpp:1601: error: (-215:Assertion failed) ... in function 'solvePoly'")
+
+    monkeypatch.setattr(motion_mod.cv2, "findEssentialMat", fails)
+    pair, fr = _pair_and_flow(Motion(R=_rot(0.8, -0.3, 0.1), t=torch.tensor([0.06, 0.01, 0.95], dtype=torch.float64)))
+    est = estimate_motion(pair, fr, MONO)
+    assert est.motion is None and not est.degenerate
+    assert "essential matrix: OpenCV failed" in est.reason and "solvePoly" in est.reason
+
+
 def test_mono_flags_pure_rotation_and_standing_still():
     R = _rot(1.0, 0.4, 0.0)
     gt = Motion(R=R, t=torch.zeros(3, dtype=torch.float64))

@@ -126,6 +126,27 @@ def test_pose_chain_maps_every_frame_into_the_first_camera():
     assert np.allclose(T[:3, 3], [0, 0, 1])
 
 
+def test_pose_chain_keeps_the_recent_frames_only():
+    """A camera left running: the chain keeps a bounded number of poses and still chains the last frames."""
+    from monostixels.scene3d import _KEPT_POSES
+
+    chain = PoseChain()
+    R, t = _rot_y(0.5), np.array([0.0, 0.0, 1.0])
+    step = np.eye(4)
+    step[:3, :3], step[:3, 3] = R, t
+    T = np.eye(4)
+    for k in range(1, 3 * _KEPT_POSES):
+        T = T @ step
+        got = chain.update(SimpleNamespace(meta={"source": "video", "frame": k, "frame_prev": k - 1}, name=f"f{k}"),
+                           _res(R, t))
+        assert np.allclose(got, T)
+        assert len(chain._poses) <= _KEPT_POSES
+    # A keyframe pair reaching back 10 frames still finds its previous frame's pose.
+    k = 3 * _KEPT_POSES
+    back = chain.update(SimpleNamespace(meta={"source": "video", "frame": k, "frame_prev": k - 10}, name="f"), _res(R, t))
+    assert np.allclose(back, chain._poses[("frame", k - 10)] @ step)
+
+
 def test_pose_chain_follows_the_previous_frame_not_the_previous_pair(caplog):
     """Image folders with step 2: pairs (2, 0), (3, 1), (4, 2): frame 4 chains on frame 2."""
     chain = PoseChain()

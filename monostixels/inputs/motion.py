@@ -867,11 +867,19 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         # reverses does not).
         R, t = pred.R, pred.t_unit * _cheirality_sign(pred.R, pred.t_unit, a_all[inl], b_all[inl])
     if not warm:
-        E, mask = cv2.findEssentialMat(pc, pp, Kn, method=cv2.RANSAC, prob=params.ransac_confidence,
-                                       threshold=params.ransac_threshold)
-        if E is None or E.shape != (3, 3):
-            return MotionEstimate(None, False, "essential matrix: RANSAC found no model", 0.0, kind="unknown")
-        _, R, t, mask = cv2.recoverPose(E, pc, pp, Kn, mask=mask.copy())
+        try:
+            E, mask = cv2.findEssentialMat(pc, pp, Kn, method=cv2.RANSAC, prob=params.ransac_confidence,
+                                           threshold=params.ransac_threshold)
+            if E is None or E.shape != (3, 3):
+                return MotionEstimate(None, False, "essential matrix: RANSAC found no model", 0.0,
+                                      kind="unknown")
+            _, R, t, mask = cv2.recoverPose(E, pc, pp, Kn, mask=mask.copy())
+        except cv2.error as err:
+            # The 5-point solver asserts on some near-degenerate samples (a zero leading coefficient in
+            # solvePoly: seen after ~200 frames of a soak): a failed estimate of this pair, not a crash.
+            first = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+            return MotionEstimate(None, False, f"essential matrix: OpenCV failed on these vectors ({first})", 0.0,
+                                  kind="unknown")
         inl = mask.ravel() > 0
         if inl.sum() < params.min_points:
             return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers", float(inl.mean()),

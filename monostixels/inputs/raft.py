@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from monostixels._checks import InputError, check_image_pair
+from monostixels._threads import onnx_session_options
 from monostixels._torchvision import torchvision
 
 __all__ = [
@@ -460,7 +461,8 @@ class OnnxRaft:
     Args:
         path: an ONNX file written by :func:`export_onnx`: of any size (dynamic), or of one size, to which
             smaller images are padded (a larger one is an :class:`InputError` naming the file).
-        threads: ONNX Runtime's intra-op threads (0 = its default, one per core).
+        threads: ONNX Runtime's intra-op threads (0 = the process's, config key ``threads``:
+            :func:`monostixels._threads.onnx_session_options`).
     """
 
     def __init__(self, path: str | os.PathLike, threads: int = 0) -> None:
@@ -469,10 +471,8 @@ class OnnxRaft:
         p = Path(path)
         if not p.is_file():
             raise InputError(f"flow.onnx: RAFT ONNX file not found: {str(p)!r} (export one with `python -m train.flow export_only=true`)")
-        opts = ort.SessionOptions()
+        opts = onnx_session_options(threads)
         opts.log_severity_level = 3
-        if threads:
-            opts.intra_op_num_threads = int(threads)
         try:
             self.session = ort.InferenceSession(str(p), sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for bad files.

@@ -36,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from monostixels._checks import InputError, check_finite, check_shape
 from monostixels._paths import REPO_ROOT, find_file, path_candidates
+from monostixels._threads import onnx_session_options
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair
 
@@ -89,10 +90,10 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) ->
     Args:
         pair: the frame pair (only ``pair.image`` and, for ``gt``, ``pair.gt.labels`` are used).
         cfg: the ``semantic`` config node; ``cfg.name`` in ``gt | fcn8s | onnx | none``.
-        threads: ONNX Runtime intra-op threads of the network (0 = its default, one per physical
-            core). The scores do not depend on it. The pipeline passes 1 when the semantics run
-            beside the flow: a pool of spinning ORT threads there takes the cores DeepFlow's strips
-            need.
+        threads: ONNX Runtime intra-op threads of the network (0 = the process's, config key
+            ``threads``: :func:`monostixels._threads.onnx_session_options`). The scores do not
+            depend on it. The pipeline passes 1 when the semantics run beside the flow: a pool of
+            ORT threads there takes the cores DeepFlow's strips need.
 
     Returns:
         (10, H, W) float32 scores summing to 1 per pixel, classes in ``CLASS_NAMES`` order; or
@@ -309,7 +310,7 @@ class OnnxSegmenter:
         mapping: model class -> our class id (or -1), None = identity (C must be 10).
         pad_to: pad the network input to a multiple of this (32 for FCN-8s; 1 = none).
         softmax: the model outputs logits (True) or probabilities already (False).
-        threads: ONNX Runtime intra-op threads (0 = its default: one per physical core).
+        threads: ONNX Runtime intra-op threads (0 = the process's, config key ``threads``).
     """
 
     def __init__(
@@ -328,8 +329,7 @@ class OnnxSegmenter:
         import onnxruntime as ort  # local: only the network backends need it
 
         self.path = Path(path)
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = max(0, int(threads))
+        options = onnx_session_options(max(0, int(threads)))
         try:
             self.session = ort.InferenceSession(str(self.path), options, providers=["CPUExecutionProvider"])
         except Exception as err:  # onnxruntime raises its own exception types
@@ -441,7 +441,7 @@ def _fcn8s_segmenter(cfg: DictConfig, threads: int = 0) -> OnnxSegmenter | Torch
 def onnx_segmenter(cfg: DictConfig, *, threads: int = 0) -> OnnxSegmenter:
     """The ``onnx`` backend's segmenter for a ``semantic`` config node (``model``, ``input_size``,
     ``scale``, ``mean``, ``std``, ``mapping``, ``pad_to``, ``softmax``); one cached session per
-    model file and settings (``threads``: ONNX Runtime intra-op threads, 0 = its default). Also the
+    model file and settings (``threads``: ONNX Runtime intra-op threads, 0 = the process's). Also the
     teacher of ``train.semantic``'s distillation."""
     if "model" not in cfg or OmegaConf.is_missing(cfg, "model"):
         raise InputError("semantic.model: semantic=onnx needs the path of an ONNX model "
