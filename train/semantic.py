@@ -306,6 +306,179 @@ def distill_frames(dcfg: DictConfig | dict) -> list[DistillFrame]:
     return frames
 
 
+def held_out(source: str, frame: int, holdout: list | None) -> bool:
+    """Whether ``(source, frame)`` is excluded by ``holdout``.
+
+    ``holdout``: a list of ``{source: name}`` (the whole source) or ``{source: name, frames: [lo, hi]}``
+    (frames ``lo <= frame < hi``), e.g. ``[{source: kitti_0028}]``, ``[{source: dashcam, frames: [110, 221]}]``.
+    """
+    for h in holdout or ():
+        if str(h["source"]) != source:
+            continue
+        fr = h.get("frames")
+        if fr is None or int(fr[0]) <= int(frame) < int(fr[1]):
+            return True
+    return False
+
+
+class SoftLabelled(Dataset):
+    """Frames with the teacher's cached soft labels (``python -m train.teacher_labels``) and, where
+    they exist (CamVid), the ground-truth labels.
+
+    Each entry is a window of a frame (``SoftEntry.box``); image, labels and probabilities are
+    resized so that the camera's focal length becomes ``focal_px`` (the resolution the backend runs
+    at). Nothing is kept in memory (~1500 entries would take ~3 GB); an entry costs ~20 ms to read.
+
+    Args:
+        entries: the manifest entries to train on (holdouts already removed).
+        focal_px: focal length (pixels) every window is resized to.
+        transform: optional ``(image, labels, soft, index) -> (image, labels, soft)`` (augmentation).
+
+    Returns per item:
+        image (3, H, W) float32 RGB [0, 1], labels (H, W) int64 (``IGNORE_LABEL`` where none),
+        soft (10, H, W) float32 teacher probabilities.
+    """
+
+    def __init__(self, entries: list, *, focal_px: float,
+                 transform: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], tuple] | None = None) -> None:
+        if not entries:
+            raise InputError("data.soft: no teacher-labelled entries to train on (all held out, or an empty manifest)")
+        if not focal_px > 0:
+            raise InputError(f"data.soft.focal_px: must be positive, got {focal_px}")
+        self.entries, self.focal_px, self.transform = list(entries), float(focal_px), transform
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+        """uint8 (H, W, 3) RGB, uint8 (H, W) labels and (10, H, W) float32 probabilities of entry ``i``."""
+        from train.teacher_labels import load_entry
+
+        e = self.entries[i]
+        bgr = cv2.imread(e.image, cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(f"data.soft: cannot read image {e.image}")
+        x0, y0, x1, y1 = e.box
+        rgb = cv2.cvtColor(bgr[y0:y1, x0:x1], cv2.COLOR_BGR2RGB)
+        if e.labels is not None:
+            from monostixels.data.camvid import map_camvid_labels
+
+            raw = cv2.imread(e.labels, cv2.IMREAD_UNCHANGED)
+            if raw is None:
+                raise InputError(f"data.soft: cannot read labels {e.labels}")
+            lab = map_camvid_labels(raw, name=e.labels)[y0:y1, x0:x1]
+        else:
+            lab = np.full(rgb.shape[:2], IGNORE_LABEL, np.uint8)
+        s = self.focal_px / e.fx
+        h, w = max(8, round(rgb.shape[0] * s)), max(8, round(rgb.shape[1] * s))
+        if (h, w) != rgb.shape[:2]:
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+            lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
+        soft = F.interpolate(load_entry(e.probs)[None], size=(h, w), mode="bilinear", align_corners=False)[0]
+        return rgb, lab, soft
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        rgb, lab, soft = self.load(i)
+        image, labels = CamVidSource.to_tensors(rgb, lab)
+        if self.transform is not None:
+            image, labels, soft = self.transform(image, labels, soft, i)
+        return image, labels, soft
+
+
+class _NoSoft(Dataset):
+    """A dataset of (image, labels) as (image, labels, zero soft targets), for batches mixed with
+    :class:`SoftLabelled` (zero probabilities = no teacher term)."""
+
+    def __init__(self, data: Dataset) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)  # type: ignore[arg-type]
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        image, labels = self.data[i]
+        return image, labels, torch.zeros((NUM_CLASSES, *labels.shape), dtype=torch.float32)
+
+
+def soft_entries(scfg: DictConfig | dict) -> tuple[list, list]:
+    """``(train, held out)`` entries of the manifest ``scfg.manifest``.
+
+    Train: entries of the sources with a positive weight in ``scfg.weights`` (a source missing from
+    it gets ``scfg.default_weight``), views in ``scfg.views`` (null = all), minus ``scfg.holdout``.
+    """
+    from train.teacher_labels import read_manifest
+
+    entries = read_manifest(scfg["manifest"])
+    weights = dict(scfg.get("weights") or {})
+    default = float(scfg.get("default_weight", 1.0))
+    views = scfg.get("views")
+    holdout = list(scfg.get("holdout") or [])
+    train, out = [], []
+    for e in entries:
+        if held_out(e.source, e.frame, holdout):
+            out.append(e)
+        elif float(weights.get(e.source, default)) > 0 and (views is None or e.view.split("_")[0] in views):
+            train.append(e)
+    return train, out
+
+
+def soft_draw(entries: list, weights: dict, default: float, n: int, g: torch.Generator) -> list[int]:
+    """``n`` entry indices drawn with replacement, each source's share proportional to its weight.
+
+    Within a source all entries are equally likely (a 221-frame clip does not outweigh 2 frames of
+    another camera unless its weight says so).
+    """
+    per_source: dict[str, int] = {}
+    for e in entries:
+        per_source[e.source] = per_source.get(e.source, 0) + 1
+    p = torch.tensor([float(weights.get(e.source, default)) / per_source[e.source] for e in entries], dtype=torch.float64)
+    if not len(p) or float(p.sum()) <= 0 or n <= 0:
+        return []
+    return torch.multinomial(p, n, replacement=True, generator=g).tolist()
+
+
+def distill_loss(logits: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor, *,
+                 weight: torch.Tensor | None = None, temperature: float = 1.0,
+                 soft_weight_labelled: float = 1.0) -> torch.Tensor:
+    """Class-weighted mean over supervised pixels of hard cross-entropy and soft-target KL.
+
+    Per pixel with a hard label y: ``w[y] * -log q_y``; per pixel with soft targets p (sum 1;
+    all zero = none): ``a * w_p * T^2 * KL(p_T || q_T)`` with ``p_T = softmax(log p / T)``,
+    ``q_T = softmax(z / T)``, ``w_p = sum_c p_c w[c]`` (class balancing follows the teacher) and
+    ``a = soft_weight_labelled`` where the pixel also has a hard label (else 1). The loss is the
+    sum of both terms over the batch divided by the sum of their weights (``w[y]``, ``a w_p``).
+
+    Args:
+        logits: (B, C, H, W) student scores.
+        labels: (B, H, W) int64, ``IGNORE_LABEL`` where none.
+        soft: (B, C, H, W) teacher probabilities.
+        weight: (C,) class weights (None = 1).
+        temperature: T (1 = the teacher's own probabilities).
+        soft_weight_labelled: weight a of the teacher where a ground-truth label exists.
+    """
+    C = logits.shape[1]
+    w = torch.ones(C, dtype=logits.dtype) if weight is None else weight.to(logits.dtype)
+    logq = F.log_softmax(logits, dim=1)
+    has_label = labels != IGNORE_LABEL
+    y = torch.where(has_label, labels, torch.zeros_like(labels))
+    wh = w[y] * has_label
+    hard = -(logq.gather(1, y[:, None])[:, 0] * wh).sum()
+    mass = soft.sum(1)
+    has_soft = mass > 0.5
+    p = soft / mass.clamp_min(1e-6)[:, None]
+    T = float(temperature)
+    if T != 1.0:
+        pT = torch.softmax(p.clamp_min(1e-8).log() / T, dim=1)
+        logqT = F.log_softmax(logits / T, dim=1)
+    else:
+        pT, logqT = p, logq
+    kl = (pT * (pT.clamp_min(1e-8).log() - logqT)).sum(1) * T * T
+    ws = (p * w.view(1, C, 1, 1)).sum(1) * has_soft
+    ws = ws * torch.where(has_label, torch.full_like(ws, float(soft_weight_labelled)), torch.ones_like(ws))
+    total = wh.sum() + ws.sum()
+    return (hard + (kl * ws).sum()) / total.clamp_min(1e-6)
+
+
 def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
     return lo + (hi - lo) * float(torch.rand((), generator=g))
 
@@ -317,31 +490,102 @@ def augment(image: torch.Tensor, labels: torch.Tensor, g: torch.Generator, aug: 
         image: (3, H, W) RGB [0, 1].
         labels: (H, W) int64 class ids.
         g: random generator.
-        aug: the ``augment`` config (see conf/train_semantic.yaml).
+        aug: the ``augment`` config (see conf/train_semantic.yaml; ``rotate_deg``, ``vshift``,
+            ``jpeg_prob`` are optional and off when absent).
 
     Returns:
         (3, h, w) augmented image and (h, w) labels, (h, w) = ``aug.crop``; padded areas are
         ``IGNORE_LABEL``.
     """
-    # Scale jitter (labels: nearest neighbour, never interpolated).
+    image, labels, _ = _geometric(image, labels, None, g, aug)
+    return _photometric(image, g, aug), labels
+
+
+def augment_soft(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor, g: torch.Generator,
+                 aug: DictConfig | dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`augment` with soft targets that follow the image's geometry.
+
+    Args:
+        image: (3, H, W) RGB [0, 1].
+        labels: (H, W) int64 hard labels (``IGNORE_LABEL`` where none).
+        soft: (C, H, W) teacher probabilities (all zero where there is no teacher).
+
+    Returns:
+        (3, h, w) image, (h, w) labels, (C, h, w) soft targets (bilinear; zero in padded areas).
+    """
+    image, labels, soft = _geometric(image, labels, soft, g, aug)
+    return _photometric(image, g, aug), labels, soft  # type: ignore[return-value]
+
+
+def _geometric(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor | None, g: torch.Generator,
+               aug: DictConfig | dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Scale jitter, small rotation, vertical shift, random crop, flip (see :func:`augment_soft`)."""
+    # Scale jitter (labels: nearest neighbour, never interpolated; soft targets: bilinear).
     s = _uniform(g, *aug["scale_jitter"])
     H, W = image.shape[-2:]
     size = (max(8, round(H * s)), max(8, round(W * s)))
     image = F.interpolate(image[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)[0]
     labels = F.interpolate(labels[None, None].float(), size=size, mode="nearest")[0, 0].long()
-    # Random crop, padding with ignore where the image is smaller than the crop.
+    if soft is not None:
+        soft = F.interpolate(soft[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)[0]
+    rot = float(aug.get("rotate_deg", 0.0) or 0.0)
+    if rot > 0:
+        # A camera rolled by a few degrees (a dashcam mounted askew); outside the source: ignore.
+        image, labels, soft = _rotate(image, labels, soft, math.radians(_uniform(g, -rot, rot)))
+    vshift = float(aug.get("vshift", 0.0) or 0.0)
     ch, cw = int(aug["crop"][0]), int(aug["crop"][1])
-    ph, pw = max(0, ch - size[0]), max(0, cw - size[1])
+    if vshift > 0:
+        # Pad above and below so that the crop may put the horizon up to `vshift` x crop height
+        # higher or lower than the source camera's pitch allows (other mounts, other pitches).
+        pad = round(vshift * ch)
+        image = F.pad(image, (0, 0, pad, pad), value=0.5)
+        labels = F.pad(labels, (0, 0, pad, pad), value=IGNORE_LABEL)
+        if soft is not None:
+            soft = F.pad(soft, (0, 0, pad, pad), value=0.0)
+    # Random crop, padding with ignore where the image is smaller than the crop.
+    ph, pw = max(0, ch - image.shape[-2]), max(0, cw - image.shape[-1])
     if ph or pw:
         image = F.pad(image, (0, pw, 0, ph), value=0.5)
         labels = F.pad(labels, (0, pw, 0, ph), value=IGNORE_LABEL)
+        if soft is not None:
+            soft = F.pad(soft, (0, pw, 0, ph), value=0.0)
     y0 = int(torch.randint(0, image.shape[-2] - ch + 1, (), generator=g))
     x0 = int(torch.randint(0, image.shape[-1] - cw + 1, (), generator=g))
     image = image[:, y0:y0 + ch, x0:x0 + cw]
     labels = labels[y0:y0 + ch, x0:x0 + cw]
+    if soft is not None:
+        soft = soft[:, y0:y0 + ch, x0:x0 + cw]
     if float(torch.rand((), generator=g)) < aug["hflip"]:
         image, labels = image.flip(-1), labels.flip(-1)
-    # Photometric: brightness, contrast, saturation, colour cast, gamma.
+        if soft is not None:
+            soft = soft.flip(-1)
+    return image, labels.contiguous(), None if soft is None else soft.contiguous()
+
+
+def _rotate(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor | None,
+            angle: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Rotate (3, H, W) / (H, W) / (C, H, W) by ``angle`` radians about the image centre.
+
+    Pixels that come from outside the source become grey (image), ``IGNORE_LABEL`` (labels) and
+    zero (soft targets: no teacher there).
+    """
+    H, W = image.shape[-2:]
+    c, s_ = math.cos(angle), math.sin(angle)
+    # affine_grid works in normalised coordinates: scale by the aspect so the rotation is rigid.
+    theta = torch.tensor([[c, -s_ * H / W, 0.0], [s_ * W / H, c, 0.0]], dtype=image.dtype)[None]
+    grid = F.affine_grid(theta, [1, 1, H, W], align_corners=False)
+    valid = F.grid_sample(torch.ones(1, 1, H, W, dtype=image.dtype), grid, mode="nearest", align_corners=False)[0, 0] > 0.5
+    image = F.grid_sample(image[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+    image = torch.where(valid, image, torch.full_like(image, 0.5))
+    lab = F.grid_sample(labels[None, None].float(), grid, mode="nearest", align_corners=False)[0, 0].long()
+    labels = torch.where(valid, lab, torch.full_like(lab, IGNORE_LABEL))
+    if soft is not None:
+        soft = F.grid_sample(soft[None], grid, mode="bilinear", align_corners=False)[0] * valid
+    return image, labels, soft
+
+
+def _photometric(image: torch.Tensor, g: torch.Generator, aug: DictConfig | dict) -> torch.Tensor:
+    """Brightness, contrast, saturation, colour cast, gamma, blur, JPEG, noise of (3, H, W)."""
     image = image * (1 + _uniform(g, -aug["brightness"], aug["brightness"]))
     mean = image.mean()
     image = (image - mean) * (1 + _uniform(g, -aug["contrast"], aug["contrast"])) + mean
@@ -353,9 +597,23 @@ def augment(image: torch.Tensor, labels: torch.Tensor, g: torch.Generator, aug: 
     if float(torch.rand((), generator=g)) < aug["blur_prob"]:
         sigma = _uniform(g, *aug["blur_sigma"])
         image = _gaussian_blur(image, sigma)
+    jpeg = float(aug.get("jpeg_prob", 0.0) or 0.0)
+    if jpeg > 0 and float(torch.rand((), generator=g)) < jpeg:
+        # Compression blocks and ringing of dashcam video and re-encoded frames.
+        image = _jpeg(image, int(round(_uniform(g, *aug["jpeg_quality"]))))
     noise = _uniform(g, *aug["noise_std"])
     image = image + noise * torch.randn(image.shape, generator=g)
-    return image.clamp(0, 1).contiguous(), labels.contiguous()
+    return image.clamp(0, 1).contiguous()
+
+
+def _jpeg(image: torch.Tensor, quality: int) -> torch.Tensor:
+    """(3, H, W) RGB [0, 1] through a JPEG encode/decode at ``quality`` (OpenCV)."""
+    u8 = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(u8, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        return image
+    rgb = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    return torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0
 
 
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -379,6 +637,16 @@ class _Augment:
     def __call__(self, image: torch.Tensor, labels: torch.Tensor, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch * 100_003 + i)
         return augment(image, labels, g, self.aug)
+
+
+class _AugmentSoft(_Augment):
+    """:class:`_Augment` for :class:`SoftLabelled` items (image, labels, soft targets)."""
+
+    def __call__(self, image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor,  # type: ignore[override]
+                 i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # Offset the item seed: soft entries and the other sets share indices 0.. .
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch * 100_003 + 50_000_017 + i)
+        return augment_soft(image, labels, soft, g, self.aug)
 
 
 def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
@@ -435,22 +703,29 @@ def train_steps(
     schedule: "Schedule | None" = None,
     weight: torch.Tensor | None = None,
     progress: tqdm | None = None,
+    soft_loss: dict | None = None,
 ) -> list[float]:
-    """Run one optimisation step per batch; returns the losses (cross-entropy, ignore 255).
+    """Run one optimisation step per batch; returns the losses.
 
-    With a ``schedule``, the learning rate is set from it before each step and the loop stops
-    when the schedule is done.
+    Batches of ``(image, labels)``: cross-entropy, ignore 255. Batches of ``(image, labels, soft)``:
+    :func:`distill_loss` with the keyword arguments ``soft_loss`` (``temperature``,
+    ``soft_weight_labelled``). With a ``schedule``, the learning rate is set from it before each
+    step and the loop stops when the schedule is done.
     """
     model.train()
     losses: list[float] = []
-    for image, labels in batches:
+    for batch in batches:
+        image, labels = batch[0], batch[1]
         if schedule is not None:
             if schedule.done():
                 break
             for group in optimizer.param_groups:
                 group["lr"] = schedule.lr()
         logits = model(image)
-        loss = F.cross_entropy(logits, labels, weight=weight, ignore_index=IGNORE_LABEL)
+        if len(batch) == 3:
+            loss = distill_loss(logits, labels, batch[2], weight=weight, **(soft_loss or {}))
+        else:
+            loss = F.cross_entropy(logits, labels, weight=weight, ignore_index=IGNORE_LABEL)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -622,21 +897,34 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     aug = OmegaConf.to_container(cfg.augment, resolve=True)
     transform = _Augment(aug, int(cfg.train.seed))
     synth_set = SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale), transform=transform)
-    real_set = _real_set(cfg, "train", transform)
+    real_set = _real_set(cfg, "train", transform) if cfg.data.get("real_train", True) else None
     val_set, val_classes = _val_set(cfg, val_items)
     distill_set = _distill_set(cfg, transform)
-    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames and
-    # `distill.per_epoch` pseudo-labelled frames drawn anew.
-    train_set = ConcatDataset([d for d in (real_set, synth_set, distill_set) if d is not None])
+    scfg = cfg.data.get("soft")
+    use_soft = scfg is not None and bool(scfg.get("enabled", False))
+    soft_transform = _AugmentSoft(aug, int(cfg.train.seed))
+    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames,
+    # `distill.per_epoch` pseudo-labelled frames and `soft.per_epoch` teacher-labelled windows drawn anew.
+    fixed = [d for d in (real_set, synth_set, distill_set) if d is not None]
+    if use_soft:
+        fixed = [_NoSoft(d) for d in fixed]
     n_real = 0 if real_set is None else len(real_set)
     n_synth = cfg.data.get("synthetic_per_epoch")
     n_synth = len(synth_set) if n_synth is None else min(int(n_synth), len(synth_set))
     n_distill = 0 if distill_set is None else min(int(cfg.data.distill.per_epoch), len(distill_set))
+    n_soft = int(scfg.per_epoch) if use_soft else 0
+    soft_loss = None
+    if use_soft:
+        soft_loss = {"temperature": float(scfg.loss.temperature),
+                     "soft_weight_labelled": float(scfg.loss.soft_weight_labelled)}
+        soft_train, soft_out = soft_entries(scfg)
+        logger.info("soft labels: %d training entries, %d held out (%s)", len(soft_train), len(soft_out),
+                    OmegaConf.to_container(scfg.holdout) if scfg.get("holdout") else "none")
     model, arch = build_model(cfg.model)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay))
     bs = int(cfg.train.batch_size)
-    steps_per_epoch = max(1, (n_real + n_synth + n_distill) // bs)
+    steps_per_epoch = max(1, (n_real + n_synth + n_distill + n_soft) // bs)
     epochs = int(cfg.train.epochs)
     total = max(1, epochs * steps_per_epoch)
     schedule = Schedule(float(cfg.train.lr), total, time_limit_s=cfg.train.time_limit_s)
@@ -654,10 +942,26 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         power = float(cfg.train.class_weight_power)
         plain = SyntheticSegmentation(train_items[:: max(1, len(train_items) // 40)], cache=cfg.data.cache,
                                       scale=float(cfg.data.scale))
-        sample = [plain[j][1] for j in range(min(40 if real_set is None else n_synth // 4, len(plain)))]
+        n_plain = n_synth // 4 if (real_set is not None or use_soft) else 40
+        sample = [plain[j][1] for j in range(min(n_plain, len(plain)))]
         if real_set is not None:
             sample += [torch.from_numpy(real_set.load(j)[1].astype(np.int64)) for j in range(n_real)]
-        state["weight"] = class_weights(sample, power, cfg.train.get("class_weight_max")).tolist()
+        if use_soft:
+            # The teacher's most likely class on a sample of the drawn windows stands for the
+            # class frequencies of the soft-labelled data.
+            g0 = torch.Generator().manual_seed(int(cfg.train.seed))
+            picks = soft_draw(soft_train, dict(scfg.get("weights") or {}), float(scfg.get("default_weight", 1.0)),
+                              int(scfg.get("weight_sample", 64)), g0)
+            probe = SoftLabelled(soft_train, focal_px=float(scfg.focal_px))
+            for j in tqdm(picks, desc="class frequencies", mininterval=10):
+                _, lab, soft = probe.load(j)
+                lab_t = torch.from_numpy(lab.astype(np.int64))
+                sample.append(torch.where(lab_t != IGNORE_LABEL, lab_t, soft.argmax(0)))
+        w = class_weights(sample, power, cfg.train.get("class_weight_max"))
+        # Thin classes (pole, person, two_wheeler) weigh more than their frequency alone gives.
+        for name, boost in (cfg.train.get("class_boost") or {}).items():
+            w[CLASS_NAMES.index(str(name))] *= float(boost)
+        state["weight"] = w.tolist()
     weight = torch.tensor(state["weight"], dtype=torch.float32)
     logger.info("class weights %s", dict(zip(CLASS_NAMES, [round(w, 3) for w in state["weight"]])))
 
@@ -669,14 +973,26 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         synth_pick = (torch.randperm(len(synth_set), generator=g)[:n_synth] + n_real).tolist()
         distill_pick = [] if distill_set is None else (
             torch.randperm(len(distill_set), generator=g)[:n_distill] + n_real + len(synth_set)).tolist()
+        parts: list[Dataset] = list(fixed)
+        soft_pick: list[int] = []
+        if use_soft:
+            # Re-read the manifest each epoch: the teacher may still be labelling in the background.
+            soft_train, _ = soft_entries(scfg)
+            soft_set = SoftLabelled(soft_train, focal_px=float(scfg.focal_px), transform=soft_transform)
+            soft_transform.epoch = epoch
+            offset = sum(len(d) for d in fixed)  # type: ignore[arg-type]
+            soft_pick = [offset + j for j in soft_draw(soft_train, dict(scfg.get("weights") or {}),
+                                                       float(scfg.get("default_weight", 1.0)), n_soft, g)]
+            parts.append(soft_set)
         loader = DataLoader(
-            train_set, batch_size=bs, drop_last=True, num_workers=int(cfg.data.workers),
-            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick + distill_pick, generator=g),
+            ConcatDataset(parts), batch_size=bs, drop_last=True, num_workers=int(cfg.data.workers),
+            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick + distill_pick + soft_pick, generator=g),
             persistent_workers=False,
         )
         t0 = time.monotonic()
         with tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{epochs}", mininterval=10) as bar:
-            losses = train_steps(model, loader, optimizer, schedule=schedule, weight=weight, progress=bar)
+            losses = train_steps(model, loader, optimizer, schedule=schedule, weight=weight, progress=bar,
+                                 soft_loss=soft_loss)
         complete = len(losses) == steps_per_epoch or schedule.done()
         every = int(cfg.train.get("val_every", 1))
         if (epoch + 1) % every and epoch + 1 < epochs and not schedule.done():
