@@ -331,3 +331,32 @@ def test_teacher_cache_and_soft_training_end_to_end(tmp_path: Path) -> None:
     result = mod.run(cfg)
     assert result["history"][0]["steps"] == 3
     assert np.isfinite(result["history"][0]["loss"]) and 0.0 <= result["history"][0]["val_miou"] <= 1.0
+
+
+def test_augment_at_scale_one_is_an_exact_crop_and_flip() -> None:
+    """Without rotation and at scale 1 the warp is a plain crop (bilinear at pixel centres is exact)."""
+    mod = _load_train_module()
+    g0 = torch.Generator().manual_seed(3)
+    image = torch.rand(3, 30, 50, generator=g0)
+    labels = torch.randint(0, NUM_CLASSES, (30, 50), generator=g0)
+    soft = F_one_hot(labels) * 0.5 + 0.05
+    aug = {"scale_jitter": [1.0, 1.0], "crop": [20, 24], "hflip": 0.5, "brightness": 0.0, "contrast": 0.0,
+           "saturation": 0.0, "channel_gain": 0.0, "gamma": [1.0, 1.0], "blur_prob": 0.0, "blur_sigma": [1, 1],
+           "noise_std": [0.0, 0.0]}
+    found = set()
+    for seed in range(10):
+        _, lb, sf = mod.augment_soft(image, labels, soft, torch.Generator().manual_seed(seed), aug)
+        im, lb2 = mod.augment(image, labels, torch.Generator().manual_seed(seed), aug)
+        assert torch.equal(lb, lb2)
+        hits = [(y, x, f) for y in range(11) for x in range(27) for f in (False, True)
+                if torch.equal((labels.flip(-1) if f else labels)[y:y + 20, x:x + 24] if not f else
+                               labels[y:y + 20, x:x + 24].flip(-1), lb)]
+        assert hits, f"seed {seed}: not a crop"
+        y, x, f = hits[0]
+        ref = image[:, y:y + 20, x:x + 24]
+        ref = ref.flip(-1) if f else ref
+        assert torch.allclose(im, ref, atol=1e-5)
+        sref = soft[:, y:y + 20, x:x + 24]
+        assert torch.allclose(sf, sref.flip(-1) if f else sref, atol=1e-5)
+        found.add(f)
+    assert found == {False, True}

@@ -519,69 +519,67 @@ def augment_soft(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor, 
 
 def _geometric(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor | None, g: torch.Generator,
                aug: DictConfig | dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """Scale jitter, small rotation, vertical shift, random crop, flip (see :func:`augment_soft`)."""
-    # Scale jitter (labels: nearest neighbour, never interpolated; soft targets: bilinear).
+    """Scale jitter, small rotation, vertical shift, random crop, flip (see :func:`augment_soft`).
+
+    Convention: the source is scaled by ``s`` (about its top-left corner, pixel centres at
+    ``+0.5``), placed on a canvas ``vshift x crop height`` taller at the top and the bottom (and
+    padded right / below to the crop size), the crop window is chosen on that canvas and rotated
+    about its own centre. Only the source region the crop needs is resampled (one ``grid_sample``
+    into the crop), so large soft-target maps cost no more than the crop.
+    """
     s = _uniform(g, *aug["scale_jitter"])
     H, W = image.shape[-2:]
-    size = (max(8, round(H * s)), max(8, round(W * s)))
-    image = F.interpolate(image[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)[0]
-    labels = F.interpolate(labels[None, None].float(), size=size, mode="nearest")[0, 0].long()
-    if soft is not None:
-        soft = F.interpolate(soft[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)[0]
+    Hs, Ws = max(8, round(H * s)), max(8, round(W * s))
     rot = float(aug.get("rotate_deg", 0.0) or 0.0)
-    if rot > 0:
-        # A camera rolled by a few degrees (a dashcam mounted askew); outside the source: ignore.
-        image, labels, soft = _rotate(image, labels, soft, math.radians(_uniform(g, -rot, rot)))
-    vshift = float(aug.get("vshift", 0.0) or 0.0)
+    # A camera rolled by a few degrees (a dashcam mounted askew).
+    angle = math.radians(_uniform(g, -rot, rot)) if rot > 0 else 0.0
     ch, cw = int(aug["crop"][0]), int(aug["crop"][1])
-    if vshift > 0:
-        # Pad above and below so that the crop may put the horizon up to `vshift` x crop height
-        # higher or lower than the source camera's pitch allows (other mounts, other pitches).
-        pad = round(vshift * ch)
-        image = F.pad(image, (0, 0, pad, pad), value=0.5)
-        labels = F.pad(labels, (0, 0, pad, pad), value=IGNORE_LABEL)
-        if soft is not None:
-            soft = F.pad(soft, (0, 0, pad, pad), value=0.0)
-    # Random crop, padding with ignore where the image is smaller than the crop.
-    ph, pw = max(0, ch - image.shape[-2]), max(0, cw - image.shape[-1])
-    if ph or pw:
-        image = F.pad(image, (0, pw, 0, ph), value=0.5)
-        labels = F.pad(labels, (0, pw, 0, ph), value=IGNORE_LABEL)
-        if soft is not None:
-            soft = F.pad(soft, (0, pw, 0, ph), value=0.0)
-    y0 = int(torch.randint(0, image.shape[-2] - ch + 1, (), generator=g))
-    x0 = int(torch.randint(0, image.shape[-1] - cw + 1, (), generator=g))
-    image = image[:, y0:y0 + ch, x0:x0 + cw]
-    labels = labels[y0:y0 + ch, x0:x0 + cw]
-    if soft is not None:
-        soft = soft[:, y0:y0 + ch, x0:x0 + cw]
-    if float(torch.rand((), generator=g)) < aug["hflip"]:
-        image, labels = image.flip(-1), labels.flip(-1)
-        if soft is not None:
-            soft = soft.flip(-1)
-    return image, labels.contiguous(), None if soft is None else soft.contiguous()
-
-
-def _rotate(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor | None,
-            angle: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """Rotate (3, H, W) / (H, W) / (C, H, W) by ``angle`` radians about the image centre.
-
-    Pixels that come from outside the source become grey (image), ``IGNORE_LABEL`` (labels) and
-    zero (soft targets: no teacher there).
-    """
-    H, W = image.shape[-2:]
-    c, s_ = math.cos(angle), math.sin(angle)
-    # affine_grid works in normalised coordinates: scale by the aspect so the rotation is rigid.
-    theta = torch.tensor([[c, -s_ * H / W, 0.0], [s_ * W / H, c, 0.0]], dtype=image.dtype)[None]
-    grid = F.affine_grid(theta, [1, 1, H, W], align_corners=False)
-    valid = F.grid_sample(torch.ones(1, 1, H, W, dtype=image.dtype), grid, mode="nearest", align_corners=False)[0, 0] > 0.5
-    image = F.grid_sample(image[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
-    image = torch.where(valid, image, torch.full_like(image, 0.5))
-    lab = F.grid_sample(labels[None, None].float(), grid, mode="nearest", align_corners=False)[0, 0].long()
-    labels = torch.where(valid, lab, torch.full_like(lab, IGNORE_LABEL))
-    if soft is not None:
-        soft = F.grid_sample(soft[None], grid, mode="bilinear", align_corners=False)[0] * valid
-    return image, labels, soft
+    vshift = float(aug.get("vshift", 0.0) or 0.0)
+    # Pad above and below so that the crop may put the horizon up to `vshift` x crop height higher
+    # or lower than the source camera's pitch allows (other mounts, other pitches).
+    pad = round(vshift * ch) if vshift > 0 else 0
+    canvas_h, canvas_w = max(ch, Hs + 2 * pad), max(cw, Ws)
+    y0 = int(torch.randint(0, canvas_h - ch + 1, (), generator=g))
+    x0 = int(torch.randint(0, canvas_w - cw + 1, (), generator=g))
+    flip = float(torch.rand((), generator=g)) < aug["hflip"]
+    # Output pixel (i, j) -> scaled-image index (ys, xs): rotate about the crop centre.
+    v, u = torch.meshgrid(torch.arange(ch, dtype=torch.float32) + 0.5 - ch / 2,
+                          torch.arange(cw, dtype=torch.float32) + 0.5 - cw / 2, indexing="ij")
+    c, sn = math.cos(angle), math.sin(angle)
+    xs = x0 + cw / 2 + c * u - sn * v - 0.5
+    ys = y0 + ch / 2 + sn * u + c * v - pad - 0.5
+    # Source continuous coordinates (pixel edges at integers).
+    X, Y = (xs + 0.5) * (W / Ws), (ys + 0.5) * (H / Hs)
+    valid = (X >= 0) & (X <= W) & (Y >= 0) & (Y <= H)
+    # The source region the crop needs (+2 px for the bilinear footprint).
+    sx0 = int(max(0, math.floor(float(X.min())) - 2)); sx1 = int(min(W, math.ceil(float(X.max())) + 2))
+    sy0 = int(max(0, math.floor(float(Y.min())) - 2)); sy1 = int(min(H, math.ceil(float(Y.max())) + 2))
+    if sx1 <= sx0 or sy1 <= sy0:
+        sx0, sx1, sy0, sy1 = 0, W, 0, H  # crop entirely in padding
+    img_r, lab_r = image[:, sy0:sy1, sx0:sx1], labels[sy0:sy1, sx0:sx1]
+    soft_r = None if soft is None else soft[:, sy0:sy1, sx0:sx1]
+    rh, rw = sy1 - sy0, sx1 - sx0
+    if s < 1:
+        # Downscaling: low-pass the region first (antialias), then sample it near 1:1.
+        rh, rw = max(2, round(rh * s)), max(2, round(rw * s))
+        img_r = F.interpolate(img_r[None], size=(rh, rw), mode="bilinear", align_corners=False, antialias=True)[0]
+        lab_r = F.interpolate(lab_r[None, None].float(), size=(rh, rw), mode="nearest")[0, 0].long()
+        if soft_r is not None:
+            soft_r = F.interpolate(soft_r[None], size=(rh, rw), mode="bilinear", align_corners=False, antialias=True)[0]
+    fx, fy = rw / (sx1 - sx0), rh / (sy1 - sy0)
+    # grid_sample (align_corners=False): -1 / +1 are the outer edges of the region.
+    gx = (X - sx0) * fx / rw * 2 - 1
+    gy = (Y - sy0) * fy / rh * 2 - 1
+    grid = torch.stack([gx, gy], -1)[None]
+    if flip:
+        grid, valid = grid.flip(2), valid.flip(1)
+    out = F.grid_sample(img_r[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+    out = torch.where(valid, out, torch.full_like(out, 0.5))
+    lab = F.grid_sample(lab_r[None, None].float(), grid, mode="nearest", padding_mode="border", align_corners=False)[0, 0].long()
+    lab = torch.where(valid, lab, torch.full_like(lab, IGNORE_LABEL))
+    if soft_r is not None:
+        soft_r = F.grid_sample(soft_r[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0] * valid
+    return out.contiguous(), lab.contiguous(), None if soft_r is None else soft_r.contiguous()
 
 
 def _photometric(image: torch.Tensor, g: torch.Generator, aug: DictConfig | dict) -> torch.Tensor:
