@@ -360,3 +360,42 @@ def test_augment_at_scale_one_is_an_exact_crop_and_flip() -> None:
         assert torch.allclose(sf, sref.flip(-1) if f else sref, atol=1e-5)
         found.add(f)
     assert found == {False, True}
+
+
+def test_loso_teacher_agreement_of_the_teacher_itself_is_one(tmp_path: Path) -> None:
+    """benchmarks.distill_loso: a student that is the teacher (same weights, the window at the
+    teacher's scale) agrees with the cache on (nearly) every pixel; a different net does not."""
+    from hydra import compose, initialize_config_dir
+
+    from benchmarks.distill_loso import teacher_agreement
+
+    mod, tl = _load_train_module(), _teacher_module()
+    torch.manual_seed(0)
+    net = mod.fcn8s_vgg16(num_classes=NUM_CLASSES, width_mult=0.0625, batch_norm=True, fc_kernel=3, fc_channels=16).eval()
+    arch = {"num_classes": NUM_CLASSES, "width_mult": 0.0625, "batch_norm": True, "fc_kernel": 3, "fc_channels": 16}
+    mod.export_onnx(net, tmp_path / "teacher.onnx", sample_size=(64, 96))
+    mod.save_fcn8s(net, tmp_path / "same.pt", arch=arch)
+    (tmp_path / "a").mkdir()
+    for k in range(2):
+        _write_image(tmp_path / "a" / f"{k:04d}.png", 64, 96, seed=k)
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        tcfg = compose(config_name="teacher_labels", overrides=[
+            f"out={tmp_path / 'cache'}", "teacher.mean=[0,0,0]", "teacher.std=[1,1,1]", "downsample=1",
+            f"teacher.mapping={list(range(NUM_CLASSES))}",
+            f"sources=[{{name: a, kind: images, glob: '{tmp_path / 'a' / '*.png'}', fx: 50.0, "
+            f"model: '{tmp_path / 'teacher.onnx'}', input_size: [64, 96]}}]",
+        ])
+    tl.run(tcfg)
+    entries = tl.read_manifest(tmp_path / "cache" / "manifest.jsonl")
+    same = teacher_agreement(tmp_path / "same.pt", entries, focal_px=50.0)
+    assert set(same) == {"a"} and same["a"]["entries"] == 2
+    assert same["a"]["agreement"] > 0.98
+    # Another net: the same one with the scores of a class the teacher rarely picks raised.
+    rare = int(torch.bincount(tl.load_entry(entries[0].probs).argmax(0).flatten(), minlength=NUM_CLASSES).argmin())
+    with torch.no_grad():
+        for prm in net.parameters():
+            if prm.shape == (NUM_CLASSES,):
+                prm[rare] += 20.0
+    mod.save_fcn8s(net, tmp_path / "other.pt", arch=arch)
+    diff = teacher_agreement(tmp_path / "other.pt", entries, focal_px=50.0)
+    assert diff["a"]["agreement"] < 0.5 < same["a"]["agreement"]
