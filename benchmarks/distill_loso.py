@@ -127,10 +127,10 @@ def main() -> None:
     holdout = OmegaConf.to_container(OmegaConf.create({"h": OmegaConf.create(args.holdout)}))["h"]
     row: dict[str, Any] = {"weights": str(args.weights), "holdout": holdout}
     for task in args.tasks:
-        row.update(measure(task, args.weights, holdout=holdout, manifest=args.manifest, focal_px=args.focal_px,
-                           views=args.views or None))
-        print(task, json.dumps({k: v for k, v in row.items() if k not in ("weights", "holdout")}, default=str)[:600],
-              flush=True)
+        res = measure(task, args.weights, holdout=holdout, manifest=args.manifest, focal_px=args.focal_px,
+                      views=args.views or None)
+        row.update(res)
+        print(task, json.dumps(res, default=str)[:600], flush=True)
     t = row.get("teacher", {})
     cells = [f"{src} {v['miou']:.3f} / {v['agreement']:.3f}" for src, v in t.items()]
     print(f"\n| student | holdout | mIoU / agreement vs teacher (held out) | KITTI 0028 bottoms 10 px | CamVid val | "

@@ -1067,6 +1067,11 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
         data += (f"; + {d.per_epoch} per epoch of unlabelled frames ({', '.join(str(e.glob) for e in d.sets)}) "
                  f"with pseudo-labels of the teacher {sorted({str(e.model) for e in d.sets})} "
                  "(a Cityscapes-trained model: Cityscapes terms, non-commercial)")
+    sc = cfg.data.get("soft")
+    if sc is not None and sc.get("enabled", False):
+        data = (f"soft labels of the Cityscapes teacher (Cityscapes terms, non-commercial) from {sc.manifest}, "
+                f"{sc.per_epoch} windows per epoch by source weight {dict(sc.weights)}, held out "
+                f"{OmegaConf.to_container(sc.holdout)}; CamVid labels where present (CC BY-NC 4.0, non-commercial)")
     meta = {
         "classes": ",".join(CLASS_NAMES),
         "input": "RGB float32 [0,1], (B,3,H,W), H and W multiples of 32; normalisation inside",
