@@ -131,6 +131,10 @@ def main() -> None:
                       views=args.views or None)
         row.update(res)
         print(task, json.dumps(res, default=str)[:600], flush=True)
+        if args.json:
+            # After every task: a later task that fails keeps the earlier numbers.
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(row, indent=1, default=str))
     t = row.get("teacher", {})
     cells = [f"{src} {v['miou']:.3f} / {v['agreement']:.3f}" for src, v in t.items()]
     print(f"\n| student | holdout | mIoU / agreement vs teacher (held out) | KITTI 0028 bottoms 10 px | CamVid val | "
@@ -138,9 +142,6 @@ def main() -> None:
           f"| {args.weights} | {args.holdout} | {'; '.join(cells) or '–'} | {row.get('within_10px', '–')} | "
           f"{row.get('camvid_val_miou', '–')} | {row.get('camvid_test_miou', '–')} | "
           f"{row.get('lidar_rel', '–')} / {row.get('lidar_d125', '–')} |")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(row, indent=1, default=str))
 
 
 if __name__ == "__main__":
