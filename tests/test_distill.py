@@ -321,7 +321,7 @@ def test_teacher_cache_and_soft_training_end_to_end(tmp_path: Path) -> None:
             "model.width_mult=0.0625", "model.fc_channels=16", "model.init_from=null",
             f"data.camvid_root={tmp_path / 'camvid'}", f"data.cache={tmp_path / 'synth'}",
             "augment.crop=[32,64]", "train.epochs=1", "train.batch_size=2", "train.time_limit_s=null",
-            "train.val_every=1", f"run_dir={tmp_path / 'run'}", "export.enabled=false",
+            "train.val_every=1", f"run_dir={tmp_path / 'run'}", "export.sample_size=[64,96]",
             f"data.soft.manifest={tmp_path / 'cache' / 'manifest.jsonl'}", "data.soft.per_epoch=6",
             "data.soft.default_weight=1.0", "data.soft.focal_px=100", "data.soft.weight_sample=4",
             "data.soft.holdout=[{source: b, frames: [1, 3]}]",
@@ -331,6 +331,10 @@ def test_teacher_cache_and_soft_training_end_to_end(tmp_path: Path) -> None:
     result = mod.run(cfg)
     assert result["history"][0]["steps"] == 3
     assert np.isfinite(result["history"][0]["loss"]) and 0.0 <= result["history"][0]["val_miou"] <= 1.0
+    # The export (run_dir/export.*) records the soft-label data and the holdout in its metadata.
+    _, meta = mod.load_fcn8s(result["pt"])
+    assert "soft labels" in meta["data"] and "'source': 'b'" in meta["data"]
+    assert Path(result["onnx"]).is_file() and 0.0 <= result["val_miou_onnx"] <= 1.0
 
 
 def test_augment_at_scale_one_is_an_exact_crop_and_flip() -> None:
