@@ -306,6 +306,179 @@ def distill_frames(dcfg: DictConfig | dict) -> list[DistillFrame]:
     return frames
 
 
+def held_out(source: str, frame: int, holdout: list | None) -> bool:
+    """Whether ``(source, frame)`` is excluded by ``holdout``.
+
+    ``holdout``: a list of ``{source: name}`` (the whole source) or ``{source: name, frames: [lo, hi]}``
+    (frames ``lo <= frame < hi``), e.g. ``[{source: kitti_0028}]``, ``[{source: dashcam, frames: [110, 221]}]``.
+    """
+    for h in holdout or ():
+        if str(h["source"]) != source:
+            continue
+        fr = h.get("frames")
+        if fr is None or int(fr[0]) <= int(frame) < int(fr[1]):
+            return True
+    return False
+
+
+class SoftLabelled(Dataset):
+    """Frames with the teacher's cached soft labels (``python -m train.teacher_labels``) and, where
+    they exist (CamVid), the ground-truth labels.
+
+    Each entry is a window of a frame (``SoftEntry.box``); image, labels and probabilities are
+    resized so that the camera's focal length becomes ``focal_px`` (the resolution the backend runs
+    at). Nothing is kept in memory (~1500 entries would take ~3 GB); an entry costs ~20 ms to read.
+
+    Args:
+        entries: the manifest entries to train on (holdouts already removed).
+        focal_px: focal length (pixels) every window is resized to.
+        transform: optional ``(image, labels, soft, index) -> (image, labels, soft)`` (augmentation).
+
+    Returns per item:
+        image (3, H, W) float32 RGB [0, 1], labels (H, W) int64 (``IGNORE_LABEL`` where none),
+        soft (10, H, W) float32 teacher probabilities.
+    """
+
+    def __init__(self, entries: list, *, focal_px: float,
+                 transform: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], tuple] | None = None) -> None:
+        if not entries:
+            raise InputError("data.soft: no teacher-labelled entries to train on (all held out, or an empty manifest)")
+        if not focal_px > 0:
+            raise InputError(f"data.soft.focal_px: must be positive, got {focal_px}")
+        self.entries, self.focal_px, self.transform = list(entries), float(focal_px), transform
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def load(self, i: int) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+        """uint8 (H, W, 3) RGB, uint8 (H, W) labels and (10, H, W) float32 probabilities of entry ``i``."""
+        from train.teacher_labels import load_entry
+
+        e = self.entries[i]
+        bgr = cv2.imread(e.image, cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(f"data.soft: cannot read image {e.image}")
+        x0, y0, x1, y1 = e.box
+        rgb = cv2.cvtColor(bgr[y0:y1, x0:x1], cv2.COLOR_BGR2RGB)
+        if e.labels is not None:
+            from monostixels.data.camvid import map_camvid_labels
+
+            raw = cv2.imread(e.labels, cv2.IMREAD_UNCHANGED)
+            if raw is None:
+                raise InputError(f"data.soft: cannot read labels {e.labels}")
+            lab = map_camvid_labels(raw, name=e.labels)[y0:y1, x0:x1]
+        else:
+            lab = np.full(rgb.shape[:2], IGNORE_LABEL, np.uint8)
+        s = self.focal_px / e.fx
+        h, w = max(8, round(rgb.shape[0] * s)), max(8, round(rgb.shape[1] * s))
+        if (h, w) != rgb.shape[:2]:
+            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+            lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
+        soft = F.interpolate(load_entry(e.probs)[None], size=(h, w), mode="bilinear", align_corners=False)[0]
+        return rgb, lab, soft
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        rgb, lab, soft = self.load(i)
+        image, labels = CamVidSource.to_tensors(rgb, lab)
+        if self.transform is not None:
+            image, labels, soft = self.transform(image, labels, soft, i)
+        return image, labels, soft
+
+
+class _NoSoft(Dataset):
+    """A dataset of (image, labels) as (image, labels, zero soft targets), for batches mixed with
+    :class:`SoftLabelled` (zero probabilities = no teacher term)."""
+
+    def __init__(self, data: Dataset) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)  # type: ignore[arg-type]
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        image, labels = self.data[i]
+        return image, labels, torch.zeros((NUM_CLASSES, *labels.shape), dtype=torch.float32)
+
+
+def soft_entries(scfg: DictConfig | dict) -> tuple[list, list]:
+    """``(train, held out)`` entries of the manifest ``scfg.manifest``.
+
+    Train: entries of the sources with a positive weight in ``scfg.weights`` (a source missing from
+    it gets ``scfg.default_weight``), views in ``scfg.views`` (null = all), minus ``scfg.holdout``.
+    """
+    from train.teacher_labels import read_manifest
+
+    entries = read_manifest(scfg["manifest"])
+    weights = dict(scfg.get("weights") or {})
+    default = float(scfg.get("default_weight", 1.0))
+    views = scfg.get("views")
+    holdout = list(scfg.get("holdout") or [])
+    train, out = [], []
+    for e in entries:
+        if held_out(e.source, e.frame, holdout):
+            out.append(e)
+        elif float(weights.get(e.source, default)) > 0 and (views is None or e.view.split("_")[0] in views):
+            train.append(e)
+    return train, out
+
+
+def soft_draw(entries: list, weights: dict, default: float, n: int, g: torch.Generator) -> list[int]:
+    """``n`` entry indices drawn with replacement, each source's share proportional to its weight.
+
+    Within a source all entries are equally likely (a 221-frame clip does not outweigh 2 frames of
+    another camera unless its weight says so).
+    """
+    per_source: dict[str, int] = {}
+    for e in entries:
+        per_source[e.source] = per_source.get(e.source, 0) + 1
+    p = torch.tensor([float(weights.get(e.source, default)) / per_source[e.source] for e in entries], dtype=torch.float64)
+    if not len(p) or float(p.sum()) <= 0 or n <= 0:
+        return []
+    return torch.multinomial(p, n, replacement=True, generator=g).tolist()
+
+
+def distill_loss(logits: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor, *,
+                 weight: torch.Tensor | None = None, temperature: float = 1.0,
+                 soft_weight_labelled: float = 1.0) -> torch.Tensor:
+    """Class-weighted mean over supervised pixels of hard cross-entropy and soft-target KL.
+
+    Per pixel with a hard label y: ``w[y] * -log q_y``; per pixel with soft targets p (sum 1;
+    all zero = none): ``a * w_p * T^2 * KL(p_T || q_T)`` with ``p_T = softmax(log p / T)``,
+    ``q_T = softmax(z / T)``, ``w_p = sum_c p_c w[c]`` (class balancing follows the teacher) and
+    ``a = soft_weight_labelled`` where the pixel also has a hard label (else 1). The loss is the
+    sum of both terms over the batch divided by the sum of their weights (``w[y]``, ``a w_p``).
+
+    Args:
+        logits: (B, C, H, W) student scores.
+        labels: (B, H, W) int64, ``IGNORE_LABEL`` where none.
+        soft: (B, C, H, W) teacher probabilities.
+        weight: (C,) class weights (None = 1).
+        temperature: T (1 = the teacher's own probabilities).
+        soft_weight_labelled: weight a of the teacher where a ground-truth label exists.
+    """
+    C = logits.shape[1]
+    w = torch.ones(C, dtype=logits.dtype) if weight is None else weight.to(logits.dtype)
+    logq = F.log_softmax(logits, dim=1)
+    has_label = labels != IGNORE_LABEL
+    y = torch.where(has_label, labels, torch.zeros_like(labels))
+    wh = w[y] * has_label
+    hard = -(logq.gather(1, y[:, None])[:, 0] * wh).sum()
+    mass = soft.sum(1)
+    has_soft = mass > 0.5
+    p = soft / mass.clamp_min(1e-6)[:, None]
+    T = float(temperature)
+    if T != 1.0:
+        pT = torch.softmax(p.clamp_min(1e-8).log() / T, dim=1)
+        logqT = F.log_softmax(logits / T, dim=1)
+    else:
+        pT, logqT = p, logq
+    kl = (pT * (pT.clamp_min(1e-8).log() - logqT)).sum(1) * T * T
+    ws = (p * w.view(1, C, 1, 1)).sum(1) * has_soft
+    ws = ws * torch.where(has_label, torch.full_like(ws, float(soft_weight_labelled)), torch.ones_like(ws))
+    total = wh.sum() + ws.sum()
+    return (hard + (kl * ws).sum()) / total.clamp_min(1e-6)
+
+
 def _uniform(g: torch.Generator, lo: float, hi: float) -> float:
     return lo + (hi - lo) * float(torch.rand((), generator=g))
 
@@ -317,31 +490,100 @@ def augment(image: torch.Tensor, labels: torch.Tensor, g: torch.Generator, aug: 
         image: (3, H, W) RGB [0, 1].
         labels: (H, W) int64 class ids.
         g: random generator.
-        aug: the ``augment`` config (see conf/train_semantic.yaml).
+        aug: the ``augment`` config (see conf/train_semantic.yaml; ``rotate_deg``, ``vshift``,
+            ``jpeg_prob`` are optional and off when absent).
 
     Returns:
         (3, h, w) augmented image and (h, w) labels, (h, w) = ``aug.crop``; padded areas are
         ``IGNORE_LABEL``.
     """
-    # Scale jitter (labels: nearest neighbour, never interpolated).
+    image, labels, _ = _geometric(image, labels, None, g, aug)
+    return _photometric(image, g, aug), labels
+
+
+def augment_soft(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor, g: torch.Generator,
+                 aug: DictConfig | dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`augment` with soft targets that follow the image's geometry.
+
+    Args:
+        image: (3, H, W) RGB [0, 1].
+        labels: (H, W) int64 hard labels (``IGNORE_LABEL`` where none).
+        soft: (C, H, W) teacher probabilities (all zero where there is no teacher).
+
+    Returns:
+        (3, h, w) image, (h, w) labels, (C, h, w) soft targets (bilinear; zero in padded areas).
+    """
+    image, labels, soft = _geometric(image, labels, soft, g, aug)
+    return _photometric(image, g, aug), labels, soft  # type: ignore[return-value]
+
+
+def _geometric(image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor | None, g: torch.Generator,
+               aug: DictConfig | dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Scale jitter, small rotation, vertical shift, random crop, flip (see :func:`augment_soft`).
+
+    Convention: the source is scaled by ``s`` (about its top-left corner, pixel centres at
+    ``+0.5``), placed on a canvas ``vshift x crop height`` taller at the top and the bottom (and
+    padded right / below to the crop size), the crop window is chosen on that canvas and rotated
+    about its own centre. Only the source region the crop needs is resampled (one ``grid_sample``
+    into the crop), so large soft-target maps cost no more than the crop.
+    """
     s = _uniform(g, *aug["scale_jitter"])
     H, W = image.shape[-2:]
-    size = (max(8, round(H * s)), max(8, round(W * s)))
-    image = F.interpolate(image[None], size=size, mode="bilinear", align_corners=False, antialias=s < 1)[0]
-    labels = F.interpolate(labels[None, None].float(), size=size, mode="nearest")[0, 0].long()
-    # Random crop, padding with ignore where the image is smaller than the crop.
+    Hs, Ws = max(8, round(H * s)), max(8, round(W * s))
+    rot = float(aug.get("rotate_deg", 0.0) or 0.0)
+    # A camera rolled by a few degrees (a dashcam mounted askew).
+    angle = math.radians(_uniform(g, -rot, rot)) if rot > 0 else 0.0
     ch, cw = int(aug["crop"][0]), int(aug["crop"][1])
-    ph, pw = max(0, ch - size[0]), max(0, cw - size[1])
-    if ph or pw:
-        image = F.pad(image, (0, pw, 0, ph), value=0.5)
-        labels = F.pad(labels, (0, pw, 0, ph), value=IGNORE_LABEL)
-    y0 = int(torch.randint(0, image.shape[-2] - ch + 1, (), generator=g))
-    x0 = int(torch.randint(0, image.shape[-1] - cw + 1, (), generator=g))
-    image = image[:, y0:y0 + ch, x0:x0 + cw]
-    labels = labels[y0:y0 + ch, x0:x0 + cw]
-    if float(torch.rand((), generator=g)) < aug["hflip"]:
-        image, labels = image.flip(-1), labels.flip(-1)
-    # Photometric: brightness, contrast, saturation, colour cast, gamma.
+    vshift = float(aug.get("vshift", 0.0) or 0.0)
+    # Pad above and below so that the crop may put the horizon up to `vshift` x crop height higher
+    # or lower than the source camera's pitch allows (other mounts, other pitches).
+    pad = round(vshift * ch) if vshift > 0 else 0
+    canvas_h, canvas_w = max(ch, Hs + 2 * pad), max(cw, Ws)
+    y0 = int(torch.randint(0, canvas_h - ch + 1, (), generator=g))
+    x0 = int(torch.randint(0, canvas_w - cw + 1, (), generator=g))
+    flip = float(torch.rand((), generator=g)) < aug["hflip"]
+    # Output pixel (i, j) -> scaled-image index (ys, xs): rotate about the crop centre.
+    v, u = torch.meshgrid(torch.arange(ch, dtype=torch.float32) + 0.5 - ch / 2,
+                          torch.arange(cw, dtype=torch.float32) + 0.5 - cw / 2, indexing="ij")
+    c, sn = math.cos(angle), math.sin(angle)
+    xs = x0 + cw / 2 + c * u - sn * v - 0.5
+    ys = y0 + ch / 2 + sn * u + c * v - pad - 0.5
+    # Source continuous coordinates (pixel edges at integers).
+    X, Y = (xs + 0.5) * (W / Ws), (ys + 0.5) * (H / Hs)
+    valid = (X >= 0) & (X <= W) & (Y >= 0) & (Y <= H)
+    # The source region the crop needs (+2 px for the bilinear footprint).
+    sx0 = int(max(0, math.floor(float(X.min())) - 2)); sx1 = int(min(W, math.ceil(float(X.max())) + 2))
+    sy0 = int(max(0, math.floor(float(Y.min())) - 2)); sy1 = int(min(H, math.ceil(float(Y.max())) + 2))
+    if sx1 <= sx0 or sy1 <= sy0:
+        sx0, sx1, sy0, sy1 = 0, W, 0, H  # crop entirely in padding
+    img_r, lab_r = image[:, sy0:sy1, sx0:sx1], labels[sy0:sy1, sx0:sx1]
+    soft_r = None if soft is None else soft[:, sy0:sy1, sx0:sx1]
+    rh, rw = sy1 - sy0, sx1 - sx0
+    if s < 1:
+        # Downscaling: low-pass the region first (antialias), then sample it near 1:1.
+        rh, rw = max(2, round(rh * s)), max(2, round(rw * s))
+        img_r = F.interpolate(img_r[None], size=(rh, rw), mode="bilinear", align_corners=False, antialias=True)[0]
+        lab_r = F.interpolate(lab_r[None, None].float(), size=(rh, rw), mode="nearest")[0, 0].long()
+        if soft_r is not None:
+            soft_r = F.interpolate(soft_r[None], size=(rh, rw), mode="bilinear", align_corners=False, antialias=True)[0]
+    fx, fy = rw / (sx1 - sx0), rh / (sy1 - sy0)
+    # grid_sample (align_corners=False): -1 / +1 are the outer edges of the region.
+    gx = (X - sx0) * fx / rw * 2 - 1
+    gy = (Y - sy0) * fy / rh * 2 - 1
+    grid = torch.stack([gx, gy], -1)[None]
+    if flip:
+        grid, valid = grid.flip(2), valid.flip(1)
+    out = F.grid_sample(img_r[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+    out = torch.where(valid, out, torch.full_like(out, 0.5))
+    lab = F.grid_sample(lab_r[None, None].float(), grid, mode="nearest", padding_mode="border", align_corners=False)[0, 0].long()
+    lab = torch.where(valid, lab, torch.full_like(lab, IGNORE_LABEL))
+    if soft_r is not None:
+        soft_r = F.grid_sample(soft_r[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0] * valid
+    return out.contiguous(), lab.contiguous(), None if soft_r is None else soft_r.contiguous()
+
+
+def _photometric(image: torch.Tensor, g: torch.Generator, aug: DictConfig | dict) -> torch.Tensor:
+    """Brightness, contrast, saturation, colour cast, gamma, blur, JPEG, noise of (3, H, W)."""
     image = image * (1 + _uniform(g, -aug["brightness"], aug["brightness"]))
     mean = image.mean()
     image = (image - mean) * (1 + _uniform(g, -aug["contrast"], aug["contrast"])) + mean
@@ -353,9 +595,23 @@ def augment(image: torch.Tensor, labels: torch.Tensor, g: torch.Generator, aug: 
     if float(torch.rand((), generator=g)) < aug["blur_prob"]:
         sigma = _uniform(g, *aug["blur_sigma"])
         image = _gaussian_blur(image, sigma)
+    jpeg = float(aug.get("jpeg_prob", 0.0) or 0.0)
+    if jpeg > 0 and float(torch.rand((), generator=g)) < jpeg:
+        # Compression blocks and ringing of dashcam video and re-encoded frames.
+        image = _jpeg(image, int(round(_uniform(g, *aug["jpeg_quality"]))))
     noise = _uniform(g, *aug["noise_std"])
     image = image + noise * torch.randn(image.shape, generator=g)
-    return image.clamp(0, 1).contiguous(), labels.contiguous()
+    return image.clamp(0, 1).contiguous()
+
+
+def _jpeg(image: torch.Tensor, quality: int) -> torch.Tensor:
+    """(3, H, W) RGB [0, 1] through a JPEG encode/decode at ``quality`` (OpenCV)."""
+    u8 = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(u8, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        return image
+    rgb = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    return torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0
 
 
 def _gaussian_blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -379,6 +635,16 @@ class _Augment:
     def __call__(self, image: torch.Tensor, labels: torch.Tensor, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch * 100_003 + i)
         return augment(image, labels, g, self.aug)
+
+
+class _AugmentSoft(_Augment):
+    """:class:`_Augment` for :class:`SoftLabelled` items (image, labels, soft targets)."""
+
+    def __call__(self, image: torch.Tensor, labels: torch.Tensor, soft: torch.Tensor,  # type: ignore[override]
+                 i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        # Offset the item seed: soft entries and the other sets share indices 0.. .
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch * 100_003 + 50_000_017 + i)
+        return augment_soft(image, labels, soft, g, self.aug)
 
 
 def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
@@ -435,22 +701,29 @@ def train_steps(
     schedule: "Schedule | None" = None,
     weight: torch.Tensor | None = None,
     progress: tqdm | None = None,
+    soft_loss: dict | None = None,
 ) -> list[float]:
-    """Run one optimisation step per batch; returns the losses (cross-entropy, ignore 255).
+    """Run one optimisation step per batch; returns the losses.
 
-    With a ``schedule``, the learning rate is set from it before each step and the loop stops
-    when the schedule is done.
+    Batches of ``(image, labels)``: cross-entropy, ignore 255. Batches of ``(image, labels, soft)``:
+    :func:`distill_loss` with the keyword arguments ``soft_loss`` (``temperature``,
+    ``soft_weight_labelled``). With a ``schedule``, the learning rate is set from it before each
+    step and the loop stops when the schedule is done.
     """
     model.train()
     losses: list[float] = []
-    for image, labels in batches:
+    for batch in batches:
+        image, labels = batch[0], batch[1]
         if schedule is not None:
             if schedule.done():
                 break
             for group in optimizer.param_groups:
                 group["lr"] = schedule.lr()
         logits = model(image)
-        loss = F.cross_entropy(logits, labels, weight=weight, ignore_index=IGNORE_LABEL)
+        if len(batch) == 3:
+            loss = distill_loss(logits, labels, batch[2], weight=weight, **(soft_loss or {}))
+        else:
+            loss = F.cross_entropy(logits, labels, weight=weight, ignore_index=IGNORE_LABEL)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -622,21 +895,34 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     aug = OmegaConf.to_container(cfg.augment, resolve=True)
     transform = _Augment(aug, int(cfg.train.seed))
     synth_set = SyntheticSegmentation(train_items, cache=cfg.data.cache, scale=float(cfg.data.scale), transform=transform)
-    real_set = _real_set(cfg, "train", transform)
+    real_set = _real_set(cfg, "train", transform) if cfg.data.get("real_train", True) else None
     val_set, val_classes = _val_set(cfg, val_items)
     distill_set = _distill_set(cfg, transform)
-    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames and
-    # `distill.per_epoch` pseudo-labelled frames drawn anew.
-    train_set = ConcatDataset([d for d in (real_set, synth_set, distill_set) if d is not None])
+    scfg = cfg.data.get("soft")
+    use_soft = scfg is not None and bool(scfg.get("enabled", False))
+    soft_transform = _AugmentSoft(aug, int(cfg.train.seed))
+    # One epoch: every real image once plus `synthetic_per_epoch` synthetic frames,
+    # `distill.per_epoch` pseudo-labelled frames and `soft.per_epoch` teacher-labelled windows drawn anew.
+    fixed = [d for d in (real_set, synth_set, distill_set) if d is not None]
+    if use_soft:
+        fixed = [_NoSoft(d) for d in fixed]
     n_real = 0 if real_set is None else len(real_set)
     n_synth = cfg.data.get("synthetic_per_epoch")
     n_synth = len(synth_set) if n_synth is None else min(int(n_synth), len(synth_set))
     n_distill = 0 if distill_set is None else min(int(cfg.data.distill.per_epoch), len(distill_set))
+    n_soft = int(scfg.per_epoch) if use_soft else 0
+    soft_loss = None
+    if use_soft:
+        soft_loss = {"temperature": float(scfg.loss.temperature),
+                     "soft_weight_labelled": float(scfg.loss.soft_weight_labelled)}
+        soft_train, soft_out = soft_entries(scfg)
+        logger.info("soft labels: %d training entries, %d held out (%s)", len(soft_train), len(soft_out),
+                    OmegaConf.to_container(scfg.holdout) if scfg.get("holdout") else "none")
     model, arch = build_model(cfg.model)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay))
     bs = int(cfg.train.batch_size)
-    steps_per_epoch = max(1, (n_real + n_synth + n_distill) // bs)
+    steps_per_epoch = max(1, (n_real + n_synth + n_distill + n_soft) // bs)
     epochs = int(cfg.train.epochs)
     total = max(1, epochs * steps_per_epoch)
     schedule = Schedule(float(cfg.train.lr), total, time_limit_s=cfg.train.time_limit_s)
@@ -654,10 +940,26 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         power = float(cfg.train.class_weight_power)
         plain = SyntheticSegmentation(train_items[:: max(1, len(train_items) // 40)], cache=cfg.data.cache,
                                       scale=float(cfg.data.scale))
-        sample = [plain[j][1] for j in range(min(40 if real_set is None else n_synth // 4, len(plain)))]
+        n_plain = n_synth // 4 if (real_set is not None or use_soft) else 40
+        sample = [plain[j][1] for j in range(min(n_plain, len(plain)))]
         if real_set is not None:
             sample += [torch.from_numpy(real_set.load(j)[1].astype(np.int64)) for j in range(n_real)]
-        state["weight"] = class_weights(sample, power, cfg.train.get("class_weight_max")).tolist()
+        if use_soft:
+            # The teacher's most likely class on a sample of the drawn windows stands for the
+            # class frequencies of the soft-labelled data.
+            g0 = torch.Generator().manual_seed(int(cfg.train.seed))
+            picks = soft_draw(soft_train, dict(scfg.get("weights") or {}), float(scfg.get("default_weight", 1.0)),
+                              int(scfg.get("weight_sample", 64)), g0)
+            probe = SoftLabelled(soft_train, focal_px=float(scfg.focal_px))
+            for j in tqdm(picks, desc="class frequencies", mininterval=10):
+                _, lab, soft = probe.load(j)
+                lab_t = torch.from_numpy(lab.astype(np.int64))
+                sample.append(torch.where(lab_t != IGNORE_LABEL, lab_t, soft.argmax(0)))
+        w = class_weights(sample, power, cfg.train.get("class_weight_max"))
+        # Thin classes (pole, person, two_wheeler) weigh more than their frequency alone gives.
+        for name, boost in (cfg.train.get("class_boost") or {}).items():
+            w[CLASS_NAMES.index(str(name))] *= float(boost)
+        state["weight"] = w.tolist()
     weight = torch.tensor(state["weight"], dtype=torch.float32)
     logger.info("class weights %s", dict(zip(CLASS_NAMES, [round(w, 3) for w in state["weight"]])))
 
@@ -669,14 +971,26 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         synth_pick = (torch.randperm(len(synth_set), generator=g)[:n_synth] + n_real).tolist()
         distill_pick = [] if distill_set is None else (
             torch.randperm(len(distill_set), generator=g)[:n_distill] + n_real + len(synth_set)).tolist()
+        parts: list[Dataset] = list(fixed)
+        soft_pick: list[int] = []
+        if use_soft:
+            # Re-read the manifest each epoch: the teacher may still be labelling in the background.
+            soft_train, _ = soft_entries(scfg)
+            soft_set = SoftLabelled(soft_train, focal_px=float(scfg.focal_px), transform=soft_transform)
+            soft_transform.epoch = epoch
+            offset = sum(len(d) for d in fixed)  # type: ignore[arg-type]
+            soft_pick = [offset + j for j in soft_draw(soft_train, dict(scfg.get("weights") or {}),
+                                                       float(scfg.get("default_weight", 1.0)), n_soft, g)]
+            parts.append(soft_set)
         loader = DataLoader(
-            train_set, batch_size=bs, drop_last=True, num_workers=int(cfg.data.workers),
-            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick + distill_pick, generator=g),
+            ConcatDataset(parts), batch_size=bs, drop_last=True, num_workers=int(cfg.data.workers),
+            sampler=SubsetRandomSampler(list(range(n_real)) + synth_pick + distill_pick + soft_pick, generator=g),
             persistent_workers=False,
         )
         t0 = time.monotonic()
         with tqdm(total=steps_per_epoch, desc=f"epoch {epoch + 1}/{epochs}", mininterval=10) as bar:
-            losses = train_steps(model, loader, optimizer, schedule=schedule, weight=weight, progress=bar)
+            losses = train_steps(model, loader, optimizer, schedule=schedule, weight=weight, progress=bar,
+                                 soft_loss=soft_loss)
         complete = len(losses) == steps_per_epoch or schedule.done()
         every = int(cfg.train.get("val_every", 1))
         if (epoch + 1) % every and epoch + 1 < epochs and not schedule.done():
@@ -753,6 +1067,11 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
         data += (f"; + {d.per_epoch} per epoch of unlabelled frames ({', '.join(str(e.glob) for e in d.sets)}) "
                  f"with pseudo-labels of the teacher {sorted({str(e.model) for e in d.sets})} "
                  "(a Cityscapes-trained model: Cityscapes terms, non-commercial)")
+    sc = cfg.data.get("soft")
+    if sc is not None and sc.get("enabled", False):
+        data = (f"soft labels of the Cityscapes teacher (Cityscapes terms, non-commercial) from {sc.manifest}, "
+                f"{sc.per_epoch} windows per epoch by source weight {dict(sc.weights)}, held out "
+                f"{OmegaConf.to_container(sc.holdout)}; CamVid labels where present (CC BY-NC 4.0, non-commercial)")
     meta = {
         "classes": ",".join(CLASS_NAMES),
         "input": "RGB float32 [0,1], (B,3,H,W), H and W multiples of 32; normalisation inside",
