@@ -38,7 +38,7 @@ from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_moti
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers, static_only
 from monostixels.solver import SolverConfig, solve
-from monostixels.static_regions import apply_ignore_mask
+from monostixels.static_regions import crop_ignored
 from monostixels.stixels import StixelWorld
 from monostixels.stream import Carried, StreamState, warp_scores
 
@@ -201,9 +201,8 @@ class Pipeline:
         check_frame_size(*pair.size, pair.name or "frame")
         sec: dict[str, float] = {}
         start = time.perf_counter()
-        full = pair
-        if pair.meta.get("ignore_mask") is not None:
-            pair = _cropped(pair)
+        pair = crop_ignored(pair)  # a stream reading ahead has cropped it already
+        full = pair.meta.get("full_pair", pair)
         try:
             res = self._run(pair, state, sec, start)
         except Exception:
@@ -335,25 +334,6 @@ class Pipeline:
 
 #: Flow variance (pixels^2) given to ignored pixels: far past any motion or solver gate, so they weigh nothing.
 _IGNORED_FLOW_VAR = 1.0e6
-
-
-def _cropped(pair: FramePair) -> FramePair:
-    """``pair`` without the bottom rows its ignore mask covers whole (a bonnet), the rest of the mask in
-    ``meta["ignore_pixels"]``; the intrinsics stay (rows are cut below, the principal point does not move)."""
-    mask = pair.meta["ignore_mask"]
-    split = apply_ignore_mask(torch.as_tensor(mask), pair.size)
-    rows = split.crop_rows
-
-    def cut(x: torch.Tensor | None) -> torch.Tensor | None:
-        if x is None or x.dim() < 2 or tuple(x.shape[-2:]) != pair.size:
-            return x
-        return x[..., :rows, :]
-
-    gt = dataclasses.replace(pair.gt, **{f.name: cut(getattr(pair.gt, f.name)) for f in dataclasses.fields(pair.gt)
-                                         if f.name != "bottoms"})
-    meta = {k: v for k, v in pair.meta.items() if k != "ignore_mask"}
-    meta["ignore_pixels"] = split.pixels
-    return dataclasses.replace(pair, image=pair.image[:, :rows], image_prev=pair.image_prev[:, :rows], gt=gt, meta=meta)
 
 
 def _without(ignore: torch.Tensor, flow: FlowResult, semantic: torch.Tensor | None

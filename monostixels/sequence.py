@@ -259,6 +259,7 @@ class SequenceRunner:
         except MotionEstimationError as err:
             self.reset() if back is None else None
             return SequenceStep(index, pair, None, str(err))
+        pair = res.pair  # the frame pair at its full size (a stream reading ahead may have cut a bonnet off)
         dt = float(pair.meta.get("dt") or (self.default_dt * (back or 1)))
         sequence = back is not None
         if res.motion.kind in _NOT_KNOWN:

@@ -25,9 +25,10 @@ own mask (``data.mask=FILE``).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -36,7 +37,7 @@ import torch
 from monostixels._checks import InputError
 
 __all__ = ["AUTO_MASK", "AUTO_FRAMES", "AUTO_SPACING_S", "find_static_region", "with_static_region", "IgnoreMask",
-           "apply_ignore_mask"]
+           "apply_ignore_mask", "crop_ignored"]
 
 logger = logging.getLogger(__name__)
 
@@ -191,3 +192,30 @@ def apply_ignore_mask(mask: torch.Tensor, size: tuple[int, int]) -> IgnoreMask:
         raise InputError(f"ignore mask: it leaves {crop} of {H} rows: too little of the picture to solve")
     rest = mask[:crop].bool()
     return IgnoreMask(crop, rest if bool(rest.any()) else None)
+
+
+def crop_ignored(pair: Any) -> Any:
+    """A frame pair without the bottom rows its ignore mask (``meta["ignore_mask"]``) covers whole: a bonnet.
+
+    The rest of the mask goes to ``meta["ignore_pixels"]`` (or None) and the pair itself to
+    ``meta["full_pair"]``, from which the outputs take back the frame's size; the intrinsics stay (rows are
+    cut below, the principal point does not move). A pair without a mask, or one cropped already, is
+    returned as it is.
+    """
+    mask = pair.meta.get("ignore_mask")
+    if mask is None:
+        return pair
+    split = apply_ignore_mask(torch.as_tensor(mask), pair.size)
+    rows = split.crop_rows
+
+    def cut(x: torch.Tensor | None) -> torch.Tensor | None:
+        if x is None or x.dim() < 2 or tuple(x.shape[-2:]) != tuple(pair.size):
+            return x
+        return x[..., :rows, :]
+
+    gt = dataclasses.replace(pair.gt, **{f.name: cut(getattr(pair.gt, f.name)) for f in dataclasses.fields(pair.gt)
+                                         if f.name != "bottoms"})
+    meta = {k: v for k, v in pair.meta.items() if k != "ignore_mask"}
+    meta["ignore_pixels"] = split.pixels
+    meta["full_pair"] = pair
+    return dataclasses.replace(pair, image=pair.image[:, :rows], image_prev=pair.image_prev[:, :rows], gt=gt, meta=meta)

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, params_from_config
+from monostixels.static_regions import crop_ignored
 from monostixels.data.base import FramePair
 
 __all__ = ["StreamParams", "StreamState", "Carried", "Chain", "warp_scores"]
@@ -440,7 +441,9 @@ class _Lookahead:
 
     def load(self, key: tuple[int, int]) -> FramePair:
         index, back = key
-        return self._source[index] if back == 1 else self._source.pair_back(index, back)
+        pair = self._source[index] if back == 1 else self._source.pair_back(index, back)
+        # Cropped here (a bonnet's rows), so that the inputs computed ahead are those of the pair solved.
+        return crop_ignored(pair)
 
     def _get(self, index: int, back: int) -> FramePair:
         pending, self.pending = self.pending, None

@@ -137,3 +137,35 @@ def test_real_frames_without_a_bonnet_have_no_static_region(pattern):
     frames = [cv2.imread(str(p)) for p in sorted(_SHARED.glob(pattern))[:6]]
     assert len(frames) >= 3
     assert not find_static_region(frames).any()
+
+
+def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
+    """A video with a bonnet through the sequence layer with the stream reading ahead (preset=fast): every
+    pair is solved at the cropped size, its inputs computed ahead are used, the outputs have the frame's size."""
+    import cv2
+
+    from monostixels.data.sources import make_source
+    from monostixels.pipeline import load_config
+    from monostixels.sequence import SequenceRunner
+
+    pair, frames = _clip()
+    H, W = pair.size
+    truth = _bonnet(H, W)
+    path = tmp_path / "bonnet.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (W, H))
+    for f in frames + frames:
+        writer.write(_bgr(_paint(f, truth)))
+    writer.release()
+    K = pair.camera.K
+    (tmp_path / "intr.yaml").write_text(f"fx: {float(K[0, 0])}\nfy: {float(K[1, 1])}\ncx: {float(K[0, 2])}\n"
+                                        f"cy: {float(K[1, 2])}\n")
+    cfg = load_config(["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}",
+                       "data.resize=null", "preset=fast", "semantic=none", "keyframes.min_distance_m=0"])
+    runner = SequenceRunner(cfg)
+    steps = list(runner.run(make_source(cfg.data)))
+    assert len(steps) == 7
+    for s in steps:
+        st = s.result.stixels
+        assert s.pair.size == (H, W) and st.image_size == (H, W) and st.flags["ignored_pixels"] == int(truth.sum())
+        assert int(st.v_bottom.max()) < H - _BONNET_MIN
+    assert runner.stream.ahead >= 4  # the pairs read ahead were the ones solved
