@@ -18,8 +18,7 @@ import dataclasses
 import logging
 from importlib import resources
 import time
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
+from concurrent.futures import wait
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -27,6 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from monostixels._checks import InputError, check_frame_size
+from monostixels._pools import helper_pool
 from monostixels._threads import ensure_threads
 from monostixels.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
@@ -237,8 +237,8 @@ class Pipeline:
 
         fresh = carried.semantic is None
         t_in = time.perf_counter()
-        with ThreadPoolExecutor(max_workers=1) if self.overlap and fresh else nullcontext() as pool:
-            future = pool.submit(semantics) if pool is not None else None
+        future = helper_pool("semantics").submit(semantics) if self.overlap and fresh else None
+        try:
             t0 = time.perf_counter()
             if carried.chain is not None and str(self.cfg.flow.get("name", "")) != "gt":
                 # A keyframe pair reaching past the last frame: its flow chained through the frames between.
@@ -257,6 +257,9 @@ class Pipeline:
                 t0 = time.perf_counter()
                 semantic = warp_scores(carried.semantic, flow.flow)
                 sec["semantic"] = time.perf_counter() - t0
+        finally:
+            if future is not None:
+                wait([future])  # the semantic thread is done before this pair goes on (or fails)
         sec["inputs"] = time.perf_counter() - t_in
         return flow, semantic, sec
 

@@ -37,7 +37,7 @@ import dataclasses
 import logging
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -48,6 +48,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from monostixels._pools import helper_pool
 from monostixels._checks import InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape
 from monostixels._paths import find_file
 from monostixels.data.base import FramePair
@@ -265,9 +266,9 @@ def _in_bands(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarra
         raise InputError(f"flow.bands: {bands} strips of a {w} px wide grid are too narrow "
                          f"(each needs >= {2 * m + _MIN_SCALED_SIDE} px); lower flow.bands")
     spans = [(max(c0 - m, 0), min(c1 + m, w)) for c0, c1 in zip(cuts[:-1], cuts[1:])]
-    with ThreadPoolExecutor(max_workers=bands) as pool:
-        parts = list(pool.map(lambda sp: calc(np.ascontiguousarray(a[:, sp[0]:sp[1]]),
-                                              np.ascontiguousarray(b[:, sp[0]:sp[1]])), spans))
+    pool = helper_pool("flow-bands", bands)
+    parts = list(pool.map(lambda sp: calc(np.ascontiguousarray(a[:, sp[0]:sp[1]]),
+                                          np.ascontiguousarray(b[:, sp[0]:sp[1]])), spans))
     out = np.zeros((h, w, 2), np.float32)
     weight = np.zeros((1, w, 1), np.float32)
     for (s0, s1), part in zip(spans, parts):
@@ -444,9 +445,8 @@ def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
     passes = _refine_passes(cfg)
     # The two directions in two threads: OpenCV's refinement leaves most of a second core idle (and
     # releases the GIL); on two cores this halves its time.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        back = pool.submit(_refine, (g_prev, g_cur), bwd, passes)
-        fwd, bwd = _refine((g_cur, g_prev), fwd, passes), back.result()
+    back = helper_pool("refine-backward").submit(_refine, (g_prev, g_cur), bwd, passes)
+    fwd, bwd = _refine((g_cur, g_prev), fwd, passes), back.result()
     for f in (fwd, bwd):
         check_finite_fast(f, "flow from backend raft after flow.refine")
     return fwd, bwd, g_cur
@@ -564,10 +564,10 @@ def _both_ways(pair: FramePair, cfg: Any, init: np.ndarray | None = None, grey_p
         # The two directions in two threads: the OpenCV backends release the GIL and DeepFlow's
         # variational stage (bands=1) and the refinement use about one core each. The backward
         # flow starts from zero: the carried flow is a forward one.
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            back_job = pool.submit(_flow_of_checked_images, pair.image_prev, pair.image, cfg, None, g_cur, g_prev)
-            flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, g_prev, g_cur)
-            back, _ = back_job.result()
+        back_job = helper_pool("flow-backward").submit(_flow_of_checked_images, pair.image_prev, pair.image, cfg,
+                                                       None, g_cur, g_prev)
+        flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, g_prev, g_cur)
+        back, _ = back_job.result()
     return flow, back, grey
 
 
@@ -592,10 +592,12 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
     if bool(_get(cfg, "fb_consistency", False)):
         flow, back, grey = _both_ways(pair, cfg, init, grey_prev)
         return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey, back
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        cov = pool.submit(_covariance, pair.image, cfg, params, None)
+    cov = helper_pool("covariance").submit(_covariance, pair.image, cfg, params, None)
+    try:
         flow, grey = _flow_of_checked_images(pair.image, pair.image_prev, cfg, init, grey_prev)
-        return flow, cov.result(), grey, None
+    finally:
+        wait([cov])  # the covariance's thread is done before this pair goes on (or fails)
+    return flow, cov.result(), grey, None
 
 
 def _covariance(image: torch.Tensor, cfg: Any, params: ConfidenceParams, fb_err: torch.Tensor | None) -> torch.Tensor:
@@ -744,10 +746,10 @@ def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Seq
     def chw(x: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))
 
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        back_job = pool.submit(_refine, (g_prev, g_cur), chw(bwd), passes) if bwd is not None else None
-        flow = _refine((g_cur, g_prev), chw(fwd), passes)
-        back = back_job.result() if back_job is not None else None
+    back_job = helper_pool("refine-backward").submit(_refine, (g_prev, g_cur), chw(bwd), passes) \
+        if bwd is not None else None
+    flow = _refine((g_cur, g_prev), chw(fwd), passes)
+    back = back_job.result() if back_job is not None else None
     check_finite_fast(flow, f"chained flow from backend {name}")
     cov = flow_covariance(pair.image, params, fb_error=fb_consistency_error(flow, back) if back is not None else None)
     seconds = time.perf_counter() - t0

@@ -52,8 +52,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
+from concurrent.futures import wait
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -63,6 +62,7 @@ import cv2
 import numpy as np
 import torch
 
+from monostixels._pools import helper_pool
 from monostixels._checks import InputError, check_finite, check_shape
 from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
 from monostixels.data._io import relative_motion
@@ -569,79 +569,79 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
     # below then runs as written, one candidate after the other, on cached values: the same
     # result as the sequential search, in less wall time.
     workers = _photometric_workers()
-    with ThreadPoolExecutor(max_workers=workers - 1) if workers > 1 else nullcontext() as pool:
+    pool = helper_pool("photometric", workers - 1) if workers > 1 else None
 
-        def prefetch(xs: list[np.ndarray]) -> None:
-            todo = [x for x in xs if x.tobytes() not in cost_cache]
-            if pool is None or len(todo) < 2:
-                return
-            chunks = [todo[i::workers] for i in range(workers)]  # interleaved: the far scales are cheap
-            futures = [pool.submit(lambda xs_: [cost(x_) for x_ in xs_], ch) for ch in chunks[1:] if ch]
-            for x_ in chunks[0]:
-                cost(x_)
-            for fut in futures:
-                fut.result()
+    def prefetch(xs: list[np.ndarray]) -> None:
+        todo = [x for x in xs if x.tobytes() not in cost_cache]
+        if pool is None or len(todo) < 2:
+            return
+        chunks = [todo[i::workers] for i in range(workers)]  # interleaved: the far scales are cheap
+        futures = [pool.submit(lambda xs_: [cost(x_) for x_ in xs_], ch) for ch in chunks[1:] if ch]
+        for x_ in chunks[0]:
+            cost(x_)
+        for fut in futures:
+            fut.result()
 
-        grid_step = math.log(_SCALE_GRID_M[1] / _SCALE_GRID_M[0])
-        step = np.array([grid_step, 0.01, 0.01])  # 1 grid step, ~0.6 deg
-        x = None
-        if start is not None:
-            # A sparse cover of the grid (for the contrast's median, and to see a minimum far from the
-            # prediction) and the grid's scales within a window around the predicted one.
-            k0 = int(round(math.log(start[0] / _SCALE_GRID_M[0]) / grid_step))
-            window = range(max(k0 - _WARM_GRID_HALF_WIDTH, 0), min(k0 + _WARM_GRID_HALF_WIDTH + 1, len(_SCALE_GRID_M)))
-            read = sorted(set(range(0, len(_SCALE_GRID_M), _WARM_GRID_STRIDE)) | set(window))
-            grid = [np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0]) for k in read]
-            prefetch(grid)
-            c_read = np.array([cost(g) for g in grid])
-            fin = np.isfinite(c_read)
-            if fin.sum() >= 8:
-                kb = read[int(np.argmin(np.where(fin, c_read, np.inf)))]
-                # The best scale read lies inside the window (not at its ends: the speed changed more than
-                # the window allows) and is clear against the cover: the grid's minimum, as a full grid
-                # would have found it; the pattern search then runs as from scratch.
-                if window.start < kb < window.stop - 1 and 0 < kb < len(_SCALE_GRID_M) - 1:
-                    cover = np.array([c for k, c in zip(read, c_read) if k % _WARM_GRID_STRIDE == 0])
-                    costs, finite = cover, np.isfinite(cover)
-                    best = float(c_read[read.index(kb)])
-                    if best >= 0.6 * np.median(costs[finite]):
-                        return None
-                    x = np.array([math.log(_SCALE_GRID_M[kb]), 0.0, 0.0])
-                    contrast = best / float(np.median(costs[finite]))
-                    if contrast > unsharp:
-                        return math.exp(x[0]), n_g.copy(), contrast
-        if x is None:
-            grid = [np.array([math.log(s), 0.0, 0.0]) for s in _SCALE_GRID_M]
-            prefetch(grid)
-            costs = np.array([cost(g) for g in grid])
-            finite = np.isfinite(costs)
-            if finite.sum() < 8:
-                return None
-            k = int(np.argmin(np.where(finite, costs, np.inf)))
-            # A clear minimum: well below the typical cost, and not at the end of the grid.
-            if k in (0, len(_SCALE_GRID_M) - 1) or costs[k] >= 0.6 * np.median(costs[finite]):
-                return None
-            x = np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0])
-            best = costs[k]
+    grid_step = math.log(_SCALE_GRID_M[1] / _SCALE_GRID_M[0])
+    step = np.array([grid_step, 0.01, 0.01])  # 1 grid step, ~0.6 deg
+    x = None
+    if start is not None:
+        # A sparse cover of the grid (for the contrast's median, and to see a minimum far from the
+        # prediction) and the grid's scales within a window around the predicted one.
+        k0 = int(round(math.log(start[0] / _SCALE_GRID_M[0]) / grid_step))
+        window = range(max(k0 - _WARM_GRID_HALF_WIDTH, 0), min(k0 + _WARM_GRID_HALF_WIDTH + 1, len(_SCALE_GRID_M)))
+        read = sorted(set(range(0, len(_SCALE_GRID_M), _WARM_GRID_STRIDE)) | set(window))
+        grid = [np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0]) for k in read]
+        prefetch(grid)
+        c_read = np.array([cost(g) for g in grid])
+        fin = np.isfinite(c_read)
+        if fin.sum() >= 8:
+            kb = read[int(np.argmin(np.where(fin, c_read, np.inf)))]
+            # The best scale read lies inside the window (not at its ends: the speed changed more than
+            # the window allows) and is clear against the cover: the grid's minimum, as a full grid
+            # would have found it; the pattern search then runs as from scratch.
+            if window.start < kb < window.stop - 1 and 0 < kb < len(_SCALE_GRID_M) - 1:
+                cover = np.array([c for k, c in zip(read, c_read) if k % _WARM_GRID_STRIDE == 0])
+                costs, finite = cover, np.isfinite(cover)
+                best = float(c_read[read.index(kb)])
+                if best >= 0.6 * np.median(costs[finite]):
+                    return None
+                x = np.array([math.log(_SCALE_GRID_M[kb]), 0.0, 0.0])
+                contrast = best / float(np.median(costs[finite]))
+                if contrast > unsharp:
+                    return math.exp(x[0]), n_g.copy(), contrast
+    if x is None:
+        grid = [np.array([math.log(s), 0.0, 0.0]) for s in _SCALE_GRID_M]
+        prefetch(grid)
+        costs = np.array([cost(g) for g in grid])
+        finite = np.isfinite(costs)
+        if finite.sum() < 8:
+            return None
+        k = int(np.argmin(np.where(finite, costs, np.inf)))
+        # A clear minimum: well below the typical cost, and not at the end of the grid.
+        if k in (0, len(_SCALE_GRID_M) - 1) or costs[k] >= 0.6 * np.median(costs[finite]):
+            return None
+        x = np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0])
+        best = costs[k]
 
-        def trial(x: np.ndarray, d: int, sign: float) -> np.ndarray:
-            out = x.copy()
-            out[d] += sign * step[d]
-            return out
+    def trial(x: np.ndarray, d: int, sign: float) -> np.ndarray:
+        out = x.copy()
+        out[d] += sign * step[d]
+        return out
 
-        for _ in range(_PATTERN_ROUNDS):
-            improved = True
-            while improved:
-                improved = False
-                for d in range(3):
-                    # Both signs at once; when +1 improves, the -1 one was spare work of the other thread.
-                    prefetch([trial(x, d, 1.0), trial(x, d, -1.0)])
-                    for sign in (1.0, -1.0):
-                        cand = trial(x, d, sign)
-                        ct = cost(cand)
-                        if ct < best:
-                            x, best, improved = cand, ct, True
-            step /= 2
+    for _ in range(_PATTERN_ROUNDS):
+        improved = True
+        while improved:
+            improved = False
+            for d in range(3):
+                # Both signs at once; when +1 improves, the -1 one was spare work of the other thread.
+                prefetch([trial(x, d, 1.0), trial(x, d, -1.0)])
+                for sign in (1.0, -1.0):
+                    cand = trial(x, d, sign)
+                    ct = cost(cand)
+                    if ct < best:
+                        x, best, improved = cand, ct, True
+        step /= 2
     return math.exp(x[0]), normal(x), float(best / np.median(costs[finite]))
 
 
@@ -771,12 +771,15 @@ def estimate_mono(
     photometric = images is not None and params.photometric_scale
     # The photometric search's inputs need no flow: made in a second thread during steps 2-3
     # (single-threaded). ``rng`` is that thread's alone until it is joined: steps 2-3 draw nothing.
-    with ThreadPoolExecutor(max_workers=1) if photometric else nullcontext() as pool:
-        prep = (pool.submit(_photometric_inputs, images, sem_np if road else None, Kn, n_g, height, params, rng,
-                            ignore_np)
-                if pool is not None else None)
+    prep = (helper_pool("photometric-inputs").submit(_photometric_inputs, images, sem_np if road else None, Kn, n_g,
+                                                     height, params, rng, ignore_np)
+            if photometric else None)
+    try:
         return _mono_from_vectors(Kn, n_g, height, params, rng, H, W, ok, labels, idx, p_cur, p_prev, road, prep,
                                   _prediction(prior, interval_ratio))
+    finally:
+        if prep is not None:
+            wait([prep])  # its thread draws from ``rng``: done before this estimate returns
 
 
 @dataclass
