@@ -38,6 +38,7 @@ from tqdm import tqdm
 
 from monostixels.classes import DYNAMIC_OBJECT
 from monostixels.data.sources import make_source
+from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import SequenceRunner
 
@@ -77,12 +78,11 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
     for step in tqdm(runner.run(src), total=len(src), desc="dashcam", unit="pair"):
         st = step.result.stixels
         kind = st.flags.get("camera_motion", "metric")
-        metric = kind in ("metric", "standing")
         row: dict[str, Any] = {"pair": step.pair.name, "camera_motion": kind, "scale_from": st.flags.get("scale_from"),
                                "degenerate_motion": bool(st.flags.get("degenerate_motion", False)),
                                "ttc_warnings": int(st.ttc_warning.sum()) if st.ttc_warning is not None else 0,
                                "speed_mps": None}
-        if metric and kind == "metric":
+        if kind == "metric":
             row["speed_mps"] = float(step.result.motion.motion.translation_norm / st.pair_info["dt_s"])
         if classes is not None:
             idx = st.index_map()
@@ -92,7 +92,7 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
             row["false_mover_share"] = float((moving.numpy() & ~near).mean())
         rows.append(row)
     n = len(rows)
-    no_metric = [r for r in rows if r["camera_motion"] not in ("metric", "standing")]
+    no_metric = [r for r in rows if r["camera_motion"] in NO_METRIC_MOTION]
     speeds = np.array([r["speed_mps"] for r in rows if r["speed_mps"] is not None])
     report: dict[str, Any] = {
         "pairs": n,

@@ -446,8 +446,10 @@ def camera_report(flags: list[dict[str, Any]], height: float) -> dict[str, Any]:
     metric motion (``metric``, standing ones included) and without (``no_metric_motion``), where the metric
     scales came from (``scale_from``: counts), the height assumed (``height_m``) and, where a given motion
     let the road say, the median height it implies (``height_fit_m``, else None) over ``height_fits`` pairs."""
+    from monostixels.inputs.motion import NO_METRIC_MOTION
+
     kinds = [f.get("camera_motion", "metric") for f in flags]
-    metric = sum(k in ("metric", "standing") for k in kinds)
+    metric = sum(k not in NO_METRIC_MOTION for k in kinds)
     sources: dict[str, int] = {}
     for f in flags:
         if f.get("scale_from"):

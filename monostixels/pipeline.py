@@ -34,7 +34,8 @@ from monostixels.energy import PriorParams
 from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
-from monostixels.inputs.motion import MotionEstimate, MotionTrack, estimate_motion, implied_height
+from monostixels.inputs.motion import (NO_METRIC_MOTION, MotionEstimate, MotionTrack, estimate_motion,
+                                       implied_height)
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers, static_only
 from monostixels.solver import SolverConfig, solve
@@ -167,7 +168,7 @@ class Pipeline:
             est = MotionEstimate(
                 motion=Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)),
                 degenerate=True, reason=est.reason, inlier_ratio=est.inlier_ratio,
-                kind=est.kind if est.kind in ("scale_unknown", "unknown") else "unknown", unit_motion=est.unit_motion,
+                kind=est.kind if est.kind in NO_METRIC_MOTION else "unknown", unit_motion=est.unit_motion,
             )
         return est
 
@@ -306,7 +307,7 @@ class Pipeline:
             h_fit = implied_height(pair, flow, self._mono_cfg, semantic, motion.motion)
             if h_fit is not None:
                 stixels.flags["camera_height_fit_m"] = round(h_fit, 3)
-        if motion.kind in ("scale_unknown", "unknown"):
+        if motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: the flow cannot tell an object's motion from the camera's.
             stixels = static_only(stixels)
         stixels.flags["camera_motion"] = motion.kind

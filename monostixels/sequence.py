@@ -46,6 +46,7 @@ from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.geometry import Motion
+from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
 from monostixels.stixels import StixelWorld
 from monostixels.stream import StreamState
@@ -165,10 +166,6 @@ class _Frame:
     pose: torch.Tensor           # (4, 4) camera-to-world
 
 
-#: Kinds of camera-motion estimate (monostixels.inputs.motion.MOTION_KINDS) that know no metric motion.
-_NOT_KNOWN = ("scale_unknown", "unknown")
-
-
 class SequenceRunner:
     """Frames of a data source through the pipeline, with keyframes, tracks and TTC (module docstring).
 
@@ -262,7 +259,7 @@ class SequenceRunner:
         pair = res.pair  # the frame pair at its full size (a stream reading ahead may have cut a bonnet off)
         dt = float(pair.meta.get("dt") or (self.default_dt * (back or 1)))
         sequence = back is not None
-        if res.motion.kind in _NOT_KNOWN:
+        if res.motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: no pose to chain, nothing to track, no time to collision.
             self._unknown(res, pair, back, dt)
             return SequenceStep(index, pair, res)
@@ -288,9 +285,7 @@ class SequenceRunner:
         st.ttc_s = torch.full((N,), math.inf, dtype=torch.float64)
         st.ttc_warning = torch.zeros(N, dtype=torch.bool)
         st.pose = None
-        st.pair_info = {"current": pair.name, "previous": pair.meta.get("name_prev", ""),
-                        "frames_back": int(back) if back is not None else 1, "dt_s": dt,
-                        "driven_m": None, "keyframe_distance_m": None}
+        st.pair_info = _pair_info(pair, back, dt, None, None)
         res.pose = None
 
     def _finish(self, res: PipelineResult, pair: FramePair, back: int | None, driven: float | None, dt: float,
@@ -356,16 +351,22 @@ class SequenceRunner:
         st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
         st.ttc_warning = warn
         st.pose = pose
-        st.pair_info = {"current": pair.name, "previous": pair.meta.get("name_prev", ""),
-                        "frames_back": int(back) if back is not None else 1, "dt_s": dt,
-                        "driven_m": res.motion.motion.translation_norm,
-                        "keyframe_distance_m": driven}
+        st.pair_info = _pair_info(pair, back, dt, res.motion.motion.translation_norm, driven)
         res.stixels = st
         res.pose = pose
         if sequence:
             self.frames[frame_no] = _Frame(pair.name, time, pose)
             while len(self.frames) > self.keyframes.window + 1:
                 self.frames.popitem(last=False)
+
+
+def _pair_info(pair: FramePair, back: int | None, dt: float, driven_m: float | None,
+               keyframe_m: float | None) -> dict[str, Any]:
+    """``StixelWorld.pair_info`` of a solved pair: its frames, how far back, seconds and metres driven (None
+    where the camera motion is unknown) and the keyframe distance it was chosen by."""
+    return {"current": pair.name, "previous": pair.meta.get("name_prev", ""),
+            "frames_back": int(back) if back is not None else 1, "dt_s": dt,
+            "driven_m": driven_m, "keyframe_distance_m": keyframe_m}
 
 
 def _with_filtered_depth(st: StixelWorld, point_cam: torch.Tensor) -> StixelWorld:

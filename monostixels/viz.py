@@ -28,6 +28,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, IGNORE_LABEL, PALETTE, STATIC_OBJECT, TYPE_PALETTE
 from monostixels.geometry import pixel_rays
+from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.stixels import paint_index_map
 
 __all__ = [
@@ -344,7 +345,7 @@ def frame_notes(stixels: Any) -> list[str]:
     ``scale_unknown`` / ``unknown``) says that it shows no movers and raises no collision warning.
     """
     flags = getattr(stixels, "flags", None) or {}
-    if flags.get("camera_motion") in ("scale_unknown", "unknown"):
+    if flags.get("camera_motion") in NO_METRIC_MOTION:
         # Said first and plainly: the frame shows no movers and raises no collision warning.
         what = "speed" if flags["camera_motion"] == "scale_unknown" else "motion"
         return [f"camera {what} unknown: no movers, no collision warnings; depths from the scene model"]

@@ -73,6 +73,7 @@ from monostixels.inputs.confidence import to_gray
 __all__ = [
     "MOTION_BACKENDS",
     "MOTION_KINDS",
+    "NO_METRIC_MOTION",
     "MIN_TRANSLATION_M",
     "MonoParams",
     "MotionEstimate",
@@ -92,6 +93,8 @@ MOTION_BACKENDS = ("gt", "file", "mono")
 #: What a camera-motion estimate knows (:attr:`MotionEstimate.kind`). Only ``standing`` lets the movers
 #: treat every flow vector as object motion; ``scale_unknown`` and ``unknown`` call nothing moving.
 MOTION_KINDS = ("metric", "standing", "scale_unknown", "unknown")
+#: The kinds without a metric camera motion (no movers, no TTC, no pose).
+NO_METRIC_MOTION = ("scale_unknown", "unknown")
 #: Below this camera translation (metres) a known motion (gt / file) counts as standing still:
 #: 1 mm moves a point 5 m away by ~0.15 px at KITTI focal length — no usable parallax.
 MIN_TRANSLATION_M = 1e-3
