@@ -341,6 +341,7 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels.bev import bev_image
     from monostixels.data._io import MAX_SKIPPED_FRAMES
+    from monostixels.data.sources import camera_mount
     from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
@@ -417,7 +418,7 @@ def _run(cfg: DictConfig) -> None:
     out.mkdir(parents=True, exist_ok=True)
     restarts = list(getattr(src, "restarts", []))
     # What the run made of its input; unreadable frames are listed, never dropped silently.
-    cam = camera_report(camera, _camera_height(cfg))
+    cam = camera_report(camera, camera_mount(cfg.data, cfg.camera)[0])
     run_summary = {"data": str(cfg.data.name), "frame_pairs": written, "skipped_frames": skipped,
                    "sequence_restarts": restarts, "camera": cam}
     (out / "summary.json").write_text(json.dumps(run_summary, indent=2))
@@ -429,12 +430,6 @@ def _run(cfg: DictConfig) -> None:
           + (f"; processed frames {stream}" if stream else "")
           + (f"; {len(skipped)} unreadable frame(s) skipped: {_listed(skipped)}" if skipped else "")
           + f"; {out / 'summary.json'}")
-
-
-def _camera_height(cfg: DictConfig) -> float:
-    """The camera height (metres) a run assumes: ``data.camera_height`` where the source has it, else ``camera.height``."""
-    h = cfg.data.get("camera_height") if "data" in cfg else None
-    return float(h if h is not None else cfg.camera.height)
 
 
 #: A camera height the road implies that differs from the setting by more than this share is warned about.

@@ -16,7 +16,7 @@ from monostixels.data.base import FramePair
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.static_regions import AUTO_MASK
 
-__all__ = ["SOURCE_NAMES", "make_source"]
+__all__ = ["SOURCE_NAMES", "camera_mount", "make_source"]
 
 logger = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ def _get(cfg: Any, key: str, default: Any = None) -> Any:
     return default if value is None else value
 
 
-def _camera_mount(data: Any, camera: Any) -> tuple[float, float]:
+def camera_mount(data: Any, camera: Any) -> tuple[float, float]:
     """(height metres, pitch radians): data.camera_height, else camera.height, else KITTI 1.65 m."""
     height = _get(data, "camera_height", _get(camera, "height", KITTI_CAMERA_HEIGHT_M))
     pitch = _get(camera, "pitch", 0.0)
@@ -76,7 +76,7 @@ def _synthetic(data: Any, camera: Any) -> Sequence[FramePair]:
 def _kitti2015(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.kitti2015 import Kitti2015Source
 
-    height, pitch = _camera_mount(data, camera)
+    height, pitch = camera_mount(data, camera)
     scenes = _get(data, "scenes")
     return Kitti2015Source(
         _get(data, "root"),
@@ -92,7 +92,7 @@ def _kitti2015(data: Any, camera: Any) -> Sequence[FramePair]:
 def _kitti_raw(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.kitti_raw import KittiRawSource
 
-    height, pitch = _camera_mount(data, camera)
+    height, pitch = camera_mount(data, camera)
     date = _get(data, "date")
     return KittiRawSource(
         _get(data, "root"),
@@ -125,7 +125,7 @@ def _ddad(data: Any, camera: Any) -> Sequence[FramePair]:
 def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.frames import FramesSource
 
-    height, pitch = _camera_mount(data, camera)
+    height, pitch = camera_mount(data, camera)
     intr = _get(data, "intrinsics")
     poses = _get(data, "poses")
     mask = _get(data, "mask")
@@ -150,7 +150,7 @@ def _mask(value: Any) -> str | Path | None:
 def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
     from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
-    height, pitch = _camera_mount(data, camera)
+    height, pitch = camera_mount(data, camera)
     intr, hfov, end, resize, mask = (_get(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize", "mask"))
     if resize is not None and not isinstance(resize, (int, float, str)):
         resize = list(resize)
