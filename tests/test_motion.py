@@ -1,6 +1,7 @@
 """Camera motion backends (monostixels.inputs.motion): mono on analytic flow, poses files, errors."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -338,9 +339,12 @@ def test_motion_track_rejects_a_scale_outlier_and_keeps_direction():
     tr = MotionTrack(TrackParams())
     # 0.9 m per frame, one pair measured 14 % too long (KITTI raw drive 0023 pair 6 with semantics).
     meas = [0.90, 0.91, 0.89, 0.90, 1.026, 0.90]
-    out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate(meas)]
+    ests = [tr.update(_track_pair(k + 1), dataclasses.replace(_est(m), scale_from="ground_flow")) for k, m in enumerate(meas)]
+    out = [float(e.motion.t[2]) for e in ests]
     assert out[0] == pytest.approx(0.90)  # the first pair is its own
-    assert abs(out[4] / 0.90 - 1) < 0.02  # the outlier is replaced by the prediction
+    assert abs(out[4] / 0.90 - 1) < 0.02  # the outlier is replaced by the prediction ...
+    assert ests[4].scale_from == "sequence"  # ... and says where its length came from
+    assert [e.scale_from for e in ests[:4]] == ["ground_flow"] * 4  # filtered, still the pairs' own
     assert all(abs(o / 0.90 - 1) < 0.02 for o in out)
     # A single pair alone, another sequence, or a gap: unchanged.
     assert float(MotionTrack().update(_track_pair(1), _est(1.3)).motion.t[2]) == pytest.approx(1.3)

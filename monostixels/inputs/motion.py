@@ -37,9 +37,19 @@ Backends (``cfg.name``):
         error 0.2 % against 16 % from the flow on the 13 worst frames). Taken when its minimum
         is sharp (``photometric_sharp``); on weakly textured real asphalt it often is not
         (KITTI raw: flow 4 %, photometric 8 %).
-     b. From the flow: ``m`` is linear in the flow equations (RANSAC with the tilt bounded by
-        ``ground_max_tilt``, then least squares); ``s = camera.height * |m|``. When this finds
-        no plane either, a weak photometric minimum is used; with neither, no estimate.
+     b. Road marks (``road_marks``, without a sharp photometric minimum): the same warp over the
+        road pixels whose gradient runs along their epipolar line (lane dashes' ends, joints), with
+        the road normal at right angles to the travel direction, minimised over the length ``s`` and
+        the direction ``t̂`` (:mod:`monostixels.inputs.road_marks`). At highway speed the near road
+        moves 30-80 px over textureless asphalt: the flow there is near zero and the whole-road
+        search prefers no warp; the marks still fix the scale, and the far scene's essential matrix
+        is up to ~3 deg off in direction, more than the marks' width at 2 m a pair.
+     c. From the flow: ``m`` is linear in the flow equations (RANSAC with the tilt bounded by
+        ``ground_max_tilt``, then least squares); ``s = camera.height * |m|``. It is taken unless
+        the road marks gave a length and it is shorter than :data:`FLOW_SHORT_RATIO` of theirs:
+        the flow of textureless asphalt errs short, pulled towards zero, not long. When the flow
+        finds no plane, the road marks are used, else a weak photometric minimum; with neither,
+        no estimate.
 
   5. Over a sequence (:class:`MotionTrack`, used by the pipeline for consecutive pairs of one
      sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
@@ -69,6 +79,7 @@ from monostixels.data._io import relative_motion
 from monostixels.data.base import FramePair
 from monostixels.geometry import Motion
 from monostixels.inputs.confidence import to_gray
+from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
 
 __all__ = [
     "MOTION_BACKENDS",
@@ -120,7 +131,8 @@ class MotionEstimate:
             length not: ``unit_motion``) or ``unknown`` (nothing known about the camera).
         unit_motion: ``scale_unknown``: the rotation and the unit translation direction; else None.
         scale_from: where a metric translation's length came from: ``given`` (gt / file),
-            ``photometric`` (the road's image alignment), ``ground_flow`` (the road's flow vectors),
+            ``photometric`` (the road's image alignment), ``road_marks`` (the alignment of the road's marks
+            and the travel direction, :mod:`~monostixels.inputs.road_marks`), ``ground_flow`` (the road's flow vectors),
             ``sequence`` (the recent pairs' speed, :class:`MotionTrack`); None otherwise.
     """
 
@@ -157,6 +169,9 @@ class MonoParams:
         photometric_pixels: at most this many ground pixels (seeded subset) in that search.
         photometric_sharp: the photometric estimate is taken first when its minimum is this sharp
             (best / median cost over the scale grid); a weaker one only when the flow gives no plane.
+        road_marks: without a sharp photometric minimum, the scale and travel direction from the road's
+            marks (:mod:`monostixels.inputs.road_marks`) where the flow of the ground gives none or
+            one well short of theirs (:data:`FLOW_SHORT_RATIO`).
         seed: RNG seed of the subsampling and RANSAC.
     """
 
@@ -174,6 +189,7 @@ class MonoParams:
     photometric_scale: bool = True
     photometric_pixels: int = 40000
     photometric_sharp: float = 0.3
+    road_marks: bool = True
     seed: int = 0
 
 
@@ -425,6 +441,9 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
     res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
     return m, res < thr
 
+
+#: The flow of the ground is taken over the road marks' scale unless it is shorter than this share of it.
+FLOW_SHORT_RATIO = 0.7
 
 #: Candidate metric translations (metres per frame) of the photometric scale search.
 _SCALE_GRID_M = np.geomspace(0.02, 5.0, 96)
@@ -687,6 +706,20 @@ def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray,
                           scale_from="photometric")
 
 
+def _road_marks_estimate(fit: RoadMarksFit, R: np.ndarray, t_essential: np.ndarray, head: str, pixels: str,
+                         inlier_ratio: float, note: str) -> MotionEstimate:
+    """The estimate from a :func:`~monostixels.inputs.road_marks.road_marks_scale` fit: its length and
+    travel direction (the essential matrix's rotation); ``head``, ``pixels``, ``note`` word its reason."""
+    turn = math.degrees(math.acos(float(np.clip(fit.t @ t_essential, -1.0, 1.0))))
+    motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(fit.scale * fit.t))
+    reason = (f"{head}, scale from the road marks ({fit.pixels} mark pixels of {pixels}), cost {fit.ratio:.2f} of "
+              f"no translation, direction turned {turn:.1f} deg)")
+    if note:
+        reason += f" ({note})"
+    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(fit.normal),
+                          scale_from="road_marks")
+
+
 def estimate_mono(
     K: torch.Tensor,
     height: float,
@@ -907,6 +940,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     src = "road pixels" if road else "road region ahead"
     failures = []
     found = None
+    marks = None
     refine_weak = False
     if prep is not None:
         grey_cur, grey_prev, pts = prep.result()
@@ -927,6 +961,11 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             return _photometric_estimate(found, R, t, n_g, head, pixels, inlier_ratio)
         else:
             failures.append(f"photometric minimum not sharp: contrast {found[2]:.2f} > {params.photometric_sharp}")
+        if params.road_marks and len(pts) >= params.min_points:
+            # Its own generator: the ground-flow RANSAC below draws the same numbers with or without it.
+            marks = road_marks_scale(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, np.random.default_rng(params.seed))
+            if marks is None:
+                failures.append(f"road marks: no clear alignment over {pixels})")
     # The flow of the ground: the corridor ahead first; with road labels, the whole road if a
     # vehicle blocks the corridor.
     base = ((labels == _ROAD_CLASS) & ok) if road else ok
@@ -946,6 +985,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         else:
             failures.append(f"ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})")
     else:
+        if marks is not None:
+            return _road_marks_estimate(marks, R, t, head, pixels, inlier_ratio, "; ".join(failures))
         if found is not None:  # a weak photometric minimum is still better than none
             if refine_weak:  # warm, it may not have been refined: the search from scratch
                 found = _photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt) or found
@@ -955,6 +996,11 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio,
                               kind="scale_unknown", unit_motion=unit)
     scale = height * q
+    if marks is not None and scale < FLOW_SHORT_RATIO * marks.scale:
+        # The flow of textureless asphalt errs short (pulled towards zero), not long: well short of the
+        # marks' length, it is the flow that failed.
+        failures.append(f"{int(ginl.sum())} ground vectors give {scale:.3f} m, short of the marks' {marks.scale:.3f} m")
+        return _road_marks_estimate(marks, R, t, head, pixels, inlier_ratio, "; ".join(failures))
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
     reason = f"{head}, scale from {int(ginl.sum())} ground vectors ({src}, normal tilt {tilt:.1f} deg)"
     if failures:
@@ -1012,7 +1058,7 @@ def implied_height(pair: FramePair, flow: Any, mono_cfg: Any, semantic: torch.Te
     est = estimate_mono(pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov,
                         _mono_params(mono_cfg), semantic, images=(pair.image, pair.image_prev),
                         ignore=pair.meta.get("ignore_pixels"))
-    if est.motion is None or est.degenerate or est.scale_from not in ("photometric", "ground_flow"):
+    if est.motion is None or est.degenerate or est.scale_from not in ("photometric", "road_marks", "ground_flow"):
         return None
     if _angle_deg(est.motion.t.double(), given.t.double()) > 10.0:
         return None
@@ -1147,6 +1193,8 @@ class MotionTrack:
                 self._x, self._var, self._rejected = x_pred, p_pred, z
                 note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
                         f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m")
+                # The length is the sequence's now, not the pair's own measurement.
+                est = dataclasses.replace(est, scale_from="sequence")
         else:
             k = p_pred / s
             self._x, self._var = x_pred + k * innov, (1 - k) * p_pred
