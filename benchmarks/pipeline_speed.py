@@ -23,6 +23,11 @@ Usage::
     python benchmarks/pipeline_speed.py --json p.json                       # both presets, both drives
     python benchmarks/pipeline_speed.py --presets fast --set flow=dis --json p_dis.json   # any override
     python benchmarks/pipeline_speed.py --clock cpu --frames 6 --roots ../shared/data/kitti_raw
+    python benchmarks/pipeline_speed.py --presets accurate --frames 12 --video clip.mp4 --video-set data.hfov_deg=58
+
+``--video`` times each preset on a clip as well (``data=video``, whose ``data.resize=auto`` default brings a
+720p or 1080p clip to about 0.5 megapixels), after the drives: the JSON's ``presets.<preset>.video_seconds``
+and ``video_per_kitti`` (its total over the drives' total, in the same run).
 
 The JSON's ``median_seconds`` (docs/conventions.md, section 4.7) is that of the first preset measured
 (``fast``, what ``run`` does, unless ``--presets`` says otherwise); ``presets`` holds each preset's. Measured numbers:
@@ -128,15 +133,26 @@ def run_overrides(preset: str, sets: list[str]) -> list[str]:
     return cli.command_overrides("run", [f"preset={preset}", *sets])
 
 
-def time_preset(preset: str, roots: list[str], sets: list[str], frames: int | None, warmup: int, overlap: bool,
+def kitti_sources(roots: list[str], frames: int | None) -> list[tuple[str, list[str]]]:
+    """The data overrides of each KITTI raw drive root, named by the root."""
+    return [(root, ["data=kitti_raw", f"data.root={root}", *([f"data.frames={frames}"] if frames else [])])
+            for root in roots]
+
+
+def video_source(path: str, frames: int | None, sets: list[str]) -> list[tuple[str, list[str]]]:
+    """The data overrides of a video clip (``data=video``; ``sets`` e.g. ``data.hfov_deg=58``), named by its path."""
+    return [(path, ["data=video", f"data.path={path}", f"data.frames={frames or 20}", *sets])]
+
+
+def time_preset(preset: str, sources: list[tuple[str, list[str]]], sets: list[str], warmup: int, overlap: bool,
                 clock: Any) -> tuple[list[dict[str, float]], Any, list[str], list[int]]:
-    """Per-frame stage times of one preset over the drives, in order (warm-up frames left out)."""
+    """Per-frame stage times of one preset over the sources (``(name, data overrides)``: :func:`kitti_sources`,
+    :func:`video_source`), in order (warm-up frames left out)."""
     overrides = run_overrides(preset, sets)
     out: list[dict[str, float]] = []
     cfg, size = None, []
-    for root in roots:
-        cfg = load_config(["data=kitti_raw", f"data.root={root}", *([f"data.frames={frames}"] if frames else []),
-                           *overrides])
+    for root, data in sources:
+        cfg = load_config([*data, *overrides])
         src = cli._source(cfg)
         pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, overlap=overlap)  # as `monostixels run` builds it
         runner = SequenceRunner(cfg, pipe)
@@ -186,6 +202,10 @@ def main() -> None:
     ap.add_argument("--no-overlap", action="store_true",
                     help="semantics after the flow instead of beside it (Pipeline(overlap=False)); implied by --clock cpu, "
                          "where the stages' CPU seconds would otherwise mix (as would stream.overlap's, also off then)")
+    ap.add_argument("--video", default=None, help="also time each preset on this clip (data=video, data.resize=auto), "
+                    "after the drives: the JSON's video_seconds and video_per_kitti")
+    ap.add_argument("--video-set", dest="video_sets", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="data overrides of --video, e.g. data.hfov_deg=58 data.step=2 (data.frames: --frames, else 20)")
     ap.add_argument("--dis-repeats", type=int, default=15, help="timed repeats of the DIS yardstick (after a warm-up)")
     ap.add_argument("--json", type=str, default=None, help="write the per-stage medians and all frame times here")
     args = ap.parse_args()
@@ -205,7 +225,8 @@ def main() -> None:
     for preset in args.presets:
         # The CPU clock counts every thread: stages must then run one after the other (no pair ahead).
         sets = list(args.sets) + (["stream.overlap=false"] if args.clock == "cpu" else [])
-        frames, cfg, overrides, size = time_preset(preset, args.roots, sets, args.frames, args.warmup, overlap, clock)
+        frames, cfg, overrides, size = time_preset(preset, kitti_sources(args.roots, args.frames), sets, args.warmup,
+                                                   overlap, clock)
         if not frames:
             raise SystemExit("no frames timed: raise --frames above --warmup")
         stages = list(dict.fromkeys(k for f in frames for k in f))
@@ -216,6 +237,14 @@ def main() -> None:
                        "stream": dict(cfg.stream), "overrides": overrides, "overlap": overlap},
             "frames": len(frames), "median_seconds": med, "per_frame": frames,
             "cpu_seconds_per_frame": med.get("cpu"), "threads": thread_counts()}
+        if args.video:
+            vframes, _, _, vsize = time_preset(preset, video_source(args.video, args.frames, args.video_sets), sets,
+                                               args.warmup, overlap, clock)
+            if not vframes:
+                raise SystemExit("no video frames timed: raise --frames above --warmup")
+            vmed = {k: statistics.median(f.get(k, 0.0) for f in vframes) for k in stages if k in vframes[0]}
+            results[preset].update({"video_seconds": vmed, "video_frames": len(vframes), "video_size": vsize,
+                                    "video_per_kitti": vmed["total"] / med["total"]})
     dis_times.append(time_dis(args.roots, args.dis_repeats))
     dis_s = statistics.median([t for t, _ in dis_times])
     load1 = os.getloadavg()
@@ -239,6 +268,10 @@ def main() -> None:
         print(f"{n}: total {results[n]['median_seconds']['total']:.3f} s = {results[n]['total_per_dis']:.1f} x DIS "
               f"({dis_s * 1000:.1f} ms, medium, {DIS_SIZE[0]}x{DIS_SIZE[1]}: {dis_times[0][1]}); "
               f"CPU {results[n]['cpu_seconds_per_frame']:.3f} s per frame; threads {results[n]['threads']}")
+    for n in names:
+        if "video_seconds" in results[n]:
+            print(f"{n}: video {args.video} at its working size {results[n]['video_size']}: total "
+                  f"{results[n]['video_seconds']['total']:.3f} s = {results[n]['video_per_kitti']:.2f} x the KITTI frames'")
     for n in names:
         c = results[n]["config"]
         print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) semantic={c['semantic']} "

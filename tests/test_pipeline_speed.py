@@ -563,3 +563,21 @@ def test_depth_map_equals_the_ray_plane_formula(seed):
     got = st.depth_map()
     assert bool((idx < 0).any()) and bool((typ == SKY).any())
     assert torch.equal(torch.nan_to_num(got, nan=-1.0), torch.nan_to_num(ref, nan=-1.0))
+
+
+def test_the_speed_benchmark_times_a_video_clip_at_its_working_size(tmp_path):
+    # benchmarks/pipeline_speed.py --video: the clip's frames through the sequence layer as `run` builds it.
+    import time
+
+    from benchmarks.pipeline_speed import time_preset, video_source
+    from tests._clips import FAST, write_video_clip
+
+    clip = tmp_path / "clip.mp4"
+    intr = write_video_clip(clip)
+    frames, cfg, overrides, size = time_preset(
+        "fast", video_source(str(clip), 3, [f"data.intrinsics={intr}", "data.resize=null"]), FAST, 1, False,
+        time.perf_counter)
+    assert str(cfg.data.name) == "video" and "preset=fast" in overrides
+    assert len(frames) == 2  # 3 pairs, 1 of them the warm-up
+    assert size == [94, 310]
+    assert all(f["total"] > 0 and f["total"] >= f["depth_map"] for f in frames)

@@ -72,3 +72,33 @@ def test_a_road_with_nothing_across_the_travel_gives_no_scale():
     fit = road_marks_scale(cur, prev, K, np.eye(3), np.array([0.0, 0.0, 1.0]), N_G, HEIGHT, _ground_pixels(),
                            np.random.default_rng(0))
     assert fit is None
+
+
+
+@pytest.mark.parametrize("start,window", [(1.8, True), (2.3, True), (8.0, False), (0.4, False)])
+def test_a_predicted_length_near_or_far_from_the_truth_ends_at_the_same_fit(start, window, monkeypatch):
+    # Near the truth the window around the prediction holds the minimum (far fewer warps); far off, its
+    # minimum lies on the window's edge and the whole grid runs. Either way the travel is found.
+    import monostixels.inputs.road_marks as rm
+
+    cur, prev = _blur(_render(0.0, True)), _blur(_render(-2.0, True))
+    t_off = _turn(np.array([0.0, 0.0, 1.0]), math.radians(0.5), 0.0)
+    calls = {"n": 0}  # grey values warped
+
+    class CountingCv2:
+        def __getattr__(self, name):
+            return getattr(cv2, name)
+
+        def remap(self, src, map_u, map_v, interpolation):
+            calls["n"] += map_u.size
+            return cv2.remap(src, map_u, map_v, interpolation)
+
+    monkeypatch.setattr(rm, "cv2", CountingCv2())
+    cold = rm.road_marks_scale(cur, prev, K, np.eye(3), t_off, N_G, HEIGHT, _ground_pixels(), np.random.default_rng(0))
+    n_cold, calls["n"] = calls["n"], 0
+    fit = rm.road_marks_scale(cur, prev, K, np.eye(3), t_off, N_G, HEIGHT, _ground_pixels(), np.random.default_rng(0),
+                              start=start)
+    assert fit is not None and cold is not None
+    assert fit.scale == pytest.approx(2.0, rel=0.03)
+    assert fit.scale == pytest.approx(cold.scale, rel=0.01)
+    assert (calls["n"] < n_cold / 3) == window

@@ -139,6 +139,39 @@ def test_real_frames_without_a_bonnet_have_no_static_region(pattern):
     assert not find_static_region(frames).any()
 
 
+@pytest.mark.skipif(not (_SHARED / "dashcam").is_dir(), reason=f"the shared dashcam clip is not at {_SHARED}")
+def test_a_smooth_bonnet_reflecting_the_sky_is_found_on_a_real_highway_clip():
+    # A real bonnet is smooth and dark and mirrors the scene above: texture only at its edge, and a
+    # reflection that changes from frame to frame. Pasted on the shared highway clip, frames 0.2 s apart.
+    import cv2
+
+    cap = cv2.VideoCapture(str(_SHARED / "dashcam" / "highway_solid_white_right.mp4"))
+    frames = []
+    for k in range(26):
+        ok, f = cap.read()
+        assert ok
+        if k % 5 == 0:
+            frames.append(f)
+    H, W = frames[0].shape[:2]
+    u = np.arange(W)
+    edge = (0.9 * H + 0.06 * H * ((u - W / 2) / (W / 2)) ** 2).astype(int)
+    truth = np.arange(H)[:, None] >= edge[None, :]
+    painted = []
+    for f in frames:
+        sky = cv2.GaussianBlur(cv2.resize(np.ascontiguousarray(f[: H // 3][::-1]), (W, H)), (0, 0), 5)
+        bonnet = np.clip(35.0 + 0.25 * sky.astype(np.float32), 0, 255)
+        out = np.where(truth[..., None], bonnet, f.astype(np.float32))
+        out[np.clip(edge, 0, H - 1), u] = 110.0  # the lip of the bonnet catches the light
+        painted.append(out.astype(np.uint8))
+    found = find_static_region(painted)
+    assert (found & truth).sum() >= 0.9 * truth.sum()
+    # Above its edge, at most the rows without texture a strip may bridge (GAP_SHARE of the height); where
+    # the reflection of trees moves, a strip says nothing, and the rest still makes a bonnet.
+    rows = np.arange(H)[:, None]
+    assert not (found & (rows < edge[None, :] - 0.06 * H)).any()
+    assert not find_static_region(frames).any()  # the clip as filmed has none
+
+
 def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
     """A video with a bonnet through the sequence layer with the stream reading ahead (preset=fast): every
     pair is solved at the cropped size, its inputs computed ahead are used, the outputs have the frame's size."""

@@ -963,7 +963,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             failures.append(f"photometric minimum not sharp: contrast {found[2]:.2f} > {params.photometric_sharp}")
         if params.road_marks and len(pts) >= params.min_points:
             # Its own generator: the ground-flow RANSAC below draws the same numbers with or without it.
-            marks = road_marks_scale(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, np.random.default_rng(params.seed))
+            marks = road_marks_scale(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, np.random.default_rng(params.seed),
+                                     start=pred.scale if warm else None)
             if marks is None:
                 failures.append(f"road marks: no clear alignment over {pixels})")
     # The flow of the ground: the corridor ahead first; with road labels, the whole road if a

@@ -20,6 +20,10 @@ lines (the ends of lane dashes, joints, shadows' edges): a mark parallel to the 
 3. takes the result where the minimum is clear: at most :data:`CLEAR_RATIO` of the cost without
    translation (the warp by ``R`` alone), and not at an end of the scale grid.
 
+On a stream (``stream.motion_warm_start``) the last pair's length starts the search: the grid first
+covers only a window around it (:data:`WARM_SPAN`, :data:`WARM_DIRECTION_DEG`), about 30x fewer warps,
+and the whole grid runs where that window's minimum lies on its edge or is not clear.
+
 The settings are stated rather than tuned; they were checked on the shared dashcam clip (pairs 0, 5, 10,
 15, 30; docs/experiments.md "A dashcam at highway speed").
 """
@@ -50,6 +54,10 @@ SCALE_GRID_M = np.geomspace(0.05, 6.0, 64)
 CLEAR_RATIO = 0.85
 #: Step halvings of the pattern search.
 PATTERN_ROUNDS = 6
+#: With a predicted length: the first grid covers lengths within this factor of it (either way) and
+#: directions within this many degrees (a pair's speed and heading change little at 10-25 Hz).
+WARM_SPAN = 1.5
+WARM_DIRECTION_DEG = 1.0
 
 
 @dataclass
@@ -104,7 +112,7 @@ def _mark_pixels(cur: np.ndarray, K: np.ndarray, t: np.ndarray, pts: np.ndarray)
 
 def road_marks_scale(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
                      n_g: np.ndarray, height: float, pts: np.ndarray,
-                     rng: np.random.Generator) -> RoadMarksFit | None:
+                     rng: np.random.Generator, start: float | None = None) -> RoadMarksFit | None:
     """Length and direction of the translation that align the road's marks (module docstring).
 
     Args:
@@ -116,6 +124,10 @@ def road_marks_scale(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.nda
         height: camera height above the road, metres.
         pts: (N, 2) road pixels of the current image (u, v).
         rng: draws the coarse grid's subset.
+        start: a predicted length (metres; a stream's last pair, ``t_unit`` then its direction): the coarse
+            grid first covers only lengths within :data:`WARM_SPAN` of it and directions within
+            :data:`WARM_DIRECTION_DEG` of ``t_unit``; the whole grid where its minimum lies on the window's
+            edge or is not clear.
 
     Returns:
         A :class:`RoadMarksFit`, or None: too few mark pixels, or no clear minimum.
@@ -147,38 +159,55 @@ def road_marks_scale(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.nda
 
     sub = np.sort(rng.choice(len(p), size=COARSE_PIXELS, replace=False)) if len(p) > COARSE_PIXELS else slice(None)
     still = float(costs(t_unit, np.zeros(1), slice(None))[0])  # R alone: no translation
-    span = np.radians(np.arange(-DIRECTION_RANGE_DEG, DIRECTION_RANGE_DEG + 1e-9, DIRECTION_STEP_DEG))
-    best = (math.inf, 0.0, 0.0, 0)
-    for yaw in span:
-        for pitch in span:
-            c = costs(_turn(t_unit, yaw, pitch), SCALE_GRID_M, sub)
-            k = int(np.argmin(c))
-            if c[k] < best[0]:
-                best = (float(c[k]), float(yaw), float(pitch), k)
-    _, yaw, pitch, k = best
-    if k in (0, len(SCALE_GRID_M) - 1):
-        return None
-    # Pattern search over (log s, yaw, pitch) on every mark pixel.
-    x = np.array([math.log(SCALE_GRID_M[k]), yaw, pitch])
-    step = np.array([math.log(SCALE_GRID_M[1] / SCALE_GRID_M[0]), math.radians(DIRECTION_STEP_DEG) / 2,
-                     math.radians(DIRECTION_STEP_DEG) / 2])
 
     def f(x: np.ndarray) -> float:
         return float(costs(_turn(t_unit, x[1], x[2]), np.array([math.exp(x[0])]), slice(None))[0])
 
-    fx = f(x)
-    for _ in range(PATTERN_ROUNDS):
-        improved = True
-        while improved:
-            improved = False
-            for d in range(3):
-                for sign in (1.0, -1.0):
-                    cand = x.copy()
-                    cand[d] += sign * step[d]
-                    fc = f(cand)
-                    if fc < fx:
-                        x, fx, improved = cand, fc, True
-        step /= 2
+    def search(scales: np.ndarray, range_deg: float) -> tuple[np.ndarray, float] | None:
+        """The coarse grid over ``scales`` and directions within ``range_deg``, then a pattern search over
+        (log s, yaw, pitch) on every mark pixel; None where the grid's minimum lies at an end of ``scales``."""
+        span = np.radians(np.arange(-range_deg, range_deg + 1e-9, DIRECTION_STEP_DEG))
+        best = (math.inf, 0.0, 0.0, 0)
+        for yaw in span:
+            for pitch in span:
+                c = costs(_turn(t_unit, yaw, pitch), scales, sub)
+                k = int(np.argmin(c))
+                if c[k] < best[0]:
+                    best = (float(c[k]), float(yaw), float(pitch), k)
+        _, yaw, pitch, k = best
+        if k in (0, len(scales) - 1):
+            return None
+        x = np.array([math.log(scales[k]), yaw, pitch])
+        step = np.array([math.log(SCALE_GRID_M[1] / SCALE_GRID_M[0]), math.radians(DIRECTION_STEP_DEG) / 2,
+                         math.radians(DIRECTION_STEP_DEG) / 2])
+        fx = f(x)
+        for _ in range(PATTERN_ROUNDS):
+            improved = True
+            while improved:
+                improved = False
+                for d in range(3):
+                    for sign in (1.0, -1.0):
+                        cand = x.copy()
+                        cand[d] += sign * step[d]
+                        fc = f(cand)
+                        if fc < fx:
+                            x, fx, improved = cand, fc, True
+            step /= 2
+        return x, fx
+
+    found = None
+    if start is not None and start > 0:
+        # Speed changes little from one pair to the next: the minimum near the predicted length first.
+        window = SCALE_GRID_M[(SCALE_GRID_M >= start / WARM_SPAN) & (SCALE_GRID_M <= start * WARM_SPAN)]
+        if len(window) >= 3:
+            found = search(window, WARM_DIRECTION_DEG)
+            if found is not None and not found[1] / still <= CLEAR_RATIO:
+                found = None
+    if found is None:
+        found = search(SCALE_GRID_M, DIRECTION_RANGE_DEG)
+    if found is None:
+        return None
+    x, fx = found
     ratio = fx / still if still > 0 else math.inf
     if not ratio <= CLEAR_RATIO:
         return None
