@@ -144,6 +144,11 @@ def video_source(path: str, frames: int | None, sets: list[str]) -> list[tuple[s
     return [(path, ["data=video", f"data.path={path}", f"data.frames={frames or 20}", *sets])]
 
 
+def medians(frames: list[dict[str, float]], stages: list[str]) -> dict[str, float]:
+    """Per-stage median seconds over ``frames`` (a stage a frame lacks counts as 0)."""
+    return {k: statistics.median(f.get(k, 0.0) for f in frames) for k in stages}
+
+
 def time_preset(preset: str, sources: list[tuple[str, list[str]]], sets: list[str], warmup: int, overlap: bool,
                 clock: Any) -> tuple[list[dict[str, float]], Any, list[str], list[int]]:
     """Per-frame stage times of one preset over the sources (``(name, data overrides)``: :func:`kitti_sources`,
@@ -230,7 +235,7 @@ def main() -> None:
         if not frames:
             raise SystemExit("no frames timed: raise --frames above --warmup")
         stages = list(dict.fromkeys(k for f in frames for k in f))
-        med = {k: statistics.median(f.get(k, 0.0) for f in frames) for k in stages}
+        med = medians(frames, stages)
         results[preset] = {
             "config": {"flow": str(cfg.flow.name), "flow_preset": cfg.flow.get("preset"), "flow_scale": cfg.flow.get("scale"),
                        "semantic": str(cfg.semantic.name), "motion": str(cfg.motion.name),
@@ -242,7 +247,7 @@ def main() -> None:
                                                args.warmup, overlap, clock)
             if not vframes:
                 raise SystemExit("no video frames timed: raise --frames above --warmup")
-            vmed = {k: statistics.median(f.get(k, 0.0) for f in vframes) for k in stages if k in vframes[0]}
+            vmed = medians(vframes, [k for k in stages if k in vframes[0]])
             results[preset].update({"video_seconds": vmed, "video_frames": len(vframes), "video_size": vsize,
                                     "video_per_kitti": vmed["total"] / med["total"]})
     dis_times.append(time_dis(args.roots, args.dis_repeats))

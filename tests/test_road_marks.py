@@ -74,7 +74,6 @@ def test_a_road_with_nothing_across_the_travel_gives_no_scale():
     assert fit is None
 
 
-
 @pytest.mark.parametrize("start,window", [(1.8, True), (2.3, True), (8.0, False), (0.4, False)])
 def test_a_predicted_length_near_or_far_from_the_truth_ends_at_the_same_fit(start, window, monkeypatch):
     # Near the truth the window around the prediction holds the minimum (far fewer warps); far off, its
