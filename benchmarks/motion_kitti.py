@@ -20,7 +20,7 @@ import numpy as np
 
 from monostixels.data.sources import make_source
 from monostixels.inputs.flow import estimate_flow
-from monostixels.inputs.motion import motion_errors
+from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import Pipeline, load_config
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 __all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size", "params_from_config"]
+           "check_rotation", "check_same_size", "params_from_config", "config_value"]
 
 
 class InputError(ValueError):
@@ -190,6 +190,16 @@ def check_keys(given: Iterable[str], expected: Iterable[str], name: str) -> None
     unknown, missing = given - expected, expected - given
     if unknown or missing:
         raise InputError(f"{name}: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
+
+
+def config_value(cfg: Any, key: str, default: Any = None) -> Any:
+    """``cfg[key]`` of an OmegaConf node, a dict or an object with that attribute; ``default`` where
+    ``cfg`` is None or the key is absent or null (the reading of every config group without a
+    dataclass of its own)."""
+    if cfg is None:
+        return default
+    value = cfg.get(key, default) if hasattr(cfg, "get") else getattr(cfg, key, default)
+    return default if value is None else value
 
 
 def params_from_config(cls: type, cfg: Any, group: str) -> Any:

@@ -26,6 +26,7 @@ __all__ = [
     "KITTI_CAMERA_HEIGHT_M",
     "Camera",
     "Motion",
+    "angle_deg",
     "intrinsics",
     "pixel_rays",
     "ground_basis",
@@ -284,3 +285,11 @@ def ray_plane_depth(K: torch.Tensor, u: torch.Tensor, v: torch.Tensor, n: torch.
     """
     ray = pixel_rays(K, u, v)
     return 1.0 / (p * (ray * n).sum(-1))
+
+
+def angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Angle (degrees) between two vectors of the same length (e.g. (3,) translations); NaN if either is zero."""
+    na, nb = float(a.norm()), float(b.norm())
+    if na <= 0 or nb <= 0:
+        return math.nan
+    return math.degrees(math.acos(max(-1.0, min(1.0, float((a @ b) / (na * nb))))))

@@ -34,8 +34,8 @@ from monostixels.energy import PriorParams
 from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
-from monostixels.inputs.motion import (NO_METRIC_MOTION, MotionEstimate, MotionTrack, estimate_motion,
-                                       implied_height)
+from monostixels.inputs.motion import NO_METRIC_MOTION, MotionEstimate, estimate_motion, implied_height
+from monostixels.inputs.motion_track import MotionTrack
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.movers import MoverCheckParams, check_movers, static_only
 from monostixels.solver import SolverConfig, solve

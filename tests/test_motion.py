@@ -13,7 +13,8 @@ from monostixels._checks import InputError
 from monostixels.data.base import FramePair
 from monostixels.geometry import Camera, Motion, homography, intrinsics, pixel_rays, rotation_yaw
 from monostixels.inputs.flow import FlowResult
-from monostixels.inputs.motion import estimate_motion, load_poses, motion_errors
+from monostixels.eval.metrics import motion_errors
+from monostixels.inputs.motion import estimate_motion, load_poses
 
 H, W = 375, 1242
 HEIGHT = 1.65
@@ -334,9 +335,9 @@ def _est(norm: float):
 
 
 def test_motion_track_rejects_a_scale_outlier_and_keeps_direction():
-    from monostixels.inputs.motion import MotionTrack, TrackParams
+    from monostixels.inputs.motion_track import MotionTrack, MotionTrackParams
 
-    tr = MotionTrack(TrackParams())
+    tr = MotionTrack(MotionTrackParams())
     # 0.9 m per frame, one pair measured 14 % too long (KITTI raw drive 0023 pair 6 with semantics).
     meas = [0.90, 0.91, 0.89, 0.90, 1.026, 0.90]
     ests = [tr.update(_track_pair(k + 1), dataclasses.replace(_est(m), scale_from="ground_flow")) for k, m in enumerate(meas)]
@@ -362,9 +363,9 @@ def _unit(direction=(0.0, 0.0, 1.0)):
 
 
 def test_motion_track_holds_the_speed_over_pairs_without_a_scale():
-    from monostixels.inputs.motion import MotionTrack, TrackParams
+    from monostixels.inputs.motion_track import MotionTrack, MotionTrackParams
 
-    tr = MotionTrack(TrackParams(scale_hold_s=0.25))
+    tr = MotionTrack(MotionTrackParams(scale_hold_s=0.25))
     for k in range(4):  # 20 m/s at 10 Hz
         out = tr.update(_track_pair(k + 1), _est(2.0))
         assert out.scale_from is None and out.kind == "metric"
@@ -379,18 +380,18 @@ def test_motion_track_holds_the_speed_over_pairs_without_a_scale():
     late = tr.update(_track_pair(7), _unit())
     assert late.kind == "scale_unknown" and late.motion is None
     # A measured pair in between starts the count again.
-    tr = MotionTrack(TrackParams(scale_hold_s=0.15))
+    tr = MotionTrack(MotionTrackParams(scale_hold_s=0.15))
     for k, e in enumerate([_est(2.0), _est(2.0), _unit(), _est(2.0), _unit()]):
         out = tr.update(_track_pair(k + 1), e)
     assert out.scale_from == "sequence"
     # No speed yet (the first pair), another sequence, or a gap: nothing to hold.
     assert MotionTrack().update(_track_pair(1), _unit()).kind == "scale_unknown"
     assert tr.update(_track_pair(9), _unit()).kind == "scale_unknown"  # frame 8 missing
-    assert MotionTrack(TrackParams(scale_hold_s=0.0)).update(_track_pair(1), _unit()).motion is None
+    assert MotionTrack(MotionTrackParams(scale_hold_s=0.0)).update(_track_pair(1), _unit()).motion is None
 
 
 def test_motion_track_follows_a_real_speed_change():
-    from monostixels.inputs.motion import MotionTrack
+    from monostixels.inputs.motion_track import MotionTrack
 
     tr = MotionTrack()
     # Braking at 3 m/s^2 from 10 m/s at 10 Hz: 1.0, 0.97, 0.94, ... m per frame. A constant-velocity
@@ -402,7 +403,7 @@ def test_motion_track_follows_a_real_speed_change():
 
 
 def test_motion_track_restarts_after_a_first_pair_far_off():
-    from monostixels.inputs.motion import MotionTrack
+    from monostixels.inputs.motion_track import MotionTrack
 
     # The first pair 25 % long, then a car slowing from 0.53 to 0.44 m a frame (drive 0028's profile):
     # every later pair is an outlier against the first. Two in a row that agree restart the speed.
@@ -421,7 +422,7 @@ def test_motion_track_restarts_after_a_first_pair_far_off():
 def test_motion_track_filters_the_normal_over_chained_pairs():
     import dataclasses
 
-    from monostixels.inputs.motion import MotionTrack
+    from monostixels.inputs.motion_track import MotionTrack
 
     def pair(frame: int, prev: int, seq: str = "s"):
         p = _track_pair(frame, seq)

@@ -462,11 +462,11 @@ def test_too_many_bands_for_the_image():
         estimate_flow(pair, OmegaConf.create({"name": "deepflow", "bands": 3}))
 
 
-# --- ego-motion (monostixels.inputs.motion) -------------------------------------------------------
+# --- ego-motion (monostixels.inputs.motion, monostixels.inputs.ground) -------------------------------------------------------
 
 
 def test_one_partition_median_equals_numpy():
-    from monostixels.inputs.motion import _median
+    from monostixels.inputs.ground import _median
 
     rng = np.random.default_rng(3)
     for n in (1, 2, 3, 4, 7, 100, 101, 40000, 40001):
@@ -498,7 +498,7 @@ def test_max_eigenvalue_test_matches_eigvalsh():
 def test_grey_equals_the_torch_weighted_sum():
     import cv2
 
-    from monostixels.inputs.motion import _grey
+    from monostixels.inputs.ground import _grey
 
     img = torch.rand(3, 37, 53, generator=torch.Generator().manual_seed(5)) * 1.2 - 0.1  # values outside [0, 1] too
     ref = img.float().clamp(0, 1).mul(torch.tensor([0.299, 0.587, 0.114])[:, None, None]).sum(0).numpy()
@@ -508,9 +508,10 @@ def test_grey_equals_the_torch_weighted_sum():
 def test_threaded_photometric_search_equals_the_sequential_one(monkeypatch):
     # The search warms its cost cache in a second thread; the result must be the sequential one.
     from monostixels.data.synthetic import render_pair
-    from monostixels.inputs import motion as motion_mod
+    from monostixels.inputs import ground as ground_mod
     from monostixels.inputs.flow import FlowResult
-    from monostixels.inputs.motion import estimate_motion, motion_errors
+    from monostixels.eval.metrics import motion_errors
+    from monostixels.inputs.motion import estimate_motion
     from monostixels.inputs.semantic import estimate_semantics
 
     pair = render_pair(3, scale=0.5)
@@ -523,7 +524,7 @@ def test_threaded_photometric_search_equals_the_sequential_one(monkeypatch):
     cfg = OmegaConf.create({"name": "mono"})
     est = {}
     for workers in (1, 2, 3):
-        monkeypatch.setattr(motion_mod, "_photometric_workers", lambda w=workers: w)
+        monkeypatch.setattr(ground_mod, "_photometric_workers", lambda w=workers: w)
         est[workers] = estimate_motion(pair, fr, cfg, semantic=sem)
     assert "photometric" in est[1].reason
     assert motion_errors(est[1].motion, pair.motion)["scale_rel_err"] < 0.02

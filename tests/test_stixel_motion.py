@@ -10,7 +10,7 @@ from monostixels.data.base import FramePair
 from monostixels.data.synthetic import SyntheticSource
 from monostixels.eval.evaluate import evaluate, frame_interval, moving_stixel_mask
 from monostixels.geometry import Camera, Motion, intrinsics
-from monostixels.inputs.motion import motion_errors
+from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import load_config
 from monostixels.stixels import paint_index_map
 

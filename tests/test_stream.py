@@ -22,7 +22,7 @@ from monostixels.data.synthetic import SyntheticSequenceSource, render_pair
 from monostixels.data.video import LiveVideoSource, VideoSource
 from monostixels.inputs import flow as flow_module
 from monostixels.inputs.flow import compose_flows, estimate_flow, flow_metrics
-from monostixels.inputs.motion import motion_errors
+from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import SequenceRunner
 from monostixels.stream import StreamParams, StreamState, warp_scores

@@ -11,7 +11,7 @@ import logging
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, config_value
 from monostixels.data.base import FramePair
 from monostixels.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.static_regions import AUTO_MASK
@@ -21,54 +21,43 @@ __all__ = ["SOURCE_NAMES", "camera_mount", "make_source"]
 logger = logging.getLogger(__name__)
 
 
-def _get(cfg: Any, key: str, default: Any = None) -> Any:
-    """``cfg[key]`` for a dict or an OmegaConf node, ``default`` when absent or null."""
-    if cfg is None:
-        return default
-    try:
-        value = cfg.get(key, default)
-    except AttributeError:
-        value = getattr(cfg, key, default)
-    return default if value is None else value
-
-
 def camera_mount(data: Any, camera: Any) -> tuple[float, float]:
     """(height metres, pitch radians): data.camera_height, else camera.height, else KITTI 1.65 m."""
-    height = _get(data, "camera_height", _get(camera, "height", KITTI_CAMERA_HEIGHT_M))
-    pitch = _get(camera, "pitch", 0.0)
+    height = config_value(data, "camera_height", config_value(camera, "height", KITTI_CAMERA_HEIGHT_M))
+    pitch = config_value(camera, "pitch", 0.0)
     return float(height), float(pitch)
 
 
 def _frames(data: Any) -> int | None:
-    n = _get(data, "frames")
+    n = config_value(data, "frames")
     return None if n is None else int(n)
 
 
 def _synthetic(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.synthetic import SyntheticSequenceSource, SyntheticSource  # imported lazily
 
-    length = _get(data, "sequence_length", 1)
+    length = config_value(data, "sequence_length", 1)
     if isinstance(length, bool) or not isinstance(length, int) or length < 1:
         raise InputError(f"data.sequence_length: frames per synthetic clip, an integer >= 1, got {length!r}")
-    speed = _get(data, "ego_speed_mps")
+    speed = config_value(data, "ego_speed_mps")
     if length == 1:
         if speed is not None:
             raise InputError("data.ego_speed_mps: only for synthetic sequences (data.sequence_length > 1)")
         return SyntheticSource(
-            int(_get(data, "frames", 1)),
-            seed=int(_get(data, "seed", 0)),
-            scale=float(_get(data, "scale", 1.0)),
-            density=float(_get(data, "density", 1.0)),
+            int(config_value(data, "frames", 1)),
+            seed=int(config_value(data, "seed", 0)),
+            scale=float(config_value(data, "scale", 1.0)),
+            density=float(config_value(data, "density", 1.0)),
         )
     try:
         speed = None if speed is None else float(speed)
     except (TypeError, ValueError):
         raise InputError(f"data.ego_speed_mps: a speed in m/s or null, got {speed!r}") from None
     return SyntheticSequenceSource(
-        int(_get(data, "frames", 1)), length,
-        seed=int(_get(data, "seed", 0)),
-        scale=float(_get(data, "scale", 1.0)),
-        density=float(_get(data, "density", 1.0)),
+        int(config_value(data, "frames", 1)), length,
+        seed=int(config_value(data, "seed", 0)),
+        scale=float(config_value(data, "scale", 1.0)),
+        density=float(config_value(data, "density", 1.0)),
         ego_speed=speed,
     )
 
@@ -77,14 +66,14 @@ def _kitti2015(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.kitti2015 import Kitti2015Source
 
     height, pitch = camera_mount(data, camera)
-    scenes = _get(data, "scenes")
+    scenes = config_value(data, "scenes")
     return Kitti2015Source(
-        _get(data, "root"),
-        split=str(_get(data, "split", "training")),
-        previous=str(_get(data, "previous", "auto")),
+        config_value(data, "root"),
+        split=str(config_value(data, "split", "training")),
+        previous=str(config_value(data, "previous", "auto")),
         frames=_frames(data),
         scenes=None if scenes is None else [int(s) for s in scenes],
-        fx=_get(data, "fx"), fy=_get(data, "fy"), cx=_get(data, "cx"), cy=_get(data, "cy"),
+        fx=config_value(data, "fx"), fy=config_value(data, "fy"), cx=config_value(data, "cx"), cy=config_value(data, "cy"),
         camera_height=height, pitch=pitch,
     )
 
@@ -93,32 +82,32 @@ def _kitti_raw(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.kitti_raw import KittiRawSource
 
     height, pitch = camera_mount(data, camera)
-    date = _get(data, "date")
+    date = config_value(data, "date")
     return KittiRawSource(
-        _get(data, "root"),
+        config_value(data, "root"),
         date=None if date is None else str(date),
-        drive=_get(data, "drive"),
-        step=int(_get(data, "step", 1)),
+        drive=config_value(data, "drive"),
+        step=int(config_value(data, "step", 1)),
         frames=_frames(data),
-        only_labelled=bool(_get(data, "only_labelled", False)),
+        only_labelled=bool(config_value(data, "only_labelled", False)),
         camera_height=height, pitch=pitch,
-        oxts=str(_get(data, "oxts", "velocity")),
+        oxts=str(config_value(data, "oxts", "velocity")),
     )
 
 
 def _ddad(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.ddad import MOVING_THRESHOLD_M, DDADSource
 
-    h = _get(data, "camera_height")
-    scene = _get(data, "scene")
+    h = config_value(data, "camera_height")
+    scene = config_value(data, "scene")
     return DDADSource(
-        _get(data, "root"),
-        camera=str(_get(data, "camera", "CAMERA_01")),
-        lidar=str(_get(data, "lidar", "LIDAR")),
+        config_value(data, "root"),
+        camera=str(config_value(data, "camera", "CAMERA_01")),
+        lidar=str(config_value(data, "lidar", "LIDAR")),
         scene=None if scene is None else str(scene),
         frames=_frames(data),
         camera_height=None if h is None else float(h),  # None: estimated from the LiDAR ground
-        moving_threshold=float(_get(data, "moving_threshold", MOVING_THRESHOLD_M)),
+        moving_threshold=float(config_value(data, "moving_threshold", MOVING_THRESHOLD_M)),
     )
 
 
@@ -126,13 +115,13 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.frames import FramesSource
 
     height, pitch = camera_mount(data, camera)
-    intr = _get(data, "intrinsics")
-    poses = _get(data, "poses")
-    mask = _get(data, "mask")
+    intr = config_value(data, "intrinsics")
+    poses = config_value(data, "poses")
+    mask = config_value(data, "mask")
     return FramesSource(
-        _get(data, "root"),
+        config_value(data, "root"),
         intrinsics=None if intr is None else Path(str(intr)),
-        step=int(_get(data, "step", 1)),
+        step=int(config_value(data, "step", 1)),
         frames=_frames(data),
         camera_height=height, pitch=pitch,
         poses=None if poses is None else Path(str(poses)),
@@ -151,18 +140,18 @@ def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
     from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
     height, pitch = camera_mount(data, camera)
-    intr, hfov, end, resize, mask = (_get(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize", "mask"))
+    intr, hfov, end, resize, mask = (config_value(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize", "mask"))
     if resize is not None and not isinstance(resize, (int, float, str)):
         resize = list(resize)
-    realtime = _get(data, "realtime", False)
+    realtime = config_value(data, "realtime", False)
     if not isinstance(realtime, bool):
         raise InputError(f"data.realtime: true or false, got {realtime!r}")
-    path = _get(data, "path")
+    path = config_value(data, "path")
     common = dict(
         intrinsics=None if intr is None else Path(str(intr)),
         hfov_deg=None if hfov is None else float(hfov),
-        step=int(_get(data, "step", 1)),
-        start=int(_get(data, "start", 0)),
+        step=int(config_value(data, "step", 1)),
+        start=int(config_value(data, "start", 0)),
         end=None if end is None else int(end),
         resize=resize,
         frames=_frames(data),
@@ -213,17 +202,17 @@ def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | 
             calibration...), with a message naming it.
     """
     data = cfg
-    if _get(cfg, "data") is not None and _get(cfg, "name") is None:
-        data = _get(cfg, "data")
-        camera = camera if camera is not None else _get(cfg, "camera")
-    name = _get(data, "name")
+    if config_value(cfg, "data") is not None and config_value(cfg, "name") is None:
+        data = config_value(cfg, "data")
+        camera = camera if camera is not None else config_value(cfg, "camera")
+    name = config_value(data, "name")
     if name not in _FACTORIES:
         raise InputError(f"data.name: unknown data source {name!r}; choose one of {', '.join(SOURCE_NAMES)}")
-    if name != "video" and _get(data, "realtime") is not None:
+    if name != "video" and config_value(data, "realtime") is not None:
         raise InputError(f"data.realtime: only data=video reads frames as they come (a camera, a URL, a video file "
                          f"at its frame rate); data={name} is read from disk frame by frame")
     if name == "video":
         # A live source keeps as many frames as keyframe pairs may reach back.
-        window = _get(_get(cfg, "keyframes"), "window", 10) if data is not cfg else 10
+        window = config_value(config_value(cfg, "keyframes"), "window", 10) if data is not cfg else 10
         return _video(data, camera, int(window))
     return _FACTORIES[name](data, camera)

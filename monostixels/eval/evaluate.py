@@ -20,10 +20,10 @@ from monostixels.eval.metrics import (
     SemanticAccumulator,
     bottoms_metrics,
     dense_compactness,
+    motion_errors,
     stixel_compactness,
 )
 from monostixels.inputs.flow import flow_metrics
-from monostixels.inputs.motion import motion_errors
 from monostixels.eval.temporal import TemporalAccumulator
 from monostixels.sequence import SequenceRunner
 from monostixels.stixels import StixelWorld
@@ -34,7 +34,7 @@ logger = logging.getLogger(__name__)
 
 #: Pixel sets of the depth metrics: all ground truth, and split by the moving-object mask.
 SPLITS = ("overall", "static", "moving")
-#: Per-pair camera-motion errors (:func:`monostixels.inputs.motion.motion_errors`) summarised by their median.
+#: Per-pair camera-motion errors (:func:`monostixels.eval.metrics.motion_errors`) summarised by their median.
 MOTION_KEYS = ("rot_err_deg", "trans_dir_err_deg", "trans_dir_err_xz_deg", "scale_rel_err")
 
 

@@ -1,4 +1,4 @@
-"""Evaluation metrics: depth (Eigen et al.), compactness, semantic IoU, stixel bottoms.
+"""Evaluation metrics: depth (Eigen et al.), compactness, semantic IoU, stixel bottoms, camera motion.
 
 Depth metrics follow the paper's "Metric and Baseline" section (Eigen et al., NIPS 2014):
 ``rel = mean |y - y*| / y*``, ``rmse = sqrt(mean (y - y*)^2)`` and the threshold accuracies
@@ -24,6 +24,7 @@ import torch
 
 from monostixels._checks import InputError, check_shape
 from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.geometry import Motion, angle_deg
 
 __all__ = [
     "DEPTH_THRESHOLDS",
@@ -36,6 +37,7 @@ __all__ = [
     "semantic_metrics",
     "SemanticAccumulator",
     "bottoms_metrics",
+    "motion_errors",
 ]
 
 logger = logging.getLogger(__name__)
@@ -286,3 +288,25 @@ def bottoms_metrics(pred_rows: Sequence[float] | np.ndarray | torch.Tensor,
     out["n"] = n
     out["missing"] = int(n - have.sum())
     return out
+
+
+def motion_errors(est: Motion, gt: Motion) -> dict[str, float]:
+    """Errors of an estimated camera motion against ground truth.
+
+    Returns:
+        ``rot_err_deg``: angle of ``R_est R_gt^T`` (degrees); ``trans_dir_err_deg``: angle between
+        the translations (degrees; NaN if either is zero); ``trans_dir_err_xz_deg``: the same for
+        their horizontal parts ``(t_x, t_z)`` (camera x right, z forward; for ground truth whose
+        vertical component drifts, e.g. the poses of KITTI odometry sequence 08); ``scale_rel_err``:
+        ``|‖t‖/‖t_gt‖ - 1|`` (NaN if ``t_gt = 0``).
+    """
+    Rd = est.R.double() @ gt.R.double().T
+    # ||R - I||_F = 2 sqrt(2) sin(theta / 2): accurate for small angles, unlike acos of the trace.
+    s = float(torch.linalg.norm(Rd - torch.eye(3, dtype=Rd.dtype))) / (2.0 * math.sqrt(2.0))
+    rot = math.degrees(2.0 * math.asin(min(1.0, s)))
+    te, tg = est.t.double(), gt.t.double()
+    ne, ng = float(te.norm()), float(tg.norm())
+    tdir = angle_deg(te, tg)
+    tdir_xz = angle_deg(te[[0, 2]], tg[[0, 2]])
+    scale = abs(ne / ng - 1.0) if ng > 0 else math.nan
+    return {"rot_err_deg": rot, "trans_dir_err_deg": tdir, "trans_dir_err_xz_deg": tdir_xz, "scale_rel_err": scale}

@@ -49,7 +49,8 @@ import torch
 import torch.nn.functional as F
 
 from monostixels._pools import helper_pool
-from monostixels._checks import InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape
+from monostixels._checks import (InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape,
+                                config_value)
 from monostixels._paths import find_file
 from monostixels.data.base import FramePair
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
@@ -110,28 +111,17 @@ class FlowResult:
     chained: int = 1
 
 
-def _get(cfg: Any, key: str, default: Any) -> Any:
-    """``cfg.key`` of a DictConfig / dict / object, or ``default`` when absent or null."""
-    if cfg is None:
-        return default
-    if isinstance(cfg, dict) or hasattr(cfg, "get"):
-        val = cfg.get(key, default)
-    else:
-        val = getattr(cfg, key, default)
-    return default if val is None else val
-
-
 def confidence_params(cfg: Any) -> ConfidenceParams:
     """The :class:`ConfidenceParams` of a ``flow`` config node (defaults for absent keys)."""
     d = ConfidenceParams()
     return ConfidenceParams(
-        method=str(_get(cfg, "confidence", "constant" if _get(cfg, "name", "") == "gt" else d.method)),
-        sigma=float(_get(cfg, "sigma", d.sigma)),
-        noise=float(_get(cfg, "noise", d.noise)),
-        window_sigma=float(_get(cfg, "window_sigma", d.window_sigma)),
-        sigma_min=float(_get(cfg, "sigma_min", min(d.sigma_min, float(_get(cfg, "sigma", d.sigma))))),
-        sigma_max=float(_get(cfg, "sigma_max", d.sigma_max)),
-        fb_weight=float(_get(cfg, "fb_weight", d.fb_weight)),
+        method=str(config_value(cfg, "confidence", "constant" if config_value(cfg, "name", "") == "gt" else d.method)),
+        sigma=float(config_value(cfg, "sigma", d.sigma)),
+        noise=float(config_value(cfg, "noise", d.noise)),
+        window_sigma=float(config_value(cfg, "window_sigma", d.window_sigma)),
+        sigma_min=float(config_value(cfg, "sigma_min", min(d.sigma_min, float(config_value(cfg, "sigma", d.sigma))))),
+        sigma_max=float(config_value(cfg, "sigma_max", d.sigma_max)),
+        fb_weight=float(config_value(cfg, "fb_weight", d.fb_weight)),
     )
 
 
@@ -141,7 +131,7 @@ def flow_scale(cfg: Any) -> float:
     Raises:
         InputError: not a number in (0, 1].
     """
-    raw = _get(cfg, "scale", 1.0)
+    raw = config_value(cfg, "scale", 1.0)
     try:
         scale = float(raw)
     except (TypeError, ValueError):
@@ -245,7 +235,7 @@ _BAND_MARGIN = 24
 
 
 def _bands(cfg: Any) -> int:
-    raw = _get(cfg, "bands", 1)
+    raw = config_value(cfg, "bands", 1)
     if isinstance(raw, bool) or not isinstance(raw, int) or raw < 1:
         raise InputError(f"flow.bands: must be a whole number >= 1, got {raw!r}")
     return raw
@@ -309,11 +299,11 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     def variational(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return _in_bands(lambda p, q: cv2.optflow.createOptFlow_DeepFlow().calc(p, q, None), x, y, bands)
 
-    matches = str(_get(cfg, "matches", "dis"))
+    matches = str(config_value(cfg, "matches", "dis"))
     if matches == "none":
         f = _at_scale(variational, a, b, scale)
     elif matches == "dis":
-        preset = str(_get(cfg, "matches_preset", "medium"))
+        preset = str(config_value(cfg, "matches_preset", "medium"))
         if preset not in _DIS_PRESETS:
             raise InputError(f"flow.matches_preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
         f0 = _dis_calc(_DIS_PRESETS[preset], a, b, init)
@@ -368,7 +358,7 @@ def _dis_calc(preset: int, a: np.ndarray, b: np.ndarray, init: np.ndarray | None
 
 def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
          grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
-    preset = str(_get(cfg, "preset", "medium"))
+    preset = str(config_value(cfg, "preset", "medium"))
     if preset not in _DIS_PRESETS:
         raise InputError(f"flow.preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
     a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
@@ -380,7 +370,7 @@ def _raft_net(cfg: Any) -> Any:
     """The RAFT runner of ``cfg`` (``cfg.runtime`` auto | torch | onnx), loaded once per file."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
-    runtime = str(_get(cfg, "runtime", "auto"))
+    runtime = str(config_value(cfg, "runtime", "auto"))
     if runtime == "auto":
         # On a CPU the exported graph runs faster in ONNX Runtime than the network in torch
         # (docs/results.md "Flow"). The export of the weights is the .onnx file beside them (as
@@ -388,29 +378,29 @@ def _raft_net(cfg: Any) -> Any:
         # flow.precision=int8 takes the INT8 copy beside them (<name>_int8.onnx) where there is one:
         # its convolutions, most of the time, ~3x faster on a CPU (the flow stage about 0.7x), the EPE within
         # 1-4 % (docs/experiments.md "Flow").
-        weights = _get(cfg, "weights", None)
-        precision = str(_get(cfg, "precision", "float32"))
+        weights = config_value(cfg, "weights", None)
+        precision = str(config_value(cfg, "precision", "float32"))
         if precision not in ("float32", "int8"):
             raise InputError(f"flow.precision: must be float32 or int8, got {precision!r}")
         if weights is not None and not torch.cuda.is_available():
             w = resolve_path(weights)
             names = ([w.with_name(w.stem + "_int8.onnx")] if precision == "int8" else []) + [w.with_suffix(".onnx")]
             for beside in (n for n in names if n.is_file()):
-                net = cached_onnx_raft(beside, int(_get(cfg, "threads", 0)))
+                net = cached_onnx_raft(beside, int(config_value(cfg, "threads", 0)))
                 # Its updates are fixed at export: another flow.iters runs in torch.
-                if net.num_flow_updates == int(_get(cfg, "iters", 12)):
+                if net.num_flow_updates == int(config_value(cfg, "iters", 12)):
                     return net
         runtime = "torch"
     if runtime == "torch":
-        weights = _get(cfg, "weights", None)
+        weights = config_value(cfg, "weights", None)
         if weights is None:
             raise InputError("flow.weights: the raft backend needs a weights file (flow.weights=PATH)")
-        return cached_torch_raft(resolve_path(weights), str(_get(cfg, "size", "small")), int(_get(cfg, "iters", 12)))
+        return cached_torch_raft(resolve_path(weights), str(config_value(cfg, "size", "small")), int(config_value(cfg, "iters", 12)))
     if runtime == "onnx":
-        onnx = _get(cfg, "onnx", None)
+        onnx = config_value(cfg, "onnx", None)
         if onnx is None:
             raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
-        return cached_onnx_raft(resolve_path(onnx), int(_get(cfg, "threads", 0)))
+        return cached_onnx_raft(resolve_path(onnx), int(config_value(cfg, "threads", 0)))
     raise InputError(f"flow.runtime: must be auto, torch or onnx, got {runtime!r}")
 
 
@@ -484,7 +474,7 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
     With ``cfg.scale < 1`` the backend runs on the downscaled images and the flow is upsampled to
     (H, W), in full-size pixels; ``cfg.refine`` then refines it at full size (module docstring).
     """
-    name = str(_get(cfg, "name", ""))
+    name = str(config_value(cfg, "name", ""))
     if name not in _BACKENDS:
         raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
     check_image_pair(image_cur, image_prev)
@@ -494,7 +484,7 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
 def _uses_grey(cfg: Any) -> bool:
     """Whether the flow of ``cfg`` reads the full-size grey images (the refinement, or a grey backend at
     full size)."""
-    name = str(_get(cfg, "name", ""))
+    name = str(config_value(cfg, "name", ""))
     full_size = flow_scale(cfg) == 1.0 or name in _OWN_SCALE
     return _refine_enabled(cfg) or (full_size and name in _GREY_BACKENDS)
 
@@ -508,7 +498,7 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
     :func:`_gray_u8` of ``image_prev`` / ``image_cur`` where the caller has them. Returns the flow and
     the full-size grey of ``image_cur`` where one was made or given (else None).
     """
-    name = str(_get(cfg, "name", ""))
+    name = str(config_value(cfg, "name", ""))
     scale = flow_scale(cfg)
     refine = _refine_enabled(cfg)
     full_size = scale == 1.0 or name in _OWN_SCALE
@@ -535,7 +525,7 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
 
 
 def _refine_enabled(cfg: Any) -> bool:
-    val = _get(cfg, "refine", False)
+    val = config_value(cfg, "refine", False)
     if not isinstance(val, bool):
         raise InputError(f"flow.refine: must be true or false, got {val!r}")
     return val
@@ -543,7 +533,7 @@ def _refine_enabled(cfg: Any) -> bool:
 
 def _refine_passes(cfg: Any) -> int:
     """``cfg.refine_passes``: how many times :func:`_refine` runs where ``refine`` is on (default 1)."""
-    val = _get(cfg, "refine_passes", 1)
+    val = config_value(cfg, "refine_passes", 1)
     if isinstance(val, bool) or not isinstance(val, int) or val < 1:
         raise InputError(f"flow.refine_passes: must be an integer >= 1, got {val!r}")
     return val
@@ -553,7 +543,7 @@ def _both_ways(pair: FramePair, cfg: Any, init: np.ndarray | None = None, grey_p
                ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None]:
     """An image backend's flows current -> previous and previous -> current (images checked), and the
     current grey image where one was made (else None)."""
-    if str(_get(cfg, "name", "")) == "raft":
+    if str(config_value(cfg, "name", "")) == "raft":
         flow, back, grey = _raft_both_ways(pair.image, pair.image_prev, cfg, grey_prev)  # RAFT starts from zero
     else:
         # Both greys once, for the two directions (each is the other's previous image).
@@ -589,7 +579,7 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
         check_shape(torch.from_numpy(init), [*pair.size, 2], "flow init (H, W, 2)")
     if grey_prev is not None and grey_prev.shape != tuple(pair.size):
         raise InputError(f"flow: grey_prev of shape {grey_prev.shape} for images of size {tuple(pair.size)}")
-    if bool(_get(cfg, "fb_consistency", False)):
+    if bool(config_value(cfg, "fb_consistency", False)):
         flow, back, grey = _both_ways(pair, cfg, init, grey_prev)
         return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey, back
     cov = helper_pool("covariance").submit(_covariance, pair.image, cfg, params, None)
@@ -666,7 +656,7 @@ def estimate_flow(pair: FramePair, cfg: Any, *, init: np.ndarray | None = None,
         InputError: unknown backend, missing ground truth / weights, bad image shapes, NaN flow,
             ``scale`` outside (0, 1].
     """
-    name = str(_get(cfg, "name", ""))
+    name = str(config_value(cfg, "name", ""))
     if name not in FLOW_BACKENDS:
         raise InputError(f"flow.name: unknown flow backend {name!r}, expected one of {FLOW_BACKENDS}")
     params = confidence_params(cfg)
@@ -713,14 +703,14 @@ def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Seq
     Returns:
         The pair's :class:`FlowResult` (``chained`` frames, ``step`` = this frame's flows to ``L``).
     """
-    name = str(_get(cfg, "name", ""))
+    name = str(config_value(cfg, "name", ""))
     if name not in _BACKENDS:
         raise InputError(f"flow.name: chained keyframe flow needs an image backend {tuple(_BACKENDS)}, got {name!r}")
     if not steps:
         raise InputError("chained flow: no kept flows between the stream's last frame and the pair's earlier frame")
     t0 = time.perf_counter()
     params = confidence_params(cfg)
-    fb = bool(_get(cfg, "fb_consistency", False))
+    fb = bool(config_value(cfg, "fb_consistency", False))
     check_image_pair(pair.image, pair.image_prev)
     check_image_pair(pair.image, last_image)
     step_pair = dataclasses.replace(pair, image_prev=last_image)

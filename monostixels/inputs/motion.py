@@ -51,7 +51,7 @@ Backends (``cfg.name``):
         finds no plane, the road marks are used, else a weak photometric minimum; with neither,
         no estimate.
 
-  5. Over a sequence (:class:`MotionTrack`, used by the pipeline for consecutive pairs of one
+  5. Over a sequence (:class:`monostixels.inputs.motion_track.MotionTrack`, used by the pipeline for consecutive pairs of one
      sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
      (a 1-D Kalman filter); a per-pair scale that disagrees with the prediction by more than
      ``scale_gate`` standard deviations is replaced by the prediction (flagged in ``reason``).
@@ -59,7 +59,6 @@ Backends (``cfg.name``):
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from concurrent.futures import wait
@@ -73,12 +72,13 @@ import numpy as np
 import torch
 
 from monostixels._pools import helper_pool
-from monostixels._checks import InputError, check_finite, check_shape
+from monostixels._checks import InputError, check_finite, check_shape, config_value
 from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
 from monostixels.data._io import relative_motion
 from monostixels.data.base import FramePair
-from monostixels.geometry import Motion
-from monostixels.inputs.confidence import to_gray
+from monostixels.geometry import Motion, angle_deg
+from monostixels.inputs.ground import (_PATTERN_MAX_GAIN, _ROAD_CLASS, _fit_ground, _ground_candidates, _ground_system,
+                                       _photometric_ground, _photometric_inputs, _rays, _tilt_deg)
 from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
 
 __all__ = [
@@ -92,10 +92,7 @@ __all__ = [
     "estimate_mono",
     "load_poses",
     "relative_motion",
-    "motion_errors",
     "implied_height",
-    "MotionTrack",
-    "TrackParams",
 ]
 
 logger = logging.getLogger(__name__)
@@ -109,8 +106,6 @@ NO_METRIC_MOTION = ("scale_unknown", "unknown")
 #: Below this camera translation (metres) a known motion (gt / file) counts as standing still:
 #: 1 mm moves a point 5 m away by ~0.15 px at KITTI focal length — no usable parallax.
 MIN_TRANSLATION_M = 1e-3
-#: Semantic class id of road (classes.CLASS_NAMES): the plane the mounting height refers to.
-_ROAD_CLASS = 0
 
 
 @dataclass
@@ -133,7 +128,7 @@ class MotionEstimate:
         scale_from: where a metric translation's length came from: ``given`` (gt / file),
             ``photometric`` (the road's image alignment), ``road_marks`` (the alignment of the road's marks
             and the travel direction, :mod:`~monostixels.inputs.road_marks`), ``ground_flow`` (the road's flow vectors),
-            ``sequence`` (the recent pairs' speed, :class:`MotionTrack`); None otherwise.
+            ``sequence`` (the recent pairs' speed, :class:`~monostixels.inputs.motion_track.MotionTrack`); None otherwise.
     """
 
     motion: Motion | None
@@ -193,16 +188,9 @@ class MonoParams:
     seed: int = 0
 
 
-def _get(cfg: Any, key: str, default: Any) -> Any:
-    if cfg is None:
-        return default
-    val = cfg.get(key, default) if hasattr(cfg, "get") else getattr(cfg, key, default)
-    return default if val is None else val
-
-
 def _mono_params(cfg: Any) -> MonoParams:
     d = MonoParams()
-    kw = {k: type(getattr(d, k))(_get(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
+    kw = {k: type(getattr(d, k))(config_value(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
     return MonoParams(**kw)
 
 
@@ -266,7 +254,7 @@ def load_poses(path: str | Path) -> dict[int, np.ndarray]:
 
 
 def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
-    path = _get(cfg, "path", None)
+    path = config_value(cfg, "path", None)
     if path is None:
         raise InputError("motion.path: motion=file needs a poses file (motion.path=PATH)")
     poses = load_poses(path)
@@ -282,7 +270,7 @@ def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
     for f in (cur, prev):
         if f not in poses:
             raise InputError(f"motion.path: {str(path)!r} has no pose for frame {f} (frames {min(poses)}..{max(poses)})")
-    offset = _get(cfg, "offset", None)
+    offset = config_value(cfg, "offset", None)
     off = None if offset is None else np.asarray(list(offset), dtype=np.float64)
     if off is not None and off.shape != (3,):
         raise InputError(f"motion.offset: expected 3 numbers (metres), got {list(offset)}")
@@ -292,11 +280,6 @@ def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
 
 # ----------------------------------------------------------------------------------------------
 # mono
-
-
-def _rays(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Viewing rays (N, 3) with z = 1 of pixels (N, 2)."""
-    return np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(K).T
 
 
 def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -369,329 +352,8 @@ def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_s
     return unpack(sol.x)
 
 
-def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndarray, prm: MonoParams,
-                       lateral: bool = True) -> np.ndarray:
-    """Mask (N,) of pixels whose ray meets the reference ground ahead within the road region.
-
-    ``lateral=False`` drops the corridor of ``ground_half_width``: with semantic road labels the
-    road pixels are known wherever they are, and a vehicle ahead can block the corridor.
-    """
-    r = _rays(K, pts)
-    rn = r @ n
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = np.where(rn > 1e-6, height / rn, np.inf)  # X = lam r on the ground n^T X = h
-    X = r * np.where(np.isfinite(lam), lam, 0.0)[:, None]
-    near = np.isfinite(lam) & (X[:, 2] < prm.ground_max_distance)
-    return near & (np.abs(X[:, 0]) < prm.ground_half_width) if lateral else near
-
-
-def _ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Linear equations ``A m = b`` (2N, 3), (2N,) of ground pixels for ``H = K (R + t m^T) K^-1``.
-
-    With ``y = K^-1 x``, ``a = K R y``, ``c = K t``: ``H x = a + c (m^T y)`` and ``x_prev × H x = 0``
-    give ``(u' c_3 - c_1) y^T m = a_1 - u' a_3`` and the same in ``v'``; dividing by ``a_3``
-    (≈ the third coordinate of ``H x``) makes the residuals close to pixels.
-    """
-    y = _rays(K, p_cur)
-    a = y @ (K @ R).T
-    c = K @ t
-    up, vp = p_prev[:, 0], p_prev[:, 1]
-    w = 1.0 / a[:, 2:3]
-    A = np.concatenate([y * ((up * c[2] - c[0])[:, None]) * w, y * ((vp * c[2] - c[1])[:, None]) * w])
-    b = np.concatenate([(a[:, 0] - up * a[:, 2]) * w[:, 0], (a[:, 1] - vp * a[:, 2]) * w[:, 0]])
-    return A, b
-
-
-def _tilt_deg(m: np.ndarray, n_g: np.ndarray) -> float:
-    """Angle (degrees) between the plane vector ``m`` and the unit normal ``n_g``."""
-    q = float(np.linalg.norm(m))
-    return math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
-
-
-def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator, hypotheses: int = 300,
-                n_g: np.ndarray | None = None, max_tilt: float = 180.0) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC (2 pixels = 4 equations per hypothesis) + least squares of ``A m = b``; returns m and inliers (N,).
-
-    Hypotheses tilted more than ``max_tilt`` degrees from ``n_g`` are not scored: the road is
-    near the configured plane, and a wall or a car side that happens to hold more of the
-    candidate pixels must not win.
-    """
-    N = len(A) // 2
-    best, best_count = None, -1
-    for _ in range(hypotheses):
-        idx = rng.choice(N, size=2, replace=False)
-        rows = np.r_[idx, idx + N]
-        m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
-        if n_g is not None and _tilt_deg(m, n_g) > max_tilt:
-            continue
-        res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
-        count = int((res < thr).sum())
-        if count > best_count:
-            best, best_count = m, count
-    if best is None:  # no hypothesis within the tilt: the unconstrained fit, rejected by the caller
-        best, *_ = np.linalg.lstsq(A, b, rcond=None)
-    m = best
-    for _ in range(3):
-        res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
-        inl = res < thr
-        if inl.sum() < 3:
-            break
-        rows = np.r_[np.nonzero(inl)[0], np.nonzero(inl)[0] + N]
-        m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
-    res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
-    return m, res < thr
-
-
 #: The flow of the ground is taken over the road marks' scale unless it is shorter than this share of it.
 FLOW_SHORT_RATIO = 0.7
-
-#: Candidate metric translations (metres per frame) of the photometric scale search.
-_SCALE_GRID_M = np.geomspace(0.02, 5.0, 96)
-
-
-#: Step halvings of the photometric pattern search (from one grid step: a final step of 1/256 of it).
-_PATTERN_ROUNDS = 8
-#: Warm start of the photometric search (a prediction from the stream): every this-many-th scale of
-#: the grid is read (the contrast's median, a minimum far away), and the scales within this many grid
-#: steps (6 % each) of the prediction.
-_WARM_GRID_STRIDE = 4
-_WARM_GRID_HALF_WIDTH = 3
-#: Least ratio of the refined to the grid contrast that the pattern search may reach (0.82 the least
-#: seen on the KITTI raw drives): a warm grid contrast above ``photometric_sharp / 0.7`` is not refined.
-_PATTERN_MAX_GAIN = 0.7
-
-
-#: Most threads of the photometric search: its grid is 96 costs of ~0.5 ms, its pattern search
-#: asks for two at a time.
-_MAX_PHOTOMETRIC_WORKERS = 4
-
-
-def _photometric_workers() -> int:
-    """Threads of the photometric search: torch's thread count, which stands for the cores this
-    process may use (``--threads`` of the benchmarks, ``torch.set_num_threads``), at most 4."""
-    return max(1, min(_MAX_PHOTOMETRIC_WORKERS, torch.get_num_threads()))
-
-
-def _grey(image: torch.Tensor) -> np.ndarray:
-    """(3, H, W) RGB in [0, 1] -> (H, W) float32 grey, lightly smoothed (a wider basin for the search)."""
-    # Clipped in numpy, then the covariance's grey conversion (numpy, the same float32 values as
-    # torch's weighted channel sum), without torch's thread hand-offs.
-    x = np.clip(image.detach().cpu().numpy().astype(np.float32, copy=False), 0.0, 1.0)
-    g = to_gray(torch.from_numpy(x)).numpy()
-    return cv2.GaussianBlur(g, (0, 0), 1.0)
-
-
-def _median(x: np.ndarray) -> float:
-    """``float(np.median(x))`` of a non-empty 1-D array, from one partition.
-
-    The same value as numpy (the middle order statistic, or the mean of the two middle ones
-    taken in ``x``'s dtype as ``np.mean`` takes it), 5-6x faster on the ~40000 costs of one
-    photometric candidate: ``np.median`` partitions at three positions (two middles and the end,
-    for its NaN check).
-    """
-    n = len(x)
-    if np.isnan(x).any():
-        return math.nan
-    k = n // 2
-    part = np.partition(x, k)
-    if n % 2:
-        return float(part[k])
-    return float(np.mean(np.array([part[:k].max(), part[k]], dtype=x.dtype)))
-
-
-def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples (N,) of ``img`` at (u, v) (maps are reshaped: OpenCV caps their sides at 32767)."""
-    n = len(u)
-    cols = 1024
-    rows = -(-n // cols)
-    mu = np.zeros(rows * cols, dtype=np.float32)
-    mv = np.zeros(rows * cols, dtype=np.float32)
-    mu[:n] = u
-    mv[:n] = v
-    return cv2.remap(img, mu.reshape(rows, cols), mv.reshape(rows, cols), cv2.INTER_LINEAR).reshape(-1)[:n]
-
-
-def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
-                        n_g: np.ndarray, height: float, pts: np.ndarray, max_tilt: float,
-                        start: tuple[float, np.ndarray] | None = None,
-                        unsharp: float = math.inf) -> tuple[float, np.ndarray, float] | None:
-    """Metric length (m) of ``t_unit`` and road normal that best warp ``prev`` onto ``cur`` over ``pts``.
-
-    The ground homography of a length ``s`` and normal ``n`` is ``K (R + s t̂ n^T / h) K^-1``; the
-    cost is the median absolute grey difference over the ground pixels ``pts`` (N, 2) (robust to
-    an object on them). A 1-D search over ``s`` with ``n = n_g`` finds the basin, then a pattern
-    search refines ``(log s, n)`` with ``n`` within ``max_tilt`` degrees of ``n_g``.
-
-    ``start = (s, n)``: a prediction (a stream's last pair at constant velocity). The 1-D search then
-    reads only every :data:`_WARM_GRID_STRIDE`-th scale of its grid (enough for the median the
-    contrast is measured against, and to see a minimum far from the prediction) and the scales within
-    :data:`_WARM_GRID_HALF_WIDTH` grid steps of ``s``: where the best of those lies inside that window
-    it is the grid's minimum, and the pattern search runs from it as from scratch (the same result,
-    a third of the 1-D search's cost); else the whole grid is read. The pattern search is not started
-    at the prediction itself: on our renders that kept each pair's scale near the last pair's (a bias
-    of 1-2 % where the search from the grid finds 0.3-0.9 %). ``unsharp``: with a start, a grid contrast
-    above this is returned as it is, without the pattern search (the caller then takes another scale;
-    it asks again without a start where it needs the refined minimum after all).
-
-    Returns:
-        ``(s, n (3,), contrast)``, contrast = best cost / median cost over the 1-D grid (lower is
-        clearer), or None without a clear minimum.
-    """
-    y = _rays(K, pts)
-    a = y @ (K @ R).T
-    c = K @ t_unit
-    H, W = cur.shape
-    ref = cur[pts[:, 1].astype(np.int64), pts[:, 0].astype(np.int64)]
-    e1 = np.cross(n_g, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n_g, e1)  # n_g, e1 (sideways), e2 (forward): roll and pitch of the road plane
-
-    def normal(x: np.ndarray) -> np.ndarray:
-        n = n_g + x[1] * e1 + x[2] * e2
-        return n / np.linalg.norm(n)
-
-    # Per-component arrays and a cache of ``y @ n``/costs: the same float operations as on
-    # (N, 3) arrays, fewer passes over memory (the search evaluates ~180 candidates per pair).
-    a0, a1, a2 = (np.ascontiguousarray(a[:, i]) for i in range(3))
-    c0, c1, c2 = (float(ci) for ci in c)
-    yn_cache: dict[bytes, np.ndarray] = {}
-    cost_cache: dict[bytes, float] = {}
-
-    def cost(x: np.ndarray) -> float:
-        key = x.tobytes()
-        if key in cost_cache:
-            return cost_cache[key]
-        n = normal(x)
-        if _tilt_deg(n, n_g) > max_tilt:
-            cost_cache[key] = math.inf
-            return math.inf
-        nkey = n.tobytes()
-        yn = yn_cache.get(nkey)
-        if yn is None:
-            yn = y @ n
-            if len(yn_cache) >= 8:  # the normals of one pattern-search step; bounded memory
-                yn_cache.clear()
-            yn_cache[nkey] = yn
-        k = math.exp(x[0]) * yn / height
-        q2 = a2 + k * c2
-        u, v = (a0 + k * c0) / q2, (a1 + k * c1) / q2
-        inside = (q2 > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-        n_in = int(np.count_nonzero(inside))
-        if 2 * n_in < len(inside):  # fewer than half of the pixels land in the previous image
-            out = math.inf
-        elif n_in == len(inside):  # the usual case: no selection needed
-            out = _median(np.abs(_sample(prev, u, v) - ref))
-        else:
-            out = _median(np.abs(_sample(prev, u[inside], v[inside]) - ref[inside]))
-        cost_cache[key] = out
-        return out
-
-    # ``cost`` is a pure function of x: candidates the search will (or may) ask for next are
-    # evaluated side by side into the cache (numpy and OpenCV release the GIL), and the search
-    # below then runs as written, one candidate after the other, on cached values: the same
-    # result as the sequential search, in less wall time.
-    workers = _photometric_workers()
-    pool = helper_pool("photometric", workers - 1) if workers > 1 else None
-
-    def prefetch(xs: list[np.ndarray]) -> None:
-        todo = [x for x in xs if x.tobytes() not in cost_cache]
-        if pool is None or len(todo) < 2:
-            return
-        chunks = [todo[i::workers] for i in range(workers)]  # interleaved: the far scales are cheap
-        futures = [pool.submit(lambda xs_: [cost(x_) for x_ in xs_], ch) for ch in chunks[1:] if ch]
-        for x_ in chunks[0]:
-            cost(x_)
-        for fut in futures:
-            fut.result()
-
-    grid_step = math.log(_SCALE_GRID_M[1] / _SCALE_GRID_M[0])
-    step = np.array([grid_step, 0.01, 0.01])  # 1 grid step, ~0.6 deg
-    x = None
-    if start is not None:
-        # A sparse cover of the grid (for the contrast's median, and to see a minimum far from the
-        # prediction) and the grid's scales within a window around the predicted one.
-        k0 = int(round(math.log(start[0] / _SCALE_GRID_M[0]) / grid_step))
-        window = range(max(k0 - _WARM_GRID_HALF_WIDTH, 0), min(k0 + _WARM_GRID_HALF_WIDTH + 1, len(_SCALE_GRID_M)))
-        read = sorted(set(range(0, len(_SCALE_GRID_M), _WARM_GRID_STRIDE)) | set(window))
-        grid = [np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0]) for k in read]
-        prefetch(grid)
-        c_read = np.array([cost(g) for g in grid])
-        fin = np.isfinite(c_read)
-        if fin.sum() >= 8:
-            kb = read[int(np.argmin(np.where(fin, c_read, np.inf)))]
-            # The best scale read lies inside the window (not at its ends: the speed changed more than
-            # the window allows) and is clear against the cover: the grid's minimum, as a full grid
-            # would have found it; the pattern search then runs as from scratch.
-            if window.start < kb < window.stop - 1 and 0 < kb < len(_SCALE_GRID_M) - 1:
-                cover = np.array([c for k, c in zip(read, c_read) if k % _WARM_GRID_STRIDE == 0])
-                costs, finite = cover, np.isfinite(cover)
-                best = float(c_read[read.index(kb)])
-                if best >= 0.6 * np.median(costs[finite]):
-                    return None
-                x = np.array([math.log(_SCALE_GRID_M[kb]), 0.0, 0.0])
-                contrast = best / float(np.median(costs[finite]))
-                if contrast > unsharp:
-                    return math.exp(x[0]), n_g.copy(), contrast
-    if x is None:
-        grid = [np.array([math.log(s), 0.0, 0.0]) for s in _SCALE_GRID_M]
-        prefetch(grid)
-        costs = np.array([cost(g) for g in grid])
-        finite = np.isfinite(costs)
-        if finite.sum() < 8:
-            return None
-        k = int(np.argmin(np.where(finite, costs, np.inf)))
-        # A clear minimum: well below the typical cost, and not at the end of the grid.
-        if k in (0, len(_SCALE_GRID_M) - 1) or costs[k] >= 0.6 * np.median(costs[finite]):
-            return None
-        x = np.array([math.log(_SCALE_GRID_M[k]), 0.0, 0.0])
-        best = costs[k]
-
-    def trial(x: np.ndarray, d: int, sign: float) -> np.ndarray:
-        out = x.copy()
-        out[d] += sign * step[d]
-        return out
-
-    for _ in range(_PATTERN_ROUNDS):
-        improved = True
-        while improved:
-            improved = False
-            for d in range(3):
-                # Both signs at once; when +1 improves, the -1 one was spare work of the other thread.
-                prefetch([trial(x, d, 1.0), trial(x, d, -1.0)])
-                for sign in (1.0, -1.0):
-                    cand = trial(x, d, sign)
-                    ct = cost(cand)
-                    if ct < best:
-                        x, best, improved = cand, ct, True
-        step /= 2
-    return math.exp(x[0]), normal(x), float(best / np.median(costs[finite]))
-
-
-def _photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: np.ndarray | None, K: np.ndarray,
-                        n_g: np.ndarray, height: float, params: MonoParams,
-                        rng: np.random.Generator,
-                        ignore: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The grey images (current, previous) and ground pixels (N, 2) of :func:`_photometric_ground`.
-
-    The pixels are every second pixel that is road (``road_scores``: (10, H, W) class scores)
-    or, without them, every second pixel of the road region ahead, less the ``ignore`` (H, W) pixels;
-    at most ``photometric_pixels`` of them (a seeded subset drawn from ``rng``). They depend on the
-    images, the semantics and the camera only, not on the flow.
-    """
-    H, W = images[0].shape[-2:]
-    if road_scores is not None:
-        dense_2 = np.argmax(road_scores[:, ::2, ::2], axis=0) == _ROAD_CLASS
-    else:
-        dense_2 = np.ones(((H + 1) // 2, (W + 1) // 2), dtype=bool)
-    vv, uu = np.nonzero(dense_2)  # every second pixel
-    pts = np.c_[uu * 2, vv * 2].astype(np.float64)
-    pts = pts[_ground_candidates(K, n_g, height, pts, params, lateral=road_scores is None)]
-    if ignore is not None:
-        pts = pts[~ignore[pts[:, 1].astype(np.int64), pts[:, 0].astype(np.int64)]]
-    if len(pts) > params.photometric_pixels:
-        pts = pts[np.sort(rng.choice(len(pts), size=params.photometric_pixels, replace=False))]
-    return _grey(images[0]), _grey(images[1]), pts
-
 
 def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray, t: np.ndarray, n_g: np.ndarray,
                           head: str, pixels: str, inlier_ratio: float, note: str = "") -> MotionEstimate:
@@ -802,7 +464,6 @@ def estimate_mono(
     idx = np.nonzero(ok)[0]
     if len(idx) > params.max_points:
         idx = np.sort(rng.choice(idx, size=params.max_points, replace=False))
-    pc, pp = p_cur[idx], p_prev[idx]
     road = labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points
     photometric = images is not None and params.photometric_scale
     # The photometric search's inputs need no flow: made in a second thread during steps 2-3
@@ -1027,7 +688,7 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
     Returns:
         A :class:`MotionEstimate`.
     """
-    name = str(_get(cfg, "name", ""))
+    name = str(config_value(cfg, "name", ""))
     if name == "gt":
         return _gt_motion(pair)
     if name == "file":
@@ -1061,228 +722,6 @@ def implied_height(pair: FramePair, flow: Any, mono_cfg: Any, semantic: torch.Te
                         ignore=pair.meta.get("ignore_pixels"))
     if est.motion is None or est.degenerate or est.scale_from not in ("photometric", "road_marks", "ground_flow"):
         return None
-    if _angle_deg(est.motion.t.double(), given.t.double()) > 10.0:
+    if angle_deg(est.motion.t.double(), given.t.double()) > 10.0:
         return None
     return float(pair.camera.height * given.translation_norm / float(est.motion.t.norm()))
-
-
-# ----------------------------------------------------------------------------------------------
-# sequence prior
-
-
-@dataclass
-class TrackParams:
-    """Constant-velocity prior of :class:`MotionTrack` (keys of the ``motion`` config group).
-
-    Attributes:
-        sequence_prior: filter the metric scale over consecutive pairs (``mono`` only).
-        speed_process_std: relative change of speed per second allowed by the model (1/s, std):
-            0.3 = 30 %/s, i.e. 2.7 m/s^2 at 9 m/s (braking or accelerating firmly), 3 % per KITTI frame.
-        scale_meas_std: relative error (std) of one pair's monocular scale (KITTI raw: 2-5 %).
-        scale_gate: a pair's scale farther than this many innovation standard deviations from the
-            prediction is an outlier and replaced by the prediction. The next pair's scale, again an
-            outlier but within this many standard deviations of the first one, restarts the track at it
-            (the track, not the pairs, was wrong: a first pair far off held every later pair out).
-        normal_process_std_deg: how fast the road normal may turn in the camera (degrees per
-            square-root second: a random walk; pitching on bumps, a change of slope).
-        normal_meas_std_deg: error (std, degrees) of one pair's fitted road normal (KITTI raw drive
-            0023: consecutive fits differ by 0.3-2 degrees).
-        normal_gate_deg: a fit farther than this from the prediction (degrees, beyond its innovation
-            std) is an outlier and the prediction stands. 0 = no normal filter.
-        scale_hold_s: a pair whose translation direction is known but not its length
-            (``scale_unknown``) takes the filtered speed of the pairs before it, for at most this many
-            seconds after the last pair with a measured scale (a car's speed changes slowly); later, or
-            without such pairs, it stays ``scale_unknown``. 0 = never.
-    """
-
-    sequence_prior: bool = True
-    speed_process_std: float = 0.3
-    scale_meas_std: float = 0.04
-    scale_gate: float = 2.0
-    normal_process_std_deg: float = 0.3
-    normal_meas_std_deg: float = 0.5
-    normal_gate_deg: float = 3.0
-    scale_hold_s: float = 2.0
-
-
-class MotionTrack:
-    """Steadies the metric scale and the road normal of monocular ego-motion over a sequence.
-
-    Scale: the state is the log speed ``log(|t| / dt)`` (dt seconds between the frames,
-    ``meta["dt"]``; 1 per pair when unknown) with its variance. Per pair: predict (constant velocity,
-    variance grows by ``(speed_process_std dt)^2``), gate the new measurement, update. Only the
-    length of ``t`` changes (direction and rotation are the pair's own: with ~20 px parallax they are
-    already steady, 0.3-0.6 deg on KITTI raw).
-
-    Road normal (the plane the ground stixels lie on, ``ground_normal``): the filtered normal of the
-    pair's earlier frame, turned into the current camera (``n_cur = R^T n_prev``), is the prediction
-    (variance grows by ``normal_process_std_deg^2 dt``); the pair's fit updates it (isotropic, in
-    radians on the unit sphere). One fit's error moves far ground by ``z / h`` times the angle (0.3
-    degrees: 6 % at 20 m), so the filter steadies the ground's depth from frame to frame.
-
-    Pairs continue the track when they come from the same ``meta["sequence"]`` in time order: this
-    pair's current frame after the last one, its earlier frame not after it (a keyframe pair may reach
-    back several frames); anything else (another sequence, a jump, a degenerate or failed pair)
-    restarts the track.
-
-    Args:
-        params: the prior's parameters.
-    """
-
-    def __init__(self, params: TrackParams | None = None) -> None:
-        self.params = params or TrackParams()
-        self._key: tuple | None = None
-        self._x = 0.0  # log speed
-        self._var = math.inf
-        self._rejected: float | None = None  # log speed of the last pair, where it was an outlier
-        self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
-        self._held_s = 0.0  # seconds since the last pair with a measured scale
-
-    @staticmethod
-    def from_config(cfg: Any) -> "MotionTrack":
-        d = TrackParams()
-        kw = {k: type(getattr(d, k))(_get(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
-        return MotionTrack(TrackParams(**kw))
-
-    def reset(self) -> None:
-        self._key, self._x, self._var = None, 0.0, math.inf
-        self._rejected = None
-        self._normals = {}
-        self._held_s = 0.0
-
-    def update(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
-        """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the state advanced)."""
-        prm = self.params
-        seq, cur, prev = pair.meta.get("sequence"), pair.meta.get("frame"), pair.meta.get("frame_prev")
-        consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
-                       and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
-        dt = float(pair.meta.get("dt") or 1.0)
-        if est.kind == "scale_unknown" and est.unit_motion is not None and consecutive:
-            if self._held_s + dt <= prm.scale_hold_s:
-                return self._hold(est, cur, prev, dt)
-        if est.motion is None or est.degenerate or seq is None or cur is None:
-            self.reset()
-            return est
-        norm = float(est.motion.t.norm())
-        if norm <= 0:
-            self.reset()
-            return est
-        est = self._filter_normal(est, cur, prev if consecutive else None, dt)
-        self._held_s = 0.0
-        z = math.log(norm / dt)
-        r = prm.scale_meas_std**2
-        self._key = (seq, cur)
-        if not consecutive:
-            self._x, self._var, self._rejected = z, r, None
-            return est
-        x_pred = self._x
-        p_pred = self._var + (prm.speed_process_std * dt) ** 2
-        innov = z - x_pred
-        s = p_pred + r
-        last, self._rejected = self._rejected, None
-        if abs(innov) > prm.scale_gate * math.sqrt(s):
-            # Two outliers in a row that agree with each other (two pairs' errors and the speed change
-            # between them): the track was off, not the pairs; it restarts at this one. (Without this,
-            # a first pair 8 % long held a slowing car's pairs out for the whole drive: their
-            # innovations grew faster than the prediction's variance.)
-            if last is not None and abs(z - last) <= prm.scale_gate * math.sqrt(2 * r + (prm.speed_process_std * dt) ** 2):
-                self._x, self._var = z, r
-                note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
-                        f"prediction, the second such pair in a row and consistent with the first: the speed restarts at it")
-            else:
-                # An outlier: keep the prediction (its variance grows).
-                self._x, self._var, self._rejected = x_pred, p_pred, z
-                note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
-                        f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m")
-                # The length is the sequence's now, not the pair's own measurement.
-                est = dataclasses.replace(est, scale_from="sequence")
-        else:
-            k = p_pred / s
-            self._x, self._var = x_pred + k * innov, (1 - k) * p_pred
-            note = f"sequence prior: scale {norm:.3f} -> {math.exp(self._x) * dt:.3f} m"
-        t_new = est.motion.t * (math.exp(self._x) * dt / norm)
-        logger.debug("%s: %s", pair.name, note)
-        return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}")
-
-
-    def _hold(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
-        """A ``scale_unknown`` pair made metric by the filtered speed (predicted, not updated: its variance
-        grows) and, where the earlier frame has one, the filtered road normal turned into this camera."""
-        prm = self.params
-        self._var += (prm.speed_process_std * dt) ** 2
-        self._held_s += dt
-        self._key = (self._key[0], cur)
-        self._rejected = None
-        R, t_unit = est.unit_motion.R, est.unit_motion.t
-        length = math.exp(self._x) * dt
-        normal = None
-        old = self._normals.get(prev)
-        if old is not None:
-            n = R.double().T @ old[0]
-            normal = n / n.norm()
-            var = old[1] + math.radians(prm.normal_process_std_deg) ** 2 * dt
-            self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (normal, var)}
-        note = (f"scale from the sequence: {length:.3f} m ({math.exp(self._x):.1f} m/s, "
-                f"{self._held_s:.2f} s since the last measured scale)")
-        logger.debug("%s", note)
-        return dataclasses.replace(est, motion=Motion(R, t_unit / t_unit.norm() * length), kind="metric",
-                                   scale_from="sequence", ground_normal=normal, reason=f"{est.reason}; {note}")
-
-    def _filter_normal(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
-        """``est`` with its road normal fused with the one of frame ``prev`` (None: restart)."""
-        prm = self.params
-        n_m = est.ground_normal
-        if n_m is None or prm.normal_gate_deg <= 0:
-            return est
-        n_m = n_m.double() / n_m.double().norm()
-        r = math.radians(prm.normal_meas_std_deg) ** 2
-        old = self._normals.get(prev) if prev is not None else None
-        if old is None:
-            self._normals = {cur: (n_m, r)}
-            return est
-        n_prev, var = old
-        n_pred = est.motion.R.double().T @ n_prev  # a direction in the earlier camera, seen from the current one
-        var_pred = var + math.radians(prm.normal_process_std_deg) ** 2 * dt
-        innov = math.acos(max(-1.0, min(1.0, float(n_pred @ n_m))))
-        if innov > math.radians(prm.normal_gate_deg) + 3.0 * math.sqrt(var_pred + r):
-            n_new, var_new = n_pred, var_pred
-        else:
-            k = var_pred / (var_pred + r)
-            n_new = n_pred + k * (n_m - n_pred)
-            n_new, var_new = n_new / n_new.norm(), (1.0 - k) * var_pred
-        # Kept: the frames from this pair's earlier frame on. A keyframe pair reaching back past them (pairs
-        # (3, 1), (4, 2), ...) starts the normal again at its own fit, which matches its own scale (the two
-        # trade off in the photometric search); continuing the filter over such pairs raised the depth
-        # jitter on every synthetic clip set (docs/experiments.md, "Ego-motion").
-        self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (n_new, var_new)}
-        return dataclasses.replace(est, ground_normal=n_new.to(est.ground_normal.dtype))
-
-
-def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:
-    """Angle (degrees) between two vectors; NaN if either is zero."""
-    na, nb = float(a.norm()), float(b.norm())
-    if na <= 0 or nb <= 0:
-        return math.nan
-    return math.degrees(math.acos(max(-1.0, min(1.0, float((a @ b) / (na * nb))))))
-
-
-def motion_errors(est: Motion, gt: Motion) -> dict[str, float]:
-    """Errors of an estimated camera motion against ground truth.
-
-    Returns:
-        ``rot_err_deg``: angle of ``R_est R_gt^T`` (degrees); ``trans_dir_err_deg``: angle between
-        the translations (degrees; NaN if either is zero); ``trans_dir_err_xz_deg``: the same for
-        their horizontal parts ``(t_x, t_z)`` (camera x right, z forward; for ground truth whose
-        vertical component drifts, e.g. the poses of KITTI odometry sequence 08); ``scale_rel_err``:
-        ``|‖t‖/‖t_gt‖ - 1|`` (NaN if ``t_gt = 0``).
-    """
-    Rd = est.R.double() @ gt.R.double().T
-    # ||R - I||_F = 2 sqrt(2) sin(theta / 2): accurate for small angles, unlike acos of the trace.
-    s = float(torch.linalg.norm(Rd - torch.eye(3, dtype=Rd.dtype))) / (2.0 * math.sqrt(2.0))
-    rot = math.degrees(2.0 * math.asin(min(1.0, s)))
-    te, tg = est.t.double(), gt.t.double()
-    ne, ng = float(te.norm()), float(tg.norm())
-    tdir = _angle_deg(te, tg)
-    tdir_xz = _angle_deg(te[[0, 2]], tg[[0, 2]])
-    scale = abs(ne / ng - 1.0) if ng > 0 else math.nan
-    return {"rot_err_deg": rot, "trans_dir_err_deg": tdir, "trans_dir_err_xz_deg": tdir_xz, "scale_rel_err": scale}

@@ -1,0 +1,214 @@
+"""The camera motion over a sequence: a constant-velocity prior on the metric scale and the road normal.
+
+:class:`MotionTrack` is step 5 of :mod:`monostixels.inputs.motion`'s method: the speed ``|t| / dt``
+filtered in log space (a 1-D Kalman filter), a pair's outlier scale replaced by the prediction, a
+pair of known direction and unknown length given the recent speed, and the road normal filtered on
+the unit sphere. The sequence layer (:mod:`monostixels.sequence`, through the pipeline) owns one per
+sequence; its parameters are :class:`MotionTrackParams` (keys of the ``motion`` config group).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from monostixels._checks import config_value
+from monostixels.data.base import FramePair
+from monostixels.geometry import Motion
+from monostixels.inputs.motion import MotionEstimate
+
+__all__ = ["MotionTrack", "MotionTrackParams"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class MotionTrackParams:
+    """Constant-velocity prior of :class:`MotionTrack` (keys of the ``motion`` config group).
+
+    Attributes:
+        sequence_prior: filter the metric scale over consecutive pairs (``mono`` only).
+        speed_process_std: relative change of speed per second allowed by the model (1/s, std):
+            0.3 = 30 %/s, i.e. 2.7 m/s^2 at 9 m/s (braking or accelerating firmly), 3 % per KITTI frame.
+        scale_meas_std: relative error (std) of one pair's monocular scale (KITTI raw: 2-5 %).
+        scale_gate: a pair's scale farther than this many innovation standard deviations from the
+            prediction is an outlier and replaced by the prediction. The next pair's scale, again an
+            outlier but within this many standard deviations of the first one, restarts the track at it
+            (the track, not the pairs, was wrong: a first pair far off held every later pair out).
+        normal_process_std_deg: how fast the road normal may turn in the camera (degrees per
+            square-root second: a random walk; pitching on bumps, a change of slope).
+        normal_meas_std_deg: error (std, degrees) of one pair's fitted road normal (KITTI raw drive
+            0023: consecutive fits differ by 0.3-2 degrees).
+        normal_gate_deg: a fit farther than this from the prediction (degrees, beyond its innovation
+            std) is an outlier and the prediction stands. 0 = no normal filter.
+        scale_hold_s: a pair whose translation direction is known but not its length
+            (``scale_unknown``) takes the filtered speed of the pairs before it, for at most this many
+            seconds after the last pair with a measured scale (a car's speed changes slowly); later, or
+            without such pairs, it stays ``scale_unknown``. 0 = never.
+    """
+
+    sequence_prior: bool = True
+    speed_process_std: float = 0.3
+    scale_meas_std: float = 0.04
+    scale_gate: float = 2.0
+    normal_process_std_deg: float = 0.3
+    normal_meas_std_deg: float = 0.5
+    normal_gate_deg: float = 3.0
+    scale_hold_s: float = 2.0
+
+
+class MotionTrack:
+    """Steadies the metric scale and the road normal of monocular ego-motion over a sequence.
+
+    Scale: the state is the log speed ``log(|t| / dt)`` (dt seconds between the frames,
+    ``meta["dt"]``; 1 per pair when unknown) with its variance. Per pair: predict (constant velocity,
+    variance grows by ``(speed_process_std dt)^2``), gate the new measurement, update. Only the
+    length of ``t`` changes (direction and rotation are the pair's own: with ~20 px parallax they are
+    already steady, 0.3-0.6 deg on KITTI raw).
+
+    Road normal (the plane the ground stixels lie on, ``ground_normal``): the filtered normal of the
+    pair's earlier frame, turned into the current camera (``n_cur = R^T n_prev``), is the prediction
+    (variance grows by ``normal_process_std_deg^2 dt``); the pair's fit updates it (isotropic, in
+    radians on the unit sphere). One fit's error moves far ground by ``z / h`` times the angle (0.3
+    degrees: 6 % at 20 m), so the filter steadies the ground's depth from frame to frame.
+
+    Pairs continue the track when they come from the same ``meta["sequence"]`` in time order: this
+    pair's current frame after the last one, its earlier frame not after it (a keyframe pair may reach
+    back several frames); anything else (another sequence, a jump, a degenerate or failed pair)
+    restarts the track.
+
+    Args:
+        params: the prior's parameters.
+    """
+
+    def __init__(self, params: MotionTrackParams | None = None) -> None:
+        self.params = params or MotionTrackParams()
+        self._key: tuple | None = None
+        self._x = 0.0  # log speed
+        self._var = math.inf
+        self._rejected: float | None = None  # log speed of the last pair, where it was an outlier
+        self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
+        self._held_s = 0.0  # seconds since the last pair with a measured scale
+
+    @staticmethod
+    def from_config(cfg: Any) -> "MotionTrack":
+        d = MotionTrackParams()
+        kw = {k: type(getattr(d, k))(config_value(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
+        return MotionTrack(MotionTrackParams(**kw))
+
+    def reset(self) -> None:
+        self._key, self._x, self._var = None, 0.0, math.inf
+        self._rejected = None
+        self._normals = {}
+        self._held_s = 0.0
+
+    def update(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
+        """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the state advanced)."""
+        prm = self.params
+        seq, cur, prev = pair.meta.get("sequence"), pair.meta.get("frame"), pair.meta.get("frame_prev")
+        consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
+                       and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
+        dt = float(pair.meta.get("dt") or 1.0)
+        if est.kind == "scale_unknown" and est.unit_motion is not None and consecutive:
+            if self._held_s + dt <= prm.scale_hold_s:
+                return self._hold(est, cur, prev, dt)
+        if est.motion is None or est.degenerate or seq is None or cur is None:
+            self.reset()
+            return est
+        norm = float(est.motion.t.norm())
+        if norm <= 0:
+            self.reset()
+            return est
+        est = self._filter_normal(est, cur, prev if consecutive else None, dt)
+        self._held_s = 0.0
+        z = math.log(norm / dt)
+        r = prm.scale_meas_std**2
+        self._key = (seq, cur)
+        if not consecutive:
+            self._x, self._var, self._rejected = z, r, None
+            return est
+        x_pred = self._x
+        p_pred = self._var + (prm.speed_process_std * dt) ** 2
+        innov = z - x_pred
+        s = p_pred + r
+        last, self._rejected = self._rejected, None
+        if abs(innov) > prm.scale_gate * math.sqrt(s):
+            # Two outliers in a row that agree with each other (two pairs' errors and the speed change
+            # between them): the track was off, not the pairs; it restarts at this one. (Without this,
+            # a first pair 8 % long held a slowing car's pairs out for the whole drive: their
+            # innovations grew faster than the prediction's variance.)
+            if last is not None and abs(z - last) <= prm.scale_gate * math.sqrt(2 * r + (prm.speed_process_std * dt) ** 2):
+                self._x, self._var = z, r
+                note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
+                        f"prediction, the second such pair in a row and consistent with the first: the speed restarts at it")
+            else:
+                # An outlier: keep the prediction (its variance grows).
+                self._x, self._var, self._rejected = x_pred, p_pred, z
+                note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
+                        f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m")
+                # The length is the sequence's now, not the pair's own measurement.
+                est = dataclasses.replace(est, scale_from="sequence")
+        else:
+            k = p_pred / s
+            self._x, self._var = x_pred + k * innov, (1 - k) * p_pred
+            note = f"sequence prior: scale {norm:.3f} -> {math.exp(self._x) * dt:.3f} m"
+        t_new = est.motion.t * (math.exp(self._x) * dt / norm)
+        logger.debug("%s: %s", pair.name, note)
+        return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}")
+
+
+    def _hold(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
+        """A ``scale_unknown`` pair made metric by the filtered speed (predicted, not updated: its variance
+        grows) and, where the earlier frame has one, the filtered road normal turned into this camera."""
+        prm = self.params
+        self._var += (prm.speed_process_std * dt) ** 2
+        self._held_s += dt
+        self._key = (self._key[0], cur)
+        self._rejected = None
+        R, t_unit = est.unit_motion.R, est.unit_motion.t
+        length = math.exp(self._x) * dt
+        normal = None
+        old = self._normals.get(prev)
+        if old is not None:
+            n = R.double().T @ old[0]
+            normal = n / n.norm()
+            var = old[1] + math.radians(prm.normal_process_std_deg) ** 2 * dt
+            self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (normal, var)}
+        note = (f"scale from the sequence: {length:.3f} m ({math.exp(self._x):.1f} m/s, "
+                f"{self._held_s:.2f} s since the last measured scale)")
+        logger.debug("%s", note)
+        return dataclasses.replace(est, motion=Motion(R, t_unit / t_unit.norm() * length), kind="metric",
+                                   scale_from="sequence", ground_normal=normal, reason=f"{est.reason}; {note}")
+
+    def _filter_normal(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
+        """``est`` with its road normal fused with the one of frame ``prev`` (None: restart)."""
+        prm = self.params
+        n_m = est.ground_normal
+        if n_m is None or prm.normal_gate_deg <= 0:
+            return est
+        n_m = n_m.double() / n_m.double().norm()
+        r = math.radians(prm.normal_meas_std_deg) ** 2
+        old = self._normals.get(prev) if prev is not None else None
+        if old is None:
+            self._normals = {cur: (n_m, r)}
+            return est
+        n_prev, var = old
+        n_pred = est.motion.R.double().T @ n_prev  # a direction in the earlier camera, seen from the current one
+        var_pred = var + math.radians(prm.normal_process_std_deg) ** 2 * dt
+        innov = math.acos(max(-1.0, min(1.0, float(n_pred @ n_m))))
+        if innov > math.radians(prm.normal_gate_deg) + 3.0 * math.sqrt(var_pred + r):
+            n_new, var_new = n_pred, var_pred
+        else:
+            k = var_pred / (var_pred + r)
+            n_new = n_pred + k * (n_m - n_pred)
+            n_new, var_new = n_new / n_new.norm(), (1.0 - k) * var_pred
+        # Kept: the frames from this pair's earlier frame on. A keyframe pair reaching back past them (pairs
+        # (3, 1), (4, 2), ...) starts the normal again at its own fit, which matches its own scale (the two
+        # trade off in the photometric search); continuing the filter over such pairs raised the depth
+        # jitter on every synthetic clip set (docs/experiments.md, "Ego-motion").
+        self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (n_new, var_new)}
+        return dataclasses.replace(est, ground_normal=n_new.to(est.ground_normal.dtype))
