@@ -44,9 +44,9 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.sfm import DEFAULT_MIN_PARALLAX_RAD
+from monostixels.sfm import triangulate_points
 from monostixels.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
-from monostixels.stixels import StixelWorld
+from monostixels.stixels import StixelWorld, neighbours, segment_lower_median
 
 __all__ = ["MoverCheckParams", "check_movers", "static_only"]
 
@@ -171,7 +171,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     fu, fv = flow[0, vi, ui].double(), flow[1, vi, ui].double()
     if point_depth is None:
         # In the flow's dtype, as triangulate() returns it (the decisions then match the full-frame path).
-        z = _midpoint_depth(K, R, t, uu, vv, fu, fv).to(flow.dtype if flow.is_floating_point() else torch.float32).double()
+        z = triangulate_points(K, R, t, uu, vv, fu, fv)[0].to(flow.dtype if flow.is_floating_point() else torch.float32).double()
     else:
         z = point_depth[vi, ui].double()
     ok = torch.isfinite(z) & (z >= prm.min_depth) & (z <= prm.max_depth)
@@ -179,14 +179,14 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     n_all = stixels.normals().double()[dyn]  # S x 3
     rays = pixel_rays(K, uu[ok], vv[ok])
     proj = z[ok] * (rays * n_all[sid[ok]]).sum(-1)
-    d_s = _segment_lower_median(proj, sid[ok], n_ok)
+    d_s = segment_lower_median(proj, sid[ok], n_ok)
     # The stixel's median static-plane residual (over all its pixels), where a static fit exists.
     fit = (n_ok >= prm.min_pixels) & (d_s > 0)
     d_fit = torch.where(fit, d_s, torch.ones_like(d_s))
     Hs = homography(K, R, t, n_all, 1.0 / d_fit)  # S x 3 x 3
     up, vp = apply_homography(Hs[sid], uu, vv)
     res = torch.hypot(up - uu - fu, vp - vv - fv)
-    e_s = _segment_lower_median(res, sid, counts)
+    e_s = segment_lower_median(res, sid, counts)
     p_model = stixels.inverse_depth[dyn].double()
     d_model = torch.where(p_model > 0, 1.0 / p_model, torch.full_like(p_model, math.inf))
     explained = fit & ~(e_s > prm.max_static_residual_px)
@@ -195,7 +195,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         g = p_model[:, None] * (t[None] - stixels.motion[dyn].double() @ R.T)
         Hd = dynamic_homography(K, R, n_all, g)
         upd, vpd = apply_homography(Hd[sid], uu, vv)
-        e_d = _segment_lower_median(torch.hypot(upd - uu - fu, vpd - vv - fv), sid, counts)
+        e_d = segment_lower_median(torch.hypot(upd - uu - fu, vpd - vv - fv), sid, counts)
         explained |= fit & (e_d >= prm.max_dynamic_residual_ratio * e_s)
     if prm.keep_classes:
         kept = torch.tensor([CLASS_NAMES.index(c) for c in prm.keep_classes], dtype=torch.long)
@@ -234,7 +234,6 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     on_gnd = ((has_below & (stixels.type[bi] == GROUND)) | sliver) & (p_gnd > 0) & d_model.isfinite()
     d_g0 = torch.where(on_gnd, 1.0 / p_gnd.clamp(min=1e-12), torch.full_like(p_gnd, math.nan))
     ng = stixels.ground_normal.double()
-    v_model = _contact_row(K, n_all, ng, torch.where(d_model.isfinite(), d_model, d_fit), torch.ones_like(d_fit))
     bp = below_pos.clamp(min=0)
     still = torch.zeros(S, dtype=torch.bool)
     d_g = d_g0
@@ -259,8 +258,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         # adjacent column at overlapping rows is a flow artefact (object edges, single-column slivers).
         rem = ~still
         c_d, a_d, b_d = stixels.column[dyn].long(), v0, v1 - 1
-        beside = (((c_d[:, None] - c_d[None, :]).abs() == 1) & (a_d[:, None] <= b_d[None, :])
-                  & (a_d[None, :] <= b_d[:, None]) & rem[None, :])
+        beside = neighbours(c_d, a_d, b_d) & rem[None, :]
         alone = rem & fit & ~beside.any(1)
         if prm.keep_classes:
             alone &= ~torch.isin(stixels.cls[dyn].long(), kept)
@@ -300,51 +298,3 @@ def _contact_row(K: torch.Tensor, n_obj: torch.Tensor, n_g: torch.Tensor, d: tor
     X = d[:, None] * n_obj + d_g[:, None] * n_g
     x = X @ K.T
     return x[:, 1] / x[:, 2]
-
-
-def _segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
-    """Per-segment lower median (S,) of ``values`` (N,) with non-decreasing segment ids ``seg`` (N,)
-    and segment sizes ``counts`` (S,); NaN where a segment holds a NaN (as ``torch.median``) or is empty.
-
-    The segments are laid out as the rows of an (S, max count) array padded with ``+inf`` and sorted
-    along the rows (about half the time of sorting all values and then the segment ids): the
-    order statistics, and so the medians, are the same.
-    """
-    S = counts.numel()
-    out = torch.full((S,), math.nan, dtype=values.dtype)
-    if values.numel() == 0:
-        return out
-    start = torch.cumsum(counts, 0) - counts
-    nan = torch.isnan(values)
-    rows = torch.full((S, int(counts.max())), math.inf, dtype=values.dtype)
-    rows[seg, torch.arange(values.numel()) - start[seg]] = values.masked_fill(nan, math.inf)
-    srt = rows.sort(dim=1).values
-    med = srt[torch.arange(S), torch.div(counts - 1, 2, rounding_mode="floor").clamp(min=0)]
-    nan_in = torch.zeros(S, dtype=torch.bool)
-    nan_in[seg[nan]] = True
-    return torch.where((counts > 0) & ~nan_in, med, out)
-
-
-def _midpoint_depth(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
-                    fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
-    """Depth (N,) of pixels (u, v) with flow (fu, fv), as :func:`monostixels.sfm.triangulate` gives it
-    (midpoint method, float64; ``+inf`` without parallax, negative behind a camera), for these pixels only."""
-    d0 = pixel_rays(K, u, v)  # N x 3, current ray (z = 1)
-    d1 = pixel_rays(K, u + fu, v + fv) @ R  # previous ray in current coordinates (R^T r')
-    c1 = -(R.T @ t)
-    a = (d0 * d0).sum(-1)
-    b = (d0 * d1).sum(-1)
-    c = (d1 * d1).sum(-1)
-    d = (d0 * c1).sum(-1)
-    e = (d1 * c1).sum(-1)
-    den = a * c - b * b
-    sin2 = (den / (a * c)).clamp(0.0, 1.0)
-    no_parallax = torch.asin(sin2.sqrt()) <= DEFAULT_MIN_PARALLAX_RAD
-    safe = torch.where(no_parallax, torch.ones_like(den), den)
-    s0 = (c * d - b * e) / safe
-    s1 = (b * d - a * e) / safe
-    X = 0.5 * (s0[..., None] * d0 + c1 + s1[..., None] * d1)
-    z = X[..., 2]
-    z_prev = (X @ R.T + t)[..., 2]
-    depth = torch.where((z <= 0) | (z_prev <= 0), -z.abs(), z)
-    return torch.where(no_parallax, torch.full_like(z, math.inf), depth)

@@ -29,7 +29,7 @@ import torch
 from monostixels._checks import InputError, check_finite, check_shape
 from monostixels.geometry import Motion, pixel_rays
 
-__all__ = ["DEFAULT_MIN_PARALLAX_RAD", "Triangulation", "triangulate", "triangulate_depth"]
+__all__ = ["DEFAULT_MIN_PARALLAX_RAD", "Triangulation", "triangulate", "triangulate_depth", "triangulate_points"]
 
 logger = logging.getLogger(__name__)
 
@@ -98,8 +98,23 @@ def triangulate(
         torch.arange(W, dtype=torch.float64, device=f.device),
         indexing="ij",
     )
-    d0 = pixel_rays(Kd, u, v)  # H x W x 3, current ray (z = 1)
-    d1 = pixel_rays(Kd, u + f[0], v + f[1]) @ R  # H x W x 3, previous ray in current coords (R^T r')
+    depth, valid, parallax = triangulate_points(Kd, R, t, u, v, f[0], f[1], min_parallax_rad)
+    if motion.translation_norm == 0.0:
+        logger.warning("SfM baseline: camera translation is zero, no pixel can be triangulated")
+    return Triangulation(depth=depth.to(out_dtype), valid=valid, parallax=parallax.to(out_dtype))
+
+
+def triangulate_points(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                       fu: torch.Tensor, fv: torch.Tensor, min_parallax_rad: float = DEFAULT_MIN_PARALLAX_RAD
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The midpoint triangulation of :func:`triangulate` for pixels ``(u, v)`` with flow ``(fu, fv)`` (any
+    one shape, e.g. (H, W) or (N,); float64 throughout, as ``K``, ``R`` and ``t``).
+
+    Returns ``(depth, valid, parallax)`` of that shape, encoded as :class:`Triangulation` (metres;
+    ``+inf`` without parallax, ``-|z|`` behind a camera; radians).
+    """
+    d0 = pixel_rays(K, u, v)  # ... x 3, current ray (z = 1)
+    d1 = pixel_rays(K, u + fu, v + fv) @ R  # ... x 3, previous ray in current coords (R^T r')
     c1 = -(R.T @ t)  # previous camera centre in current coordinates
     # Closest points s0 d0 and c1 + s1 d1 of the two rays: minimise |s0 d0 - c1 - s1 d1|^2.
     a = (d0 * d0).sum(-1)
@@ -114,16 +129,13 @@ def triangulate(
     safe = torch.where(no_parallax, torch.ones_like(den), den)
     s0 = (c * d - b * e) / safe
     s1 = (b * d - a * e) / safe
-    X = 0.5 * (s0[..., None] * d0 + c1 + s1[..., None] * d1)  # H x W x 3 midpoint, current coords
+    X = 0.5 * (s0[..., None] * d0 + c1 + s1[..., None] * d1)  # midpoint, current coords
     z = X[..., 2]
     z_prev = (X @ R.T + t)[..., 2]
     behind = (z <= 0) | (z_prev <= 0)
     depth = torch.where(behind, -z.abs(), z)
     depth = torch.where(no_parallax, torch.full_like(z, math.inf), depth)
-    valid = ~behind & ~no_parallax
-    if motion.translation_norm == 0.0:
-        logger.warning("SfM baseline: camera translation is zero, no pixel can be triangulated")
-    return Triangulation(depth=depth.to(out_dtype), valid=valid, parallax=parallax.to(out_dtype))
+    return depth, ~behind & ~no_parallax, parallax
 
 
 def triangulate_depth(

@@ -14,11 +14,48 @@ from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES, SKY, TYPE_NAMES
 from monostixels.geometry import object_normals, pixel_rays
 
-__all__ = ["StixelWorld", "paint_index_map"]
+__all__ = ["StixelWorld", "paint_index_map", "neighbours", "segment_lower_median"]
 
 _TENSOR_FIELDS = ("column", "v_top", "v_bottom", "type", "cls", "inverse_depth", "motion", "cost", "tau")
 #: Fields of sequences (present when the stream set them).
 _OPTIONAL_FIELDS = ("track_id", "velocity", "ttc_s", "ttc_warning", "pose")
+
+
+def neighbours(column: torch.Tensor, v_top: torch.Tensor, v_bottom: torch.Tensor) -> torch.Tensor:
+    """(N, N) bool: stixels ``i`` and ``j`` stand in adjacent columns and share a row.
+
+    Args:
+        column, v_top, v_bottom: (N,) integer stixel columns and inclusive pixel rows.
+
+    The neighbourhood of the stixels of one object (a moving object is wider than one column): the
+    movers' isolated-stixel check, the tracks' object groups and the pictures' mover groups.
+    """
+    c = column.long()
+    return (((c[:, None] - c[None, :]).abs() == 1) & (v_top[:, None] <= v_bottom[None, :])
+            & (v_top[None, :] <= v_bottom[:, None]))
+
+
+def segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """Per-segment lower median (S,) of ``values`` (N,) with non-decreasing segment ids ``seg`` (N,)
+    and segment sizes ``counts`` (S,); NaN where a segment holds a NaN (as ``torch.median``) or is empty.
+
+    The segments are laid out as the rows of an (S, max count) array padded with ``+inf`` and sorted
+    along the rows (about half the time of sorting all values and then the segment ids): the
+    order statistics, and so the medians, are the same.
+    """
+    S = counts.numel()
+    out = torch.full((S,), math.nan, dtype=values.dtype)
+    if values.numel() == 0:
+        return out
+    start = torch.cumsum(counts, 0) - counts
+    nan = torch.isnan(values)
+    rows = torch.full((S, int(counts.max())), math.inf, dtype=values.dtype)
+    rows[seg, torch.arange(values.numel()) - start[seg]] = values.masked_fill(nan, math.inf)
+    srt = rows.sort(dim=1).values
+    med = srt[torch.arange(S), torch.div(counts - 1, 2, rounding_mode="floor").clamp(min=0)]
+    nan_in = torch.zeros(S, dtype=torch.bool)
+    nan_in[seg[nan]] = True
+    return torch.where((counts > 0) & ~nan_in, med, out)
 
 
 def paint_index_map(column: torch.Tensor, v_top: torch.Tensor, v_bottom: torch.Tensor, column_width: int,

@@ -46,7 +46,7 @@ import torch
 from monostixels._checks import InputError, params_from_config
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.geometry import Motion, ground_basis, pixel_rays
-from monostixels.stixels import StixelWorld
+from monostixels.stixels import StixelWorld, neighbours, segment_lower_median
 
 __all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed"]
 
@@ -188,7 +188,8 @@ def object_groups(world: StixelWorld, depth_ratio: float) -> torch.Tensor:
     col, top, bot = world.column[dyn], world.v_top[dyn], world.v_bottom[dyn]
     d = world.depth.double()[dyn]
     a, b = torch.meshgrid(torch.arange(dyn.numel()), torch.arange(dyn.numel()), indexing="ij")
-    edge = ((col[b] == col[a] + 1) & (top[b] <= bot[a]) & (top[a] <= bot[b])
+    # Each pair once (a's column left of b's): the labels spread along an edge both ways.
+    edge = (neighbours(col, top, bot) & (col[b] > col[a])
             & ((d[a] / d[b] - 1).abs() <= depth_ratio) & ((d[b] / d[a] - 1).abs() <= depth_ratio))
     ea, eb = a[edge], b[edge]
     lab = torch.arange(dyn.numel())
@@ -204,7 +205,7 @@ def object_groups(world: StixelWorld, depth_ratio: float) -> torch.Tensor:
 
 
 def _group_median(values: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
-    """Per row of ``values`` (N, k) the component-wise median over the rows of its group (label >= 0)."""
+    """Per row of ``values`` (N, k) the component-wise lower median over the rows of its group (label >= 0)."""
     out = values.clone()
     rows = torch.nonzero(label >= 0).squeeze(1)
     if rows.numel() == 0:
@@ -212,15 +213,10 @@ def _group_median(values: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
     lab = label[rows]
     order = torch.argsort(lab, stable=True)
     lab_s, rows_s = lab[order], rows[order]
-    uniq, counts = torch.unique_consecutive(lab_s, return_counts=True)
-    starts = torch.cumsum(counts, 0) - counts
+    _, counts = torch.unique_consecutive(lab_s, return_counts=True)
+    seg = torch.repeat_interleave(torch.arange(counts.numel()), counts)
     for k in range(values.shape[1]):
-        # Sort by (group, value): the lower median of each group sits at start + (count - 1) // 2.
-        v = values[rows_s, k]
-        key = torch.argsort(v, stable=True)
-        key = key[torch.argsort(lab_s[key], stable=True)]
-        med = v[key][starts + (counts - 1) // 2]
-        out[rows_s, k] = torch.repeat_interleave(med, counts)
+        out[rows_s, k] = torch.repeat_interleave(segment_lower_median(values[rows_s, k], seg, counts), counts)
     return out
 
 

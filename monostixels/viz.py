@@ -29,7 +29,7 @@ from monostixels._checks import InputError
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, IGNORE_LABEL, PALETTE, STATIC_OBJECT, TYPE_PALETTE
 from monostixels.geometry import pixel_rays
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.stixels import paint_index_map
+from monostixels.stixels import neighbours, paint_index_map
 
 __all__ = [
     "image_to_uint8",
@@ -325,10 +325,9 @@ def mover_groups(stixels: Any, moving: np.ndarray | None = None) -> list[np.ndar
             i = parent[i]
         return i
 
-    for a in ids:  # neighbours: the next column, overlapping rows
-        nb = ids[(col[ids] == col[a] + 1) & (top[ids] <= bot[a]) & (top[a] <= bot[ids])]
-        for b in nb:
-            parent[root(int(b))] = root(int(a))
+    near = neighbours(*(torch.from_numpy(x[ids]) for x in (col, top, bot))).numpy()
+    for a, b in zip(*np.nonzero(np.triu(near))):  # each pair of neighbours once
+        parent[root(int(ids[b]))] = root(int(ids[a]))
     groups: dict[int, list[int]] = {}
     for i in ids:
         groups.setdefault(root(int(i)), []).append(int(i))

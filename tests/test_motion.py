@@ -229,8 +229,16 @@ def test_file_backend(tmp_path, numbered):
         estimate_motion(pair, None, OmegaConf.create({"name": "file", "path": str(tmp_path / "missing.txt")}))
     bad = tmp_path / "bad.txt"
     bad.write_text("1 2 3\n")
-    with pytest.raises(InputError, match="expected 12 numbers"):
+    with pytest.raises(InputError, match="motion.path: poses: .* 3 values; expected 12, 13"):
         load_poses(bad)
+    # The same formats as the data sources' poses: comments, 4x4 rows; frame ids must be numbers.
+    four = tmp_path / "four.txt"
+    four.write_text("# T_w_cam, 4x4\n" + "\n".join(" ".join(f"{x:.9e}" for x in T.ravel()) for T in poses) + "\n")
+    assert np.allclose(load_poses(four)[2], poses[2]) and sorted(load_poses(four)) == [0, 1, 2]
+    named = tmp_path / "named.txt"
+    named.write_text("".join(f"frame{i} " + " ".join(f"{x:.9e}" for x in T[:3].ravel()) + "\n" for i, T in enumerate(poses)))
+    with pytest.raises(InputError, match="frame id 'frame0' is not a frame number"):
+        load_poses(named)
 
 
 def test_gt_backend_requires_motion():

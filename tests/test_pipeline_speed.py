@@ -15,7 +15,8 @@ from monostixels.data.base import FramePair
 from monostixels.sfm import triangulate
 from monostixels.geometry import Camera, Motion, apply_homography, homography, intrinsics, pixel_rays
 from monostixels.inputs.flow import compute_flow, estimate_flow, flow_metrics
-from monostixels.movers import MoverCheckParams, _segment_lower_median, check_movers
+from monostixels.movers import MoverCheckParams, check_movers
+from monostixels.stixels import segment_lower_median
 from monostixels.stixels import StixelWorld
 
 # Asymmetric camera (fx != fy, cx, cy off centre), H != W, a small yaw.
@@ -167,7 +168,7 @@ def test_segment_lower_median_matches_torch_median():
     values[3] = values[4]  # a tie
     values[-2] = math.nan  # the last segment holds a NaN
     seg = torch.repeat_interleave(torch.arange(len(counts)), counts)
-    got = _segment_lower_median(values, seg, counts)
+    got = segment_lower_median(values, seg, counts)
     start = 0
     for s, n in enumerate(counts.tolist()):
         if n == 0:

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.sfm import triangulate, triangulate_depth
+from monostixels.sfm import triangulate, triangulate_depth, triangulate_points
 from monostixels.geometry import Motion, intrinsics, rotation_yaw
 
 H, W = 18, 27  # H != W
@@ -110,3 +110,18 @@ def test_float32_flow_and_bad_input():
         triangulate_depth(bad, K, motion)
     with pytest.raises(InputError, match="flow"):
         triangulate_depth(flow[0], K, motion)
+
+
+def test_triangulate_points_is_triangulate_at_those_pixels():
+    # The movers triangulate a stixel's pixels only: the same numbers as the full-frame baseline there.
+    K = intrinsics(300.0, 300.0, 40.0, 30.0).double()
+    motion = Motion(rotation_yaw(math.radians(1.0)).double(), torch.tensor([0.05, -0.02, 0.8], dtype=torch.float64))
+    g = torch.Generator().manual_seed(2)
+    flow = (torch.randn(2, 60, 80, generator=g) * 4.0).double()
+    full = triangulate(flow, K, motion)
+    v = torch.randint(0, 60, (200,), generator=g)
+    u = torch.randint(0, 80, (200,), generator=g)
+    depth, valid, parallax = triangulate_points(K, motion.R, motion.t, u.double(), v.double(), flow[0, v, u], flow[1, v, u])
+    assert torch.equal(depth, full.depth[v, u]) and torch.equal(valid, full.valid[v, u])
+    assert torch.equal(parallax, full.parallax[v, u])
+    assert (~valid).any() and valid.any()  # behind a camera too

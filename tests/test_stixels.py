@@ -68,3 +68,24 @@ def test_bad_files(tmp_path):
         StixelWorld.load_json(tmp_path / "other.json")
     with pytest.raises(InputError, match="missing.npz"):
         StixelWorld.load_npz(tmp_path / "missing.npz")
+
+
+def test_neighbours_and_segment_medians_against_loops():
+    from monostixels.stixels import neighbours, segment_lower_median
+
+    g = torch.Generator().manual_seed(1)
+    col = torch.randint(0, 8, (40,), generator=g)
+    top = torch.randint(0, 30, (40,), generator=g)
+    bot = top + torch.randint(0, 10, (40,), generator=g)
+    got = neighbours(col, top, bot)
+    for i in range(40):
+        for j in range(40):
+            rows_i, rows_j = set(range(int(top[i]), int(bot[i]) + 1)), set(range(int(top[j]), int(bot[j]) + 1))
+            assert bool(got[i, j]) == (abs(int(col[i]) - int(col[j])) == 1 and bool(rows_i & rows_j)), (i, j)
+    assert got.any() and not got.all()
+    # Lower medians of segments laid out one after the other (an empty one gives NaN).
+    counts = torch.tensor([3, 0, 4, 1])
+    values = torch.tensor([5.0, 1.0, 3.0, 9.0, 2.0, 7.0, 2.0, 4.0], dtype=torch.float64)
+    seg = torch.repeat_interleave(torch.arange(4), counts)
+    med = segment_lower_median(values, seg, counts)
+    assert med[0] == 3.0 and torch.isnan(med[1]) and med[2] == 2.0 and med[3] == 4.0

@@ -7,9 +7,10 @@ current-camera coordinates of a static point to previous-camera coordinates,
 Backends (``cfg.name``):
 
 - ``gt``: ``pair.motion`` from the data source.
-- ``file``: a KITTI-style poses file (``cfg.path``): per line either 12 numbers (the 3x4
-  row-major ``T_w_cam``, camera to world, metres; line ``i`` = frame ``i``) or a frame number
-  followed by the 12 numbers. Frames are ``pair.meta["frame_index"]`` (current) and
+- ``file``: a KITTI-style poses file (``cfg.path``, read by
+  :func:`monostixels.data._io.read_poses_file`): per line either 12 numbers (the 3x4 row-major
+  ``T_w_cam``, camera to world, metres; line ``i`` = frame ``i``), a frame number followed by the
+  12 numbers, or the 16 numbers of the 4x4 matrix. Frames are ``pair.meta["frame_index"]`` (current) and
   ``pair.meta["frame_index_prev"]`` (or ``"frame"`` / ``"frame_prev"``, as kitti_raw writes them). ``cfg.offset`` (3,) is the position of the image camera
   in the posed camera's frame when the two differ by a translation only (KITTI camera 2 vs the
   camera-0 poses: ``(P_rect_02[0,3] / fx, 0, 0)``, about 6 cm).
@@ -74,7 +75,7 @@ import torch
 from monostixels._pools import helper_pool
 from monostixels._checks import InputError, check_finite, check_shape, config_value
 from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
-from monostixels.data._io import relative_motion
+from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
 from monostixels.geometry import Motion, angle_deg
 from monostixels.inputs.ground import (_PATTERN_MAX_GAIN, _ROAD_CLASS, _fit_ground, _ground_candidates, _ground_system,
@@ -216,37 +217,30 @@ def _known(motion: Motion, what: str) -> MotionEstimate:
 
 @lru_cache(maxsize=8)
 def _load_poses_cached(path: str, mtime: float) -> dict[int, np.ndarray]:
+    try:
+        ids, mats = read_poses_file(path)
+    except InputError as exc:
+        raise InputError(f"motion.path: {exc}") from None
+    if ids is None:
+        return {i: T for i, T in enumerate(mats)}
     poses: dict[int, np.ndarray] = {}
-    with open(path, encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh):
-            parts = line.split()
-            if not parts:
-                continue
-            try:
-                vals = [float(x) for x in parts]
-            except ValueError as exc:
-                raise InputError(f"motion.path: {path!r} line {lineno + 1}: not numbers ({exc})") from exc
-            if len(vals) == 12:
-                frame = len(poses)
-            elif len(vals) == 13 and float(vals[0]).is_integer():
-                frame, vals = int(vals[0]), vals[1:]
-            else:
-                raise InputError(
-                    f"motion.path: {path!r} line {lineno + 1}: expected 12 numbers (3x4 T_w_cam) or a frame number "
-                    f"and 12 numbers, got {len(vals)}"
-                )
-            T = np.eye(4)
-            T[:3, :] = np.asarray(vals).reshape(3, 4)
-            if not np.isfinite(T).all():
-                raise InputError(f"motion.path: {path!r} line {lineno + 1}: non-finite pose")
-            poses[frame] = T
-    if not poses:
-        raise InputError(f"motion.path: {path!r} holds no poses")
+    for frame, T in zip(ids, mats):
+        try:
+            number = float(frame)
+        except ValueError:
+            number = math.nan
+        if not number.is_integer():
+            raise InputError(f"motion.path: {path!r}: frame id {frame!r} is not a frame number")
+        poses[int(number)] = T
     return poses
 
 
 def load_poses(path: str | Path) -> dict[int, np.ndarray]:
-    """Poses ``T_w_cam`` (4, 4) float64 (camera to world, metres) by frame number from a KITTI poses file."""
+    """Poses ``T_w_cam`` (4, 4) float64 (camera to world, metres) by frame number from a poses file.
+
+    The formats of :func:`monostixels.data._io.read_poses_file` (12 numbers a line, line ``i`` =
+    frame ``i``; a frame number and 12 numbers; 16 numbers), the frame ids being whole numbers.
+    """
     p = Path(path)
     if not p.is_file():
         raise InputError(f"motion.path: poses file not found: {str(p)!r}")
