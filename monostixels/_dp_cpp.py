@@ -140,7 +140,7 @@ def column_dp(*args: object) -> list[torch.Tensor]:
 
 
 def cell_sums(x: torch.Tensor, r: int, w: int) -> torch.Tensor:
-    """Cell sums (B, ch, n, C) of x (B, ch, H, W); the same bits as ``solver._block_sum``."""
+    """Cell sums (B, ch, n, C) of x (B, ch, H, W); the same bits as ``columns._block_sum``."""
     return torch.ops.monostixels.cell_sums(x, r, w, _NO_CHECK, None)[0]
 
 
@@ -156,16 +156,16 @@ def cell_means_checked(x: torch.Tensor, r: int, w: int, count: torch.Tensor, che
 
 
 def hypotheses(*args: object) -> list[torch.Tensor]:
-    """Hypothesis sets (p_ground, p_object, tau, g = K B tau) for hypothesis_stride 1 (see ``solver._hypotheses``)."""
+    """Hypothesis sets (p_ground, p_object, tau, g = K B tau) for hypothesis_stride 1 (see ``columns._hypotheses``)."""
     return torch.ops.monostixels.hypotheses(*args)
 
 
 def geometry(*args: object) -> list[torch.Tensor]:
-    """Per-cell (ray, a, s_g, s_o, q) of every column (see ``solver._geometry``)."""
+    """Per-cell (ray, a, s_g, s_o, q) of every column (see ``columns._geometry``)."""
     return torch.ops.monostixels.geometry(*args)
 
 
 def semantic_prefix(*args: object) -> torch.Tensor:
-    """Prefix-summed semantic cost (C, 10, n + 1) (see ``solver._semantic_prefix``)."""
+    """Prefix-summed semantic cost (C, 10, n + 1) (see ``columns._semantic_prefix``)."""
     return torch.ops.monostixels.semantic_prefix(*args)
 

@@ -23,7 +23,8 @@ from monostixels.geometry import (
     homography,
     pixel_rays,
 )
-from monostixels.solver import _DEFAULT_CLASS, ColumnProblem, SolverConfig, _hypotheses
+from monostixels.columns import _DEFAULT_CLASS, ColumnProblem, _hypotheses
+from monostixels.solver import SolverConfig
 
 __all__ = ["RefStixel", "reference_column", "column_energy", "exhaustive_column"]
 
@@ -103,7 +104,7 @@ class _Column:
             H = self.homography(T, h)
             extra = _f(self.prm.alpha_dyn) if T == DYNAMIC_OBJECT else 0.0
             cap = _f(self.prm.alpha_F) * _f(self.prm.delta_F)
-            # Ground only below the horizon, sky only above it (solver.beyond_horizon).
+            # Ground only below the horizon, sky only above it (columns.beyond_horizon).
             self._cache[key] = [
                 cap * _f(self.prob.rows[j]) if (T == GROUND and self._above_horizon(j))
                 or (T == SKY and not self._above_horizon(j))
@@ -124,7 +125,7 @@ class _Column:
 
     def _sky_extra(self, j: int) -> float:
         """Both caps per row where cell ``j``'s ray points more than ``sky_horizon_margin_deg`` below the
-        horizon (solver._semantic_prefix): sky is not seen there."""
+        horizon (columns._semantic_prefix): sky is not seen there."""
         prob, c = self.prob, self.c
         ray = pixel_rays(prob.K[c].double(), prob.u[c].double(), prob.v[j].double())
         below = float(ray @ self.n_g) / float(ray.norm())

@@ -51,3 +51,13 @@ def test_product_path_does_not_import_eval(path: Path):
 
 def test_the_sfm_baseline_lives_beside_the_solver():
     assert (PACKAGE / "sfm.py").is_file() and not (PACKAGE / "eval" / "sfm.py").exists()
+
+
+#: Most lines of one module of the package: past it a module holds more than one concern.
+_MAX_MODULE_LINES = 800
+
+
+def test_no_module_is_over_the_line_limit():
+    long = {str(f.relative_to(PACKAGE)): n for f in sorted(PACKAGE.rglob("*.py"))
+            if (n := len(f.read_text().splitlines())) > _MAX_MODULE_LINES}
+    assert not long, f"modules over {_MAX_MODULE_LINES} lines (split them by concern): {long}"

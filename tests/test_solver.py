@@ -11,7 +11,8 @@ from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
 from monostixels.energy import PriorParams
 from monostixels.geometry import Camera, Motion, intrinsics, rotation_yaw
 from tests.reference import column_energy, exhaustive_column, reference_column
-from monostixels.solver import SolverConfig, prepare_columns, solve, solve_columns
+from monostixels.columns import prepare_columns
+from monostixels.solver import SolverConfig, solve, solve_columns
 
 from tests import _planes
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from monostixels import _dp_cpp
+from monostixels import columns as columns_mod
 from monostixels import solver as solver_mod
 from monostixels.data.synthetic import render_pair
 from monostixels.energy import PriorParams
@@ -148,18 +149,18 @@ def test_backend_setting_is_checked():
 @needs_kernel
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_cell_sums_identical_to_torch(dtype):
-    """The kernel's cell sums equal solver._block_sum's torch adds bit for bit, partial cells included."""
+    """The kernel's cell sums equal columns._block_sum's torch adds bit for bit, partial cells included."""
     g = torch.Generator().manual_seed(0)
     for shape in [(2, 3, 37, 23), (1, 10, 64, 101), (1, 1, 7, 9)]:
         x = (torch.randn(*shape, generator=g) * 100).to(dtype)
         for r, w in [(3, 5), (1, 1), (5, 4), (4, 7), (40, 40)]:
-            a = solver_mod._block_sum(x, r, w, use_cpp=False)
-            b = solver_mod._block_sum(x, r, w, use_cpp=True)
+            a = columns_mod._block_sum(x, r, w, use_cpp=False)
+            b = columns_mod._block_sum(x, r, w, use_cpp=True)
             assert a.shape == b.shape == (shape[0], shape[1], -(-shape[2] // r), -(-shape[3] // w))
             assert torch.equal(a, b), (shape, r, w)
     # The partial top cell and last column sum the pixels they have (no averaging, no dropping).
     ones = torch.ones(1, 1, 7, 9, dtype=dtype)
-    assert solver_mod._block_sum(ones, 3, 4, use_cpp=True)[0, 0].tolist() == [[12, 12, 3]] * 2 + [[4, 4, 1]]
+    assert columns_mod._block_sum(ones, 3, 4, use_cpp=True)[0, 0].tolist() == [[12, 12, 3]] * 2 + [[4, 4, 1]]
 
 
 # ------------------------------------------------------------ preparation in the kernel (same bits)
@@ -176,21 +177,21 @@ def test_cpp_preparation_identical_to_torch(seed, dtype):
                                     degenerate=seed % 5 == 0)
     prob = _cast(prob, dtype)
     cfg = _with(cfg, dtype="float64" if dtype == torch.float64 else "float32", standing_hypotheses=seed % 3 != 0)
-    geo_t, geo_c = solver_mod._geometry(prob), solver_mod._geometry(prob, cpp=True)
+    geo_t, geo_c = columns_mod._geometry(prob), columns_mod._geometry(prob, cpp=True)
     for k in ("ray", "a", "cK", "s_g", "s_o", "q"):
         assert torch.equal(getattr(geo_t, k), getattr(geo_c, k)), k
-    hyp_t = solver_mod._hypotheses(prob, _with(cfg, backend="eager"), geo_t)
-    hyp_c = solver_mod._hypotheses(prob, _with(cfg, backend="cpp"), geo_c)
+    hyp_t = columns_mod._hypotheses(prob, _with(cfg, backend="eager"), geo_t)
+    hyp_c = columns_mod._hypotheses(prob, _with(cfg, backend="cpp"), geo_c)
     for k in ("p_ground", "p_object", "tau", "B"):
         assert torch.equal(getattr(hyp_t, k), getattr(hyp_c, k)), k
-    g_t = solver_mod._flow_geometry(prob, hyp_t, geo_t)[-1]
+    g_t = columns_mod._flow_geometry(prob, hyp_t, geo_t)[-1]
     assert hyp_t.g is None and torch.equal(g_t, hyp_c.g)
     # Cells without a fit were replaced (reference ground, farthest depth, tau = 0): repeats exist.
     assert len(set(hyp_c.p_ground[0].tolist())) < hyp_c.p_ground.shape[1]
     prm_t = prm.as_tensors(dtype)
     for margin in (5.0, math.inf):
-        L_t, cls_t = solver_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_t)
-        L_c, cls_c = solver_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_c, cpp=True)
+        L_t, cls_t = columns_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_t)
+        L_c, cls_c = columns_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_c, cpp=True)
         assert cls_t == cls_c and torch.equal(L_t, L_c), margin
 
 
@@ -200,7 +201,7 @@ def test_fit_threshold_is_geometrys():
     from monostixels.geometry import solve_dynamic_dof, solve_static_dof
 
     for f in (solve_static_dof, solve_dynamic_dof):
-        assert inspect.signature(f).parameters["eps"].default == solver_mod._FIT_EPS
+        assert inspect.signature(f).parameters["eps"].default == columns_mod._FIT_EPS
 
 
 @needs_kernel
@@ -233,7 +234,7 @@ def test_cell_means_layouts_and_value_checks(dtype):
     for x, check in [(planar, _dp_cpp.CHECK_NONNEGATIVE), (inter, _dp_cpp.CHECK_POSITIVE_DEFINITE),
                      (pairs, _dp_cpp.CHECK_FINITE)]:
         means, ok = _dp_cpp.cell_means_checked(x, r, w, count, check)
-        ref = solver_mod._block_sum(x.contiguous(), r, w) / count
+        ref = columns_mod._block_sum(x.contiguous(), r, w) / count
         assert ok and means.shape == (B, C, n, x.shape[1]) and means.is_contiguous()
         assert torch.equal(means, ref.permute(0, 3, 2, 1))
     for (b, v, u) in [(0, 0, 0), (1, 22, 40), (1, 7, 33), (0, 11, 17)]:

@@ -15,9 +15,8 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.classes import CLASS_NAMES
-from monostixels.data.synthetic import (
-    KITTI_INTRINSICS, SyntheticSource, _cast_points, _geometry, render_pair,
-)
+from monostixels.data._render import _cast_points, _geometry
+from monostixels.data.synthetic import KITTI_INTRINSICS, SyntheticSource, render_pair
 from monostixels.data._scene import sample_scene
 from monostixels.geometry import apply_homography, homography
 

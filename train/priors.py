@@ -48,15 +48,8 @@ from tqdm import tqdm
 from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
 from monostixels.energy import PriorParams, gravity, ordering_from_depths
 from monostixels.geometry import ground_basis, pixel_rays
-from monostixels.solver import (
-    ColumnProblem,
-    ColumnSolution,
-    SolverConfig,
-    _row_costs,
-    beyond_horizon,
-    prepare_columns,
-    solve_columns,
-)
+from monostixels.columns import ColumnProblem, _row_costs, beyond_horizon, prepare_columns
+from monostixels.solver import ColumnSolution, SolverConfig, solve_columns
 
 __all__ = ["labelling_energy", "perceptron_loss", "build_problems", "learn_priors", "write_prior_yaml",
            "priors_from_sweep", "subsample_columns", "main"]
@@ -98,7 +91,7 @@ def labelling_energy(prob: ColumnProblem, lab: ColumnSolution, prm: PriorParams,
     T_c, p_c, cls_c = cell(lab.type), cell(lab.p.to(dt)), cell(lab.cls)
     tau_c = cell(lab.tau.to(dt))
 
-    # Flow term: predicted point H x of every cell under its stixel's homography (solver._flow_prefix).
+    # Flow term: predicted point H x of every cell under its stixel's homography (columns._flow_prefix).
     ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
     a = ((prob.K @ prob.R)[:, None] @ ray[..., None])[..., 0]
     cK = (prob.K @ prob.t[..., None])[..., 0][:, None]  # C x 1 x 3

@@ -1,5 +1,5 @@
 // Fused hard column DP of the mono-stixel solver (tau == 0): the C++ twin of the eager stage
-// loop in monostixels/solver.py (`_flow_prefix` + the loop of `solve_columns`).
+// loop in monostixels/columns.py and solver.py (`_flow_prefix` + the loop of `solve_columns`).
 //
 // Why it exists: the eager loop runs ~100 torch ops per DP stage over (columns x hypotheses x
 // types); it is bound by op overhead and memory traffic. Here one column is solved start to
@@ -145,13 +145,13 @@ inline X structural(const Params<T>& P, X inv_p, X q_inv_p, T inv_pp, T inv_gp, 
   return ord < grav ? ord : grav;  // torch.minimum (no NaN here)
 }
 
-// Per-cell inputs of the flow cost of one column (solver._row_costs).
+// Per-cell inputs of the flow cost of one column (columns._row_costs).
 template <typename T>
 struct Cell {
   T up, vp, c00, c01x2, c11, logdet, rows, a0, a1, a2, sg, so;
 };
 
-// Robust flow cost of one cell for predicted point (h0, h1, h2), weighted by rows (solver._row_costs).
+// Robust flow cost of one cell for predicted point (h0, h1, h2), weighted by rows (columns._row_costs).
 template <typename T>
 inline T row_cost(const Params<T>& P, const Cell<T>& c, T h0, T h1, T h2) {
   const bool ok = h2 > P.z_min;
@@ -166,7 +166,7 @@ inline T row_cost(const Params<T>& P, const Cell<T>& c, T h0, T h1, T h2) {
 }
 
 // Prefix-summed flow cost of one type's hypotheses over one column's cells, (n + 1) x K,
-// cell-major (solver._flow_prefix). Double accumulators like torch.cumsum on the CPU. The inner
+// cell-major (columns._flow_prefix). Double accumulators like torch.cumsum on the CPU. The inner
 // loops over hypotheses are branch-free so that the compiler vectorises them.
 template <typename T, int Type>
 void flow_prefix(const Params<T>& P, const std::vector<Cell<T>>& cells, int64_t K, const T* hyp, T cK0, T cK1,
@@ -178,7 +178,7 @@ void flow_prefix(const Params<T>& P, const std::vector<Cell<T>>& cells, int64_t 
     const Cell<T> c = cells[j];
     T* row = Pt + (j + 1) * K;
     const bool impossible = (Type == kGround && c.sg <= T(0)) || (Type == kSky && c.sg > T(0));
-    if (impossible) {  // ground above / sky below the horizon (solver.beyond_horizon)
+    if (impossible) {  // ground above / sky below the horizon (columns.beyond_horizon)
       const double cost = static_cast<double>(imp * c.rows);
       for (int64_t k = 0; k < K; ++k) { acc[k] += cost; row[k] = static_cast<T>(acc[k]); }
       continue;
@@ -637,7 +637,7 @@ std::vector<at::Tensor> column_dp(const at::Tensor& a, const at::Tensor& cK, con
 }
 
 // Sums (B, ch, n, C) of x (B, ch, H, W) over cells of r rows counted from the image bottom and
-// columns of w pixels (solver._block_sum, in its order: a row's pixels left to right, then the
+// columns of w pixels (columns._block_sum, in its order: a row's pixels left to right, then the
 // cell's rows bottom-up, a missing top row adding 0), so the two give the same bits.
 //
 // Two layouts are read in place: planes of contiguous rows (flow, scores), and CH channels
@@ -851,9 +851,9 @@ std::tuple<at::Tensor, at::Tensor> cell_sums(const at::Tensor& x, int64_t r, int
   return {out, at::scalar_tensor(ok, x.options().dtype(at::kBool))};
 }
 
-// Per-cell geometry of every column (solver._geometry, in the order of its torch ops): the
+// Per-cell geometry of every column (columns._geometry, in the order of its torch ops): the
 // ray K^-1 x of each cell centre (geometry.pixel_rays), a = K R K^-1 x, s = n^T K^-1 x for the
-// ground and object normals, and the bottom-ray ratio q (solver._bottom_ray_ratio). The 3 x 3
+// ground and object normals, and the bottom-ray ratio q (columns._bottom_ray_ratio). The 3 x 3
 // products add like torch's small-matrix bmm (from 0, in index order) and the 3-term dot
 // products like its sum over the last dimension (from 0, then its 3 idle partial sums, which
 // only turn a zero sum of -0 into +0).
@@ -919,7 +919,7 @@ std::vector<at::Tensor> geometry(const at::Tensor& K, const at::Tensor& KR, cons
   return {ray, a, s_g, s_o, q};
 }
 
-// Prefix-summed semantic cost (C, 10, n + 1) of every column (solver._semantic_prefix, in the
+// Prefix-summed semantic cost (C, 10, n + 1) of every column (columns._semantic_prefix, in the
 // order of its torch ops): min(nll, alpha_L) * rows * delta_L per cell and class, plus extra[j] for
 // the sky class where `unseen` (if given), summed in double like torch.cumsum on the CPU.
 template <typename T>
@@ -963,11 +963,11 @@ at::Tensor semantic_prefix(const at::Tensor& nll, const at::Tensor& rows, const 
   return Lp;
 }
 
-// Hypothesis sets of every column for hypothesis_stride = 1 (solver._hypotheses with
-// solver._fits, in the order of their torch ops): each cell's own static fits for the ground and
+// Hypothesis sets of every column for hypothesis_stride = 1 (columns._hypotheses with
+// columns._fits, in the order of their torch ops): each cell's own static fits for the ground and
 // object normals (geometry.static_dof_system + solve_static_dof), its dynamic fit
 // (dynamic_dof_system + solve_dynamic_dof), the standing depths, the replacements of missing
-// ones, and g = K B tau of the dynamic ones (solver._flow_geometry). The systems' 2-term sums are written x0 + x1: torch's reduction adds the same two
+// ones, and g = K B tau of the dynamic ones (columns._flow_geometry). The systems' 2-term sums are written x0 + x1: torch's reduction adds the same two
 // numbers (and zeros, which only change the sign of a zero sum: such a fit is p = +-0, outside
 // [p_min, p_max], so it is dropped either way).
 template <typename T>
