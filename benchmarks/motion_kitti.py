@@ -38,11 +38,14 @@ def main() -> None:
                        "motion=mono", f"motion.sequence_prior={str(not args.no_sequence_prior).lower()}"])
     pipe = Pipeline(cfg)
     from monostixels.inputs.semantic import estimate_semantics
+    from monostixels.pipeline import motion_track_for
+
+    track = motion_track_for(cfg)  # the sequence layer's speed prior over the drive's pairs
 
     rows = []
     for pair in make_source(cfg):
         fr = estimate_flow(pair, cfg.flow)
-        est = pipe.motion_for(pair, fr, estimate_semantics(pair, cfg.semantic))
+        est = pipe.motion_for(pair, fr, estimate_semantics(pair, cfg.semantic), track=track)
         if pair.motion is None or est.degenerate:
             print(f"{pair.name}: {est.reason}")
             continue

@@ -99,9 +99,10 @@ def ground_from_motion() -> None:
     motion_module._fit_ground = _fit
     orig = pipeline_module.Pipeline.motion_for
 
-    def motion_for(self: Any, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None) -> Any:
+    def motion_for(self: Any, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None, *args: Any,
+                   **kwargs: Any) -> Any:
         last.clear()
-        est = orig(self, pair, flow, semantic)
+        est = orig(self, pair, flow, semantic, *args, **kwargs)
         if "m" in last and not est.degenerate:
             n = torch.as_tensor(last["m"] / np.linalg.norm(last["m"]), dtype=pair.camera.K.dtype)
             pair.camera = dataclasses.replace(pair.camera, ground_normal=n)

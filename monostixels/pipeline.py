@@ -96,6 +96,14 @@ class PipelineResult:
         return sum(v for k, v in self.seconds.items() if k != "sfm")
 
 
+def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
+    """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
+    with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
+    if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)):
+        return MotionTrack.from_config(cfg.motion)
+    return None
+
+
 class Pipeline:
     """Frame pair -> stixels, configured by the Hydra config (groups flow, semantic, motion, prior, solver).
 
@@ -133,17 +141,17 @@ class Pipeline:
         self.allow_motion_failure = allow_motion_failure
         self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))
         self.mover_check = MoverCheckParams.from_config(cfg.get("movers"))
-        # Monocular scale over consecutive pairs of a sequence: constant-velocity prior (motion.sequence_prior).
-        self.motion_track = (MotionTrack.from_config(cfg.motion)
-                             if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)) else None)
 
     def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None,
-                   prior: MotionEstimate | None = None, interval_ratio: float = 1.0) -> MotionEstimate:
+                   prior: MotionEstimate | None = None, interval_ratio: float = 1.0,
+                   track: MotionTrack | None = None) -> MotionEstimate:
         """Camera motion of the pair from the ``motion`` config group.
 
         ``prior``: the last pair's estimate of a stream (``stream.motion_warm_start``) and the ratio of
         this pair's time interval to its (``interval_ratio``): the start of the monocular estimate
-        (:func:`monostixels.inputs.motion.estimate_mono`).
+        (:func:`monostixels.inputs.motion.estimate_mono`). ``track``: the sequence's constant-velocity
+        prior on the monocular scale (:func:`motion_track_for`, owned by the sequence layer), updated
+        with this pair; None: the pair's own estimate.
 
         A degenerate estimate (standing still, pure rotation) keeps its rotation (identity if
         none) with zero translation: the solver then flags the frame and takes depths from the
@@ -154,8 +162,8 @@ class Pipeline:
         """
         warm = {} if prior is None else {"prior": prior, "interval_ratio": interval_ratio}
         est = estimate_motion(pair, flow, self.cfg.motion, semantic, **warm)
-        if self.motion_track is not None:
-            est = self.motion_track.update(pair, est)
+        if track is not None:
+            est = track.update(pair, est)
         if est.motion is None:
             if not est.degenerate and not self.allow_motion_failure:
                 raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
@@ -186,7 +194,8 @@ class Pipeline:
         n = motion.ground_normal.to(pair.camera.ground_normal.dtype)
         return dataclasses.replace(pair.camera, ground_normal=n)
 
-    def run(self, pair: FramePair, state: StreamState | None = None) -> PipelineResult:
+    def run(self, pair: FramePair, state: StreamState | None = None, motion_track: MotionTrack | None = None
+            ) -> PipelineResult:
         """Run every stage on one frame pair.
 
         Args:
@@ -197,6 +206,7 @@ class Pipeline:
                 with ``stream.overlap`` it also holds this pair's flow and semantics, computed while the
                 last pair was solved. None, or a pair that does not continue the stream: every stage
                 from scratch.
+            motion_track: the sequence's prior on the camera's speed (see :meth:`motion_for`), or None.
         """
         # Before any stage: OpenCV's flow kills the process on frames below MIN_FRAME_SIZE.
         check_frame_size(*pair.size, pair.name or "frame")
@@ -205,7 +215,7 @@ class Pipeline:
         pair = crop_ignored(pair)  # a stream reading ahead has cropped it already
         full = pair.meta.get("full_pair", pair)
         try:
-            res = self._run(pair, state, sec, start)
+            res = self._run(pair, state, sec, start, motion_track)
         except Exception:
             if state is not None:
                 state.drop()  # the next pair starts cold
@@ -264,7 +274,8 @@ class Pipeline:
         sec["inputs"] = time.perf_counter() - t_in
         return flow, semantic, sec
 
-    def _run(self, pair: FramePair, state: StreamState | None, sec: dict[str, float], start: float) -> PipelineResult:
+    def _run(self, pair: FramePair, state: StreamState | None, sec: dict[str, float], start: float,
+             motion_track: MotionTrack | None) -> PipelineResult:
         carried = state.carried(pair) if state is not None else Carried()
         ready = state.take_inputs(pair) if state is not None else None
         flow, semantic, input_sec = ready if ready is not None else self.inputs(pair, carried)
@@ -277,7 +288,7 @@ class Pipeline:
             sec["inputs_ahead"] = sec["inputs"]
             start -= sec["inputs"]
         t0 = time.perf_counter()
-        motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio)
+        motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio, motion_track)
         sec["motion"] = time.perf_counter() - t0
         if state is not None:
             # What the next pair starts from is known now; with stream.overlap its flow and semantics

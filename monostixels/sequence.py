@@ -25,6 +25,12 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    velocities come from the pair alone and no depth is filtered.
 4. **Time to collision** per object stixel (``ttc_s``), and the frame's pose (camera to world).
 
+Everything carried from frame to frame lives here: the kept frames and their poses, the speed the
+keyframes read, the stream's reused work (:class:`~monostixels.stream.StreamState`), the monocular
+scale's speed prior (:class:`~monostixels.inputs.motion_track.MotionTrack`, handed to each
+:meth:`Pipeline.run <monostixels.pipeline.Pipeline.run>`) and the tracks. The pipeline itself keeps
+nothing between pairs.
+
 Independent pairs (KITTI 2015, synthetic pairs) pass through with single-pair velocities and TTC.
 
 Convention: camera motion ``X_prev = R X_cur + t``; a pose is camera-to-world, ``X_w = R_wc X_c + o``.
@@ -47,7 +53,7 @@ from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult
+from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, motion_track_for
 from monostixels.stixels import StixelWorld
 from monostixels.stream import StreamState
 from monostixels.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, stixel_points,
@@ -186,6 +192,9 @@ class SequenceRunner:
         # Work carried from frame to frame (config group stream; monostixels.stream).
         self.stream = StreamState.from_config(cfg)
         self.stream.chain_frames = self.keyframes.window if self.keyframes.chain_flow else 0
+        # The speed prior of the monocular scale: it restarts by itself where pairs do not continue a
+        # sequence in time order (monostixels.inputs.motion_track), so a new clip needs no reset here.
+        self.motion_track = motion_track_for(cfg)
         self.reset()
 
     def reset(self) -> None:
@@ -252,7 +261,7 @@ class SequenceRunner:
     # ------------------------------------------------------------------ one frame
     def _solve(self, index: int, pair: FramePair, back: int | None, driven: float | None) -> SequenceStep:
         try:
-            res = self.pipeline.run(pair, state=self.stream)
+            res = self.pipeline.run(pair, state=self.stream, motion_track=self.motion_track)
         except MotionEstimationError as err:
             self.reset() if back is None else None
             return SequenceStep(index, pair, None, str(err))

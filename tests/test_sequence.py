@@ -405,10 +405,10 @@ def test_a_failed_pair_is_not_a_later_pairs_partner():
     runner = SequenceRunner(cfg)
     run = runner.pipeline.run
 
-    def failing(pair, state=None):
+    def failing(pair, state=None, motion_track=None):
         if pair.name.endswith("_002"):
             raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated (test)")
-        return run(pair, state=state)
+        return run(pair, state=state, motion_track=motion_track)
 
     runner.pipeline.run = failing
     steps = list(runner.run(make_source(cfg)))
@@ -502,3 +502,26 @@ def test_a_pair_whose_camera_motion_is_unknown_shows_no_movers_and_no_warning(mo
     assert info["previous"].endswith("_001") and info["frames_back"] == 3
     assert float(steps[3].result.pose[:3, 3].norm()) == pytest.approx(4 * 0.3, abs=1e-3)
     assert worlds[3].flags["camera_motion"] == "metric" and worlds[3].flags["scale_from"] == "given"
+
+
+def test_the_sequence_layer_owns_the_speed_prior():
+    # The pipeline keeps nothing between pairs; the runner's MotionTrack is the one the pairs update.
+    from monostixels.inputs.motion_track import MotionTrack
+
+    ov = ["data=synthetic", "data.frames=1", "data.sequence_length=4", "data.ego_speed_mps=3", "data.scale=0.25",
+          "flow=gt", "semantic=gt", "motion=mono"]
+    cfg = load_config(ov)
+    runner = SequenceRunner(cfg)
+    assert isinstance(runner.motion_track, MotionTrack) and not hasattr(runner.pipeline, "motion_track")
+    seen = []
+    update = runner.motion_track.update
+
+    def spy(pair, est):
+        seen.append(pair.name)
+        return update(pair, est)
+
+    runner.motion_track.update = spy
+    steps = list(runner.run(make_source(cfg)))
+    assert seen == [s.pair.name for s in steps] and len(seen) == 4
+    assert SequenceRunner(load_config(ov[:-1] + ["motion=gt"])).motion_track is None
+    assert SequenceRunner(load_config(ov + ["motion.sequence_prior=false"])).motion_track is None

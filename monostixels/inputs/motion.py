@@ -52,8 +52,8 @@ Backends (``cfg.name``):
         finds no plane, the road marks are used, else a weak photometric minimum; with neither,
         no estimate.
 
-  5. Over a sequence (:class:`monostixels.inputs.motion_track.MotionTrack`, used by the pipeline for consecutive pairs of one
-     sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
+  5. Over a sequence (:class:`monostixels.inputs.motion_track.MotionTrack`, kept by the sequence layer,
+     :mod:`monostixels.sequence`, for the consecutive pairs of one sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
      (a 1-D Kalman filter); a per-pair scale that disagrees with the prediction by more than
      ``scale_gate`` standard deviations is replaced by the prediction (flagged in ``reason``).
      A single pair, or the first pair of a sequence, is unchanged.
