@@ -42,7 +42,7 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, config_value
 from monostixels.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.sfm import triangulate_points
 from monostixels.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
@@ -116,7 +116,7 @@ class MoverCheckParams:
             return d
         kw = {}
         for k in d.__dataclass_fields__:
-            v = cfg.get(k, None) if hasattr(cfg, "get") else getattr(cfg, k, None)
+            v = config_value(cfg, k)
             if v is None:
                 kw[k] = getattr(d, k)
             elif isinstance(getattr(d, k), tuple):
