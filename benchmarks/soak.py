@@ -130,7 +130,7 @@ def buffer_sizes(runner: SequenceRunner, source: Any) -> dict[str, int]:
     if kept is None:
         kept = getattr(src, "_cache", ())
     stream = runner.stream
-    return {"tracks": int(len(runner.tracks.ids)), "sequence_frames": len(runner.frames),
+    return {"tracks": len(runner.tracks), "sequence_frames": len(runner.frames),
             "stream_frames": len(stream._frames), "source_frames": len(kept),
             "stream_chain_steps": sum(1 for f in stream._frames.values() if f.step is not None)}
 

@@ -48,7 +48,7 @@ from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.geometry import Motion, ground_basis, pixel_rays
 from monostixels.stixels import StixelWorld, neighbours, segment_lower_median
 
-__all__ = ["TrackParams", "TtcParams", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed"]
+__all__ = ["TrackParams", "TtcParams", "TrackState", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed"]
 
 #: Chi-square quantile of 4 degrees of freedom at 99.9 %: the association gate on position and velocity.
 _CHI2_4DOF_999 = 18.47
@@ -264,6 +264,59 @@ def confirmed(warn: torch.Tensor, age: torch.Tensor | None, params: TtcParams) -
     return warn & (age >= params.confirm_frames)
 
 
+@dataclass
+class TrackState:
+    """The tracks' state: one row per track (``T`` rows) in every field.
+
+    ``x`` (T, 4) X, Z, V_X, V_Z (world, m and m/s) and ``P`` (T, 4, 4) its covariance; ``ids`` (T,); ``time``
+    (T,) seconds and ``last_frame`` (T,) frame number of the last update; ``measured`` (T,) position measured
+    with a baseline; ``y`` (T,) world height of the tracked point (m); ``kind`` (T,) 0 object, 1 ground; ``gy``
+    (T,) a ground track's plane distance (m) and ``gy_var`` its variance; ``eta`` (T,) closing rate -v_rel,z / Z
+    (1/s), ``eta_var`` its variance and ``eta_rejected`` the last pair's rate failed the gate; ``stixel`` (T,)
+    the track's stixel in the frame of its last update; ``age`` (T,) frames continued; ``dynamic`` (T,) its
+    last stixel was dynamic; ``coasted`` (T,) its last update was on the position alone.
+    """
+
+    x: torch.Tensor
+    P: torch.Tensor
+    ids: torch.Tensor
+    time: torch.Tensor
+    last_frame: torch.Tensor
+    measured: torch.Tensor
+    y: torch.Tensor
+    kind: torch.Tensor
+    gy: torch.Tensor
+    gy_var: torch.Tensor
+    eta: torch.Tensor
+    eta_var: torch.Tensor
+    eta_rejected: torch.Tensor
+    stixel: torch.Tensor
+    age: torch.Tensor
+    dynamic: torch.Tensor
+    coasted: torch.Tensor
+
+    @staticmethod
+    def empty() -> "TrackState":
+        """No track: every field with zero rows, in its dtype and row shape."""
+        f64, i64, b = torch.float64, torch.long, torch.bool
+        dtypes = {"x": (f64, (4,)), "P": (f64, (4, 4)), "ids": (i64, ()), "time": (f64, ()), "last_frame": (i64, ()),
+                  "measured": (b, ()), "y": (f64, ()), "kind": (i64, ()), "gy": (f64, ()), "gy_var": (f64, ()),
+                  "eta": (f64, ()), "eta_var": (f64, ()), "eta_rejected": (b, ()), "stixel": (i64, ()),
+                  "age": (i64, ()), "dynamic": (b, ()), "coasted": (b, ())}
+        return TrackState(**{k: torch.zeros((0, *shape), dtype=dt) for k, (dt, shape) in dtypes.items()})
+
+    def __len__(self) -> int:
+        return self.ids.numel()
+
+    def take(self, rows: torch.Tensor) -> "TrackState":
+        """The tracks ``rows`` (a (T,) bool mask or indices), every field alike."""
+        return TrackState(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
+
+    def extend(self, new: "TrackState") -> "TrackState":
+        """These tracks followed by ``new``'s."""
+        return TrackState(**{f.name: torch.cat([getattr(self, f.name), getattr(new, f.name)]) for f in fields(self)})
+
+
 class Tracks:
     """The tracks of one sequence (see the module docstring).
 
@@ -273,31 +326,19 @@ class Tracks:
 
     def __init__(self, params: TrackParams) -> None:
         self.params = params
-        self.x = torch.zeros(0, 4, dtype=torch.float64)      # (T, 4) X, Z, V_X, V_Z (world, m and m/s)
-        self.P = torch.zeros(0, 4, 4, dtype=torch.float64)   # (T, 4, 4)
-        self.ids = torch.zeros(0, dtype=torch.long)          # (T,)
-        self.time = torch.zeros(0, dtype=torch.float64)      # (T,) seconds of the last update
-        self.last_frame = torch.zeros(0, dtype=torch.long)   # (T,) frame number of the last update
-        self.measured = torch.zeros(0, dtype=torch.bool)     # (T,) position measured with a baseline
-        self.y = torch.zeros(0, dtype=torch.float64)         # (T,) world height of the tracked point (m)
-        self.kind = torch.zeros(0, dtype=torch.long)         # (T,) 0 object, 1 ground
-        self.gy = torch.zeros(0, dtype=torch.float64)        # (T,) ground tracks: the plane's distance (m)
-        self.gy_var = torch.zeros(0, dtype=torch.float64)    # (T,) its variance
-        self.eta = torch.zeros(0, dtype=torch.float64)       # (T,) closing rate -v_rel,z / Z (1/s)
-        self.eta_var = torch.zeros(0, dtype=torch.float64)   # (T,) its variance
-        self.eta_rejected = torch.zeros(0, dtype=torch.bool)  # (T,) the last pair's rate failed the gate
-        self.stixel = torch.zeros(0, dtype=torch.long)       # (T,) the track's stixel in the frame of its last update
-        self.age = torch.zeros(0, dtype=torch.long)          # (T,) frames the track has continued
-        self.dynamic = torch.zeros(0, dtype=torch.bool)      # (T,) its last stixel was dynamic
-        self.coasted = torch.zeros(0, dtype=torch.bool)      # (T,) its last update was on the position alone
+        self.state = TrackState.empty()
         self.next_id = 0
         self.prev_frame: int | None = None                   # the frame of the last update
         self.prev_index: torch.Tensor | None = None          # (H, W) its stixel index map (-1: none)
 
+    def __len__(self) -> int:
+        """Live tracks."""
+        return len(self.state)
+
     # ------------------------------------------------------------------ model
     def _predict(self, rows: torch.Tensor, time: float) -> tuple[torch.Tensor, torch.Tensor]:
         """State (n, 4) and covariance (n, 4, 4) of tracks ``rows`` predicted to ``time`` (seconds)."""
-        dt = (time - self.time[rows]).clamp_min(0.0)
+        dt = (time - self.state.time[rows]).clamp_min(0.0)
         n = rows.numel()
         F = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         F[:, 0, 2] = dt
@@ -308,8 +349,8 @@ class Tracks:
             Q[:, a, a] = q * dt**4 / 4
             Q[:, a, b] = Q[:, b, a] = q * dt**3 / 2
             Q[:, b, b] = q * dt**2
-        x = (F @ self.x[rows, :, None])[..., 0]
-        P = F @ self.P[rows] @ F.transpose(1, 2) + Q
+        x = (F @ self.state.x[rows, :, None])[..., 0]
+        P = F @ self.state.P[rows] @ F.transpose(1, 2) + Q
         return x, P
 
     def _measurement(self, pos: torch.Tensor, vel: torch.Tensor, dyn: torch.Tensor, cam: torch.Tensor,
@@ -387,7 +428,7 @@ class Tracks:
         parent = torch.full((N,), -1, dtype=torch.long)  # row of the track a stixel continues
         position_only = torch.zeros(N, dtype=torch.bool)  # continues it on its position alone
         index = world.index_map()
-        if self.ids.numel() and bool(obj.any()):
+        if self.state.ids.numel() and bool(obj.any()):
             overlap = None
             if (flow_to_last is not None and flow_reaches is not None and flow_reaches == self.prev_frame
                     and prm.overlap_min_share > 0):
@@ -417,7 +458,7 @@ class Tracks:
         prior_measured = torch.zeros(n, dtype=torch.bool)
         if bool(has.any()):
             x_pred[has], P_pred[has] = self._predict(c[has], time)
-            prior_measured[has] = self.measured[c[has]]
+            prior_measured[has] = self.state.measured[c[has]]
             if motion is not None and bool((has & dyn[rows_all]).any()):
                 # A mover's flow fixes g = p (t - R Δ), not Δ: with its track's depth instead of this
                 # pair's ground contact, Δ = R^T (t - g / p) loses most of the contact's error.
@@ -451,14 +492,14 @@ class Tracks:
         gh = has & ground
         if bool(gh.any()):
             rows_g = c[gh]
-            v_pred = self.gy_var[rows_g] + prm.ground_height_process_std ** 2 * (time - self.time[rows_g]).clamp_min(0.0)
+            v_pred = self.state.gy_var[rows_g] + prm.ground_height_process_std ** 2 * (time - self.state.time[rows_g]).clamp_min(0.0)
             k = torch.where(hold[gh], torch.zeros_like(v_pred), v_pred / (v_pred + r_d[gh]))
-            gy[gh] = self.gy[rows_g] + k * (d_m[gh] - self.gy[rows_g])
+            gy[gh] = self.state.gy[rows_g] + k * (d_m[gh] - self.state.gy[rows_g])
             gy_var[gh] = (1.0 - k) * v_pred
         x_new[ground], P_new[ground] = z[ground], Rm[ground]
 
         ids = torch.empty(n, dtype=torch.long)
-        ids[keeps] = self.ids[c[keeps]]
+        ids[keeps] = self.state.ids[c[keeps]]
         n_new = int((~keeps).sum())
         ids[~keeps] = torch.arange(self.next_id, self.next_id + n_new)
         self.next_id += n_new
@@ -467,27 +508,15 @@ class Tracks:
                                                              degenerate & ~dyn[rows_all], dt_pair)
 
         # Replace the continued tracks, append the new ones (splits included), drop the stale.
-        keep = torch.ones(self.ids.numel(), dtype=torch.bool)
+        keep = torch.ones(self.state.ids.numel(), dtype=torch.bool)
         keep[c[keeps]] = False
-        self.x = torch.cat([self.x[keep], x_new])
-        self.P = torch.cat([self.P[keep], P_new])
-        self.ids = torch.cat([self.ids[keep], ids])
-        self.time = torch.cat([self.time[keep], torch.full((n,), float(time), dtype=dtype)])
-        self.last_frame = torch.cat([self.last_frame[keep], torch.full((n,), int(frame), dtype=torch.long)])
-        self.measured = torch.cat([self.measured[keep], measured_now])
-        self.y = torch.cat([self.y[keep], X_w[rows_all][:, 1]])
-        self.kind = torch.cat([self.kind[keep], kind[rows_all]])
-        self.gy = torch.cat([self.gy[keep], gy])
-        self.gy_var = torch.cat([self.gy_var[keep], gy_var])
-        self.eta = torch.cat([self.eta[keep], eta_new])
-        self.eta_var = torch.cat([self.eta_var[keep], eta_var_new])
-        self.eta_rejected = torch.cat([self.eta_rejected[keep], eta_rej_new])
-        self.stixel = torch.cat([self.stixel[keep], rows_all])
         age_new = torch.zeros(n, dtype=torch.long)
-        age_new[keeps] = self.age[c[keeps]] + 1
-        self.age = torch.cat([self.age[keep], age_new])
-        self.dynamic = torch.cat([self.dynamic[keep], dyn[rows_all]])
-        self.coasted = torch.cat([self.coasted[keep], coast])
+        age_new[keeps] = self.state.age[c[keeps]] + 1
+        self.state = self.state.take(keep).extend(TrackState(
+            x=x_new, P=P_new, ids=ids, time=torch.full((n,), float(time), dtype=dtype),
+            last_frame=torch.full((n,), int(frame), dtype=torch.long), measured=measured_now, y=X_w[rows_all][:, 1],
+            kind=kind[rows_all], gy=gy, gy_var=gy_var, eta=eta_new, eta_var=eta_var_new, eta_rejected=eta_rej_new,
+            stixel=rows_all, age=age_new, dynamic=dyn[rows_all], coasted=coast))
         self._drop_old(frame)
         self.prev_frame, self.prev_index = frame, index
 
@@ -554,11 +583,11 @@ class Tracks:
         rejected = torch.zeros_like(has)
         if bool(has.any()):
             rows = parent[has]
-            dt = (time - self.time[rows]).clamp_min(0.0)
-            e0 = self.eta[rows]
+            dt = (time - self.state.time[rows]).clamp_min(0.0)
+            e0 = self.state.eta[rows]
             den = (1.0 - e0 * dt).clamp_min(0.2)  # past the predicted contact: no faster than 5x
             e_pred = e0 / den
-            v_pred = self.eta_var[rows] / den**4 + prm.eta_process_std**2 * dt
+            v_pred = self.state.eta_var[rows] / den**4 + prm.eta_process_std**2 * dt
             # Noise from the prediction's size (a measurement-scaled noise would favour small rates).
             r_h = ((prm.eta_std_rel * e_pred.abs() + prm.eta_std_abs) * scale) ** 2
             k = v_pred / (v_pred + r_h)
@@ -569,7 +598,7 @@ class Tracks:
                 # contact below the image): the prediction stands once; twice in a row, the track's rate is
                 # what is wrong and restarts at the measurement (the start's own values above).
                 out = (eta_meas[has] - e_pred) ** 2 > prm.eta_gate * (v_pred + r_h)
-                coast = out & ~self.eta_rejected[rows]
+                coast = out & ~self.state.eta_rejected[rows]
                 eta[has] = torch.where(coast, e_pred, torch.where(out, eta_meas[has], eta[has]))
                 var[has] = torch.where(coast, v_pred, torch.where(out, r[has], var[has]))
                 rejected[has] = coast
@@ -580,11 +609,9 @@ class Tracks:
         return eta, var, rejected
 
     def _drop_old(self, frame: int) -> None:
-        keep = (frame - self.last_frame) <= self.params.max_age_frames
+        keep = (frame - self.state.last_frame) <= self.params.max_age_frames
         if not bool(keep.all()):
-            for k in ("x", "P", "ids", "time", "last_frame", "measured", "y", "kind", "gy", "gy_var", "eta", "eta_var",
-                      "eta_rejected", "stixel", "age", "dynamic", "coasted"):
-                setattr(self, k, getattr(self, k)[keep])
+            self.state = self.state.take(keep)
 
     def _overlap(self, world: StixelWorld, index: torch.Tensor, obj: torch.Tensor, kind: torch.Tensor,
                  flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -601,13 +628,13 @@ class Tracks:
                 or tuple(flow.shape[-2:]) != tuple(world.image_size):
             return None
         H, W = world.image_size
-        last = torch.nonzero(self.last_frame == self.prev_frame).squeeze(1)
+        last = torch.nonzero(self.state.last_frame == self.prev_frame).squeeze(1)
         n_prev = int(self.prev_index.max()) + 1
         if last.numel() == 0 or n_prev <= 0:
             return None
         row_of = torch.full((n_prev,), -1, dtype=torch.long)
-        ok_rows = self.stixel[last] < n_prev
-        row_of[self.stixel[last[ok_rows]]] = last[ok_rows]
+        ok_rows = self.state.stixel[last] < n_prev
+        row_of[self.state.stixel[last[ok_rows]]] = last[ok_rows]
         vv, uu = torch.meshgrid(torch.arange(0, H, 2), torch.arange(0, W, 2), indexing="ij")
         vv, uu = vv.reshape(-1), uu.reshape(-1)
         s_idx = index[vv, uu]
@@ -622,10 +649,10 @@ class Tracks:
         j = torch.full_like(s_idx, -1)
         j[valid] = self.prev_index[v2[valid].long(), u2[valid].long()]
         r = torch.where(j >= 0, row_of[j.clamp_min(0)], torch.full_like(j, -1))
-        hit = valid & (r >= 0) & (self.kind[r.clamp_min(0)] == kind[s_idx])
+        hit = valid & (r >= 0) & (self.state.kind[r.clamp_min(0)] == kind[s_idx])
         if not bool(hit.any()):
             return None
-        T = self.ids.numel()
+        T = self.state.ids.numel()
         key, count = torch.unique(s_idx[hit] * T + r[hit], return_counts=True)
         s_u, r_u = key // T, key % T
         keep = count.double() >= self.params.overlap_min_share * total[s_u].double()
@@ -649,8 +676,8 @@ class Tracks:
         continues that track on its position alone.
         """
         H, W = world.image_size
-        xp, Pp = self._predict(torch.arange(self.ids.numel()), time)
-        Xw = torch.stack([xp[:, 0], self.y, xp[:, 1]], 1)
+        xp, Pp = self._predict(torch.arange(self.state.ids.numel()), time)
+        Xw = torch.stack([xp[:, 0], self.state.y, xp[:, 1]], 1)
         Xc = (Xw - o) @ Rwc
         K = world.K.double()
         z = Xc[:, 2]
@@ -659,7 +686,7 @@ class Tracks:
         u = (K[0, 0] * Xc[:, 0] / zs + K[0, 2]).round()
         v = (K[1, 1] * Xc[:, 1] / zs + K[1, 2]).round()
         inside = front & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        s_of = torch.full((self.ids.numel(),), -1, dtype=torch.long)
+        s_of = torch.full((self.state.ids.numel(),), -1, dtype=torch.long)
         s_of[inside] = index[v[inside].long(), u[inside].long()]
         cand = torch.nonzero((s_of >= 0)).squeeze(1)
         parent = torch.full((len(world),), -1, dtype=torch.long)
@@ -671,7 +698,7 @@ class Tracks:
             linked = torch.cat([linked, torch.ones(overlap[0].numel(), dtype=torch.bool)])
         if cand.numel() == 0:
             return parent, position_only
-        ok = obj[sc] & (kind[sc] == self.kind[cand])
+        ok = obj[sc] & (kind[sc] == self.state.kind[cand])
         cand, sc, linked = cand[ok], sc[ok], linked[ok]
         if cand.numel() == 0:
             return parent, position_only
@@ -691,8 +718,8 @@ class Tracks:
             # A near mover's one-pair velocity can be far off (its contact below the image, its flow lost)
             # while its pixels, through the flow, land in its own track: a track that has continued m frames
             # outweighs that one pair's velocity, once (the closing rate's gate does the same).
-            alt = linked & dyn[sc] & (parent[sc] < 0) & self.dynamic[cand] & (self.age[cand] >= m) \
-                & ~self.coasted[cand]
+            alt = linked & dyn[sc] & (parent[sc] < 0) & self.state.dynamic[cand] & (self.state.age[cand] >= m) \
+                & ~self.state.coasted[cand]
             if bool(alt.any()):
                 ra, Sa = r[alt, :2], S[alt, :2, :2]
                 d2p = (ra[:, None, :] @ torch.linalg.solve(Sa, ra[:, :, None]))[:, 0, 0]
@@ -710,8 +737,8 @@ class Tracks:
             return parent
         best = torch.full((n,), math.inf, dtype=torch.float64).scatter_reduce(0, sc, d2, reduce="amin")
         win = d2 == best[sc]
-        first = torch.full((n,), self.ids.numel(), dtype=torch.long).scatter_reduce(
+        first = torch.full((n,), self.state.ids.numel(), dtype=torch.long).scatter_reduce(
             0, sc[win], cand[win], reduce="amin")
-        hit = first < self.ids.numel()
+        hit = first < self.state.ids.numel()
         parent[hit] = first[hit]
         return parent
