@@ -250,6 +250,29 @@ def test_holdout_frames_never_reach_the_training_list(tmp_path: Path) -> None:
     assert 0.72 < share < 0.78
 
 
+def test_void_below_removes_the_teacher_from_the_bottom_rows_of_its_source_only(tmp_path: Path) -> None:
+    """``void_below`` zeroes the teacher's probabilities at and below its row of the frame (a window
+    keeps the frame's rows), for the sources it names; other sources and the labels are untouched."""
+    mod = _load_train_module()
+    manifest = _write_manifest(tmp_path, [("dashcam", 0), ("kitti_0028", 1110)], size=(40, 64))
+    entries, _ = mod.soft_entries({"manifest": str(manifest), "weights": {"dashcam": 1.0, "kitti_0028": 1.0}})
+    tl = _teacher_module()
+    # A window of the lower half of the frame (rows 20-39): the limit at 0.75 is its row 10.
+    e = entries[0]
+    window = tl.SoftEntry(e.id + "_low", e.source, e.frame, "low", e.image, (0, 20, 64, 40), e.fx, e.probs)
+    data = mod.SoftLabelled([*entries, window], focal_px=100.0, void_below={"dashcam": 0.75})
+    _, _, full = data.load(0)
+    mass = full.sum(0)
+    assert full.shape[1] == 40
+    assert torch.all(mass[30:] == 0) and torch.all(mass[:30] > 0.99)
+    _, _, other = data.load(1)
+    assert torch.all(other.sum(0) > 0.99)
+    _, _, low = data.load(2)
+    assert torch.all(low.sum(0)[10:] == 0) and torch.all(low.sum(0)[:10] > 0)
+    with pytest.raises(InputError, match="void_below.dashcam"):
+        mod.SoftLabelled(entries, focal_px=100.0, void_below={"dashcam": 1.5})
+
+
 def test_soft_targets_follow_the_augmented_geometry(tmp_path: Path) -> None:
     """Soft one-hot targets made from the labels stay aligned with them through scale, rotation,
     vertical shift, crop and flip; padded areas carry neither labels nor teacher mass."""

@@ -333,6 +333,10 @@ class SoftLabelled(Dataset):
         entries: the manifest entries to train on (holdouts already removed).
         focal_px: focal length (pixels) every window is resized to.
         transform: optional ``(image, labels, soft, index) -> (image, labels, soft)`` (augmentation).
+        void_below: per source name, the fraction of the frame height (0-1) below which the teacher
+            gives no target (its probabilities are zeroed there: no teacher term). The Cityscapes
+            teacher never learned the rows its training images fill with the ego vehicle's bonnet,
+            and on a camera without one it labels the near road there as a vehicle.
 
     Returns per item:
         image (3, H, W) float32 RGB [0, 1], labels (H, W) int64 (``IGNORE_LABEL`` where none),
@@ -340,12 +344,17 @@ class SoftLabelled(Dataset):
     """
 
     def __init__(self, entries: list, *, focal_px: float,
-                 transform: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], tuple] | None = None) -> None:
+                 transform: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int], tuple] | None = None,
+                 void_below: dict[str, float] | None = None) -> None:
         if not entries:
             raise InputError("data.soft: no teacher-labelled entries to train on (all held out, or an empty manifest)")
         if not focal_px > 0:
             raise InputError(f"data.soft.focal_px: must be positive, got {focal_px}")
-        self.entries, self.focal_px, self.transform = list(entries), float(focal_px), transform
+        void = {str(k): float(v) for k, v in (void_below or {}).items()}
+        for name, frac in void.items():
+            if not 0.0 < frac <= 1.0:
+                raise InputError(f"data.soft.void_below.{name}: a fraction of the frame height in (0, 1], got {frac}")
+        self.entries, self.focal_px, self.transform, self.void_below = list(entries), float(focal_px), transform, void
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -375,6 +384,10 @@ class SoftLabelled(Dataset):
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
             lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
         soft = F.interpolate(load_entry(e.probs)[None], size=(h, w), mode="bilinear", align_corners=False)[0]
+        if e.source in self.void_below:
+            # Frame row of each output row's centre; at and below the limit the teacher says nothing.
+            rows = y0 + (torch.arange(h, dtype=torch.float64) + 0.5) * ((y1 - y0) / h)
+            soft[:, rows >= self.void_below[e.source] * bgr.shape[0]] = 0.0
         return rgb, lab, soft
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -916,6 +929,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         soft_loss = {"temperature": float(scfg.loss.temperature),
                      "soft_weight_labelled": float(scfg.loss.soft_weight_labelled)}
         soft_train, soft_out = soft_entries(scfg)
+        void_below = dict(scfg.get("void_below") or {})
         logger.info("soft labels: %d training entries, %d held out (%s)", len(soft_train), len(soft_out),
                     OmegaConf.to_container(scfg.holdout) if scfg.get("holdout") else "none")
     model, arch = build_model(cfg.model)
@@ -950,11 +964,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             g0 = torch.Generator().manual_seed(int(cfg.train.seed))
             picks = soft_draw(soft_train, dict(scfg.get("weights") or {}), float(scfg.get("default_weight", 1.0)),
                               int(scfg.get("weight_sample", 64)), g0)
-            probe = SoftLabelled(soft_train, focal_px=float(scfg.focal_px))
+            probe = SoftLabelled(soft_train, focal_px=float(scfg.focal_px), void_below=void_below)
             for j in tqdm(picks, desc="class frequencies", mininterval=10):
                 _, lab, soft = probe.load(j)
                 lab_t = torch.from_numpy(lab.astype(np.int64))
-                sample.append(torch.where(lab_t != IGNORE_LABEL, lab_t, soft.argmax(0)))
+                teacher = torch.where(soft.sum(0) > 0.5, soft.argmax(0), torch.full_like(lab_t, IGNORE_LABEL))
+                sample.append(torch.where(lab_t != IGNORE_LABEL, lab_t, teacher))
         w = class_weights(sample, power, cfg.train.get("class_weight_max"))
         # Thin classes (pole, person, two_wheeler) weigh more than their frequency alone gives.
         for name, boost in (cfg.train.get("class_boost") or {}).items():
@@ -976,7 +991,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if use_soft:
             # Re-read the manifest each epoch: the teacher may still be labelling in the background.
             soft_train, _ = soft_entries(scfg)
-            soft_set = SoftLabelled(soft_train, focal_px=float(scfg.focal_px), transform=soft_transform)
+            soft_set = SoftLabelled(soft_train, focal_px=float(scfg.focal_px), transform=soft_transform,
+                                    void_below=void_below)
             soft_transform.epoch = epoch
             offset = sum(len(d) for d in fixed)  # type: ignore[arg-type]
             soft_pick = [offset + j for j in soft_draw(soft_train, dict(scfg.get("weights") or {}),
