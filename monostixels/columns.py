@@ -427,7 +427,7 @@ def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky
     delta_L`` per row) in cells more than ``sky_margin_deg`` below the horizon: the flow term alone
     only caps the sky there (:func:`beyond_horizon`), the cost of any type whose flow fails, so where
     the flow fails (the image's lower corners, which leave the previous frame) the net's score decided,
-    and a bright patch of road read as sky became a sky stixel 6 m ahead (KITTI drive 0023). A road's
+    and a bright patch of road read as sky would become a sky stixel a few metres ahead. A road's
     grade changes by a few degrees, so sky is seen at most slightly below the road plane's horizon.
     Without semantics: zeros (C, 1, n + 1) and the default class of each type. ``cpp``: in the
     kernel (values only, no gradients).

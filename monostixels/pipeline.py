@@ -185,8 +185,7 @@ class Pipeline:
         estimator when ``motion.use_ground_normal`` is true and the estimator fitted one.
 
         A real camera is not mounted exactly level and roads tilt by a few degrees; a level ground
-        model then turns the road ahead into object fragments (KITTI raw: the fit is 1.6-2.6 deg
-        from level).
+        model then turns the road ahead into object fragments.
         """
         use = bool(self.cfg.motion.get("use_ground_normal", False))
         if not use or motion.ground_normal is None or motion.degenerate:

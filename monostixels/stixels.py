@@ -40,7 +40,7 @@ def segment_lower_median(values: torch.Tensor, seg: torch.Tensor, counts: torch.
     and segment sizes ``counts`` (S,); NaN where a segment holds a NaN (as ``torch.median``) or is empty.
 
     The segments are laid out as the rows of an (S, max count) array padded with ``+inf`` and sorted
-    along the rows (about half the time of sorting all values and then the segment ids): the
+    along the rows (cheaper than sorting all values and then the segment ids): the
     order statistics, and so the medians, are the same.
     """
     S = counts.numel()

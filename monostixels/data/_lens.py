@@ -69,7 +69,7 @@ class FrameWarp:
                 # Nearest neighbour; outside the stored frame = ignore.
                 mask = cv2.remap(mask.astype(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                                  borderValue=1).astype(bool)
-            # Fixed-point tables: the per-frame remap of a 720p frame takes ~20 % less time than with float ones.
+            # Fixed-point tables: the per-frame remap takes less time than with float ones.
             self._maps = cv2.convertMaps(mx, my, cv2.CV_16SC2)
             logger.info("lens: undistorting %dx%d frames (distortion %s, camera matrix kept); %.2f %% of the pixels "
                         "have no source and are ignored", W0, H0, np.array2string(d, precision=4),

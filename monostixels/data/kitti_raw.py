@@ -452,9 +452,8 @@ class KittiRawSource(LazySource):
         elif (folder / OXTS_DIR).is_dir():
             records = read_oxts(folder / OXTS_DIR)
             # Velocities are integrated over the *image* times: the synced OXTS record of a frame is
-            # the one nearest to it, and the OXTS timestamps jitter (0.100 / 0.110 s on drive 0023)
-            # while the camera runs at a steady 0.1036-0.1038 s; integrating over the OXTS times made
-            # |t| alternate by 10 % from pair to pair (0.88 / 0.97 m), over the image times it is steady.
+            # the one nearest to it, and the OXTS timestamps jitter while the camera runs steadily;
+            # integrated over the OXTS times, |t| would alternate from pair to pair.
             oxts_times = times
             if oxts_times is None and (folder / "oxts" / "timestamps.txt").exists():
                 ot = read_timestamps(folder / "oxts" / "timestamps.txt")

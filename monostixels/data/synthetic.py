@@ -29,8 +29,7 @@ reproduces the current image up to bilinear interpolation (tests/test_synthetic.
 bound). Sky colour depends on the world direction only; sky pixels carry the rotation-only flow
 ``K R K^-1`` but are not flow_valid (no depth).
 
-The renderer itself: :mod:`monostixels.data._render`. Speed: about 0.5 s of CPU time per 1242 x 375 pair with ground truth (one torch thread), see
-``benchmarks/render_speed.py``.
+The renderer itself: :mod:`monostixels.data._render`. Speed: ``benchmarks/render_speed.py``.
 """
 from __future__ import annotations
 

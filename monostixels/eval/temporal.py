@@ -11,7 +11,7 @@ into the current camera's axes, ``ttc_s``, the depth of the ray-plane intersecti
   closing with ``ttc_gt < 10 s`` (the other traffic: their relative motion is what the temporal layer
   estimates); an estimate that does not close counts as error 1. ``ttc_rel_err_static``: the same over
   static object pixels (classes building .. person), whose TTC is their depth over the ego speed, a
-  ratio in which the monocular scale cancels (single pairs: 0.4 % on the synthetic clips).
+  ratio in which the monocular scale cancels.
 - ``depth_jitter``: the previous frame's stixel depth map carried into the current frame by the camera
   motion between them (ground truth where the data has it, else the estimate), against the current
   one: median ``|d_t - d_carried| / d_t`` over ground-truth static pixels with depth ground truth

@@ -279,8 +279,8 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
 
     DeepFlow is a variational energy plus a matching term fed by DeepMatching, which is what lets
     it follow large displacements. OpenCV's ``createOptFlow_DeepFlow`` is the variational part
-    only: on our renders it is excellent below ~20 px (EPE 0.3 px) and fails above (EPE 20-40 px on
-    the near road). With ``matches: dis`` (default) dense patch matches from DIS stand in for
+    only: it is accurate on small displacements and fails on large ones (the near road). With
+    ``matches: dis`` (default) dense patch matches from DIS stand in for
     DeepMatching: the previous image is warped by them and DeepFlow's energy then solves for the
     residual, composed as ``f(x) = r(x) + f0(x + r(x))``. ``matches: none`` is OpenCV's DeepFlow
     as is. ``cfg.scale < 1``: the matches stay at full resolution, the residual (or, without
@@ -376,8 +376,8 @@ def _raft_net(cfg: Any) -> Any:
         # (docs/results.md "Flow"). The export of the weights is the .onnx file beside them (as
         # train.flow writes both): other weights without one run in torch, and so does any on a GPU.
         # flow.precision=int8 takes the INT8 copy beside them (<name>_int8.onnx) where there is one:
-        # its convolutions, most of the time, ~3x faster on a CPU (the flow stage about 0.7x), the EPE within
-        # 1-4 % (docs/experiments.md "Flow").
+        # its convolutions, most of the time, run faster on a CPU at a small cost in accuracy
+        # (docs/experiments.md "Flow").
         weights = config_value(cfg, "weights", None)
         precision = str(config_value(cfg, "precision", "float32"))
         if precision not in ("float32", "int8"):
@@ -684,9 +684,8 @@ def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Seq
 
     The paper pairs frames a driven distance apart (0.5 m). Over two or more frame intervals the
     displacements double or more, and a variational flow gets the near road and the movers wrong more
-    often than it gets them twice as large (synthetic clips at 3 m/s: the 2-frame flow's static outliers
-    twice the 1-frame flow's). So the flow is composed: the flow from the current frame to the stream's
-    last frame ``L`` (computed here, both ways where ``cfg.fb_consistency``), then the kept flows
+    often than it gets them twice as large. So the flow is composed: the flow from the current frame to
+    the stream's last frame ``L`` (computed here, both ways where ``cfg.fb_consistency``), then the kept flows
     ``L -> ... -> k`` of the frames between; the sum is refined on the pair's own images (``refine_passes``
     passes, at least one: the composition blurs and accumulates the frames' errors; the pair's images
     have the last word), and its covariance comes from the chained forward-backward check at full size.

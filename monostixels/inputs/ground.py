@@ -121,13 +121,13 @@ _PATTERN_ROUNDS = 8
 #: steps (6 % each) of the prediction.
 _WARM_GRID_STRIDE = 4
 _WARM_GRID_HALF_WIDTH = 3
-#: Least ratio of the refined to the grid contrast that the pattern search may reach (0.82 the least
-#: seen on the KITTI raw drives): a warm grid contrast above ``photometric_sharp / 0.7`` is not refined.
+#: Least ratio of the refined to the grid contrast that the pattern search is taken to reach (a bound with
+#: a margin): a warm grid contrast above ``photometric_sharp / 0.7`` is not refined.
 _PATTERN_MAX_GAIN = 0.7
 
 
-#: Most threads of the photometric search: its grid is 96 costs of ~0.5 ms, its pattern search
-#: asks for two at a time.
+#: Most threads of the photometric search: its grid is 96 costs, its pattern search asks for two at
+#: a time.
 _MAX_PHOTOMETRIC_WORKERS = 4
 
 
@@ -150,7 +150,7 @@ def _median(x: np.ndarray) -> float:
     """``float(np.median(x))`` of a non-empty 1-D array, from one partition.
 
     The same value as numpy (the middle order statistic, or the mean of the two middle ones
-    taken in ``x``'s dtype as ``np.mean`` takes it), 5-6x faster on the ~40000 costs of one
+    taken in ``x``'s dtype as ``np.mean`` takes it), several times faster on the costs of one
     photometric candidate: ``np.median`` partitions at three positions (two middles and the end,
     for its NaN check).
     """
@@ -193,8 +193,8 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
     :data:`_WARM_GRID_HALF_WIDTH` grid steps of ``s``: where the best of those lies inside that window
     it is the grid's minimum, and the pattern search runs from it as from scratch (the same result,
     a third of the 1-D search's cost); else the whole grid is read. The pattern search is not started
-    at the prediction itself: on our renders that kept each pair's scale near the last pair's (a bias
-    of 1-2 % where the search from the grid finds 0.3-0.9 %). ``unsharp``: with a start, a grid contrast
+    at the prediction itself: started there, it would keep each pair's scale near the last pair's, a
+    bias the search from the grid does not have. ``unsharp``: with a start, a grid contrast
     above this is returned as it is, without the pattern search (the caller then takes another scale;
     it asks again without a start where it needs the refined minimum after all).
 

@@ -34,17 +34,16 @@ Backends (``cfg.name``):
         warped onto the current one by the ground homography; a 1-D search over ``s`` then a
         pattern search over ``(s, n)`` minimise the median grey-value difference over the
         ground pixels. The near road moves by up to ~130 px between KITTI-like frames, where
-        flow fails; the images themselves do not (synthetic seed 2 at half size: median scale
-        error 0.2 % against 16 % from the flow on the 13 worst frames). Taken when its minimum
-        is sharp (``photometric_sharp``); on weakly textured real asphalt it often is not
-        (KITTI raw: flow 4 %, photometric 8 %).
+        flow fails; the images themselves do not. Taken when its minimum is sharp
+        (``photometric_sharp``); on weakly textured real asphalt it often is not, and steps b and
+        c take over.
      b. Road marks (``road_marks``, without a sharp photometric minimum): the same warp over the
         road pixels whose gradient runs along their epipolar line (lane dashes' ends, joints), with
         the road normal at right angles to the travel direction, minimised over the length ``s`` and
         the direction ``t̂`` (:mod:`monostixels.inputs.road_marks`). At highway speed the near road
-        moves 30-80 px over textureless asphalt: the flow there is near zero and the whole-road
+        moves tens of pixels over textureless asphalt: the flow there is near zero and the whole-road
         search prefers no warp; the marks still fix the scale, and the far scene's essential matrix
-        is up to ~3 deg off in direction, more than the marks' width at 2 m a pair.
+        can be degrees off in direction, more than the marks' width at 2 m a pair.
      c. From the flow: ``m`` is linear in the flow equations (RANSAC with the tilt bounded by
         ``ground_max_tilt``, then least squares); ``s = camera.height * |m|``. It is taken unless
         the road marks gave a length and it is shorter than :data:`FLOW_SHORT_RATIO` of theirs:
@@ -302,8 +301,8 @@ def _max_eigenvalue_at_most(cov: np.ndarray, bound: float) -> np.ndarray:
 
     ``bound I - C`` positive semi-definite: both diagonal entries and the determinant >= 0
     (the lower triangle is read, as ``eigvalsh`` reads it). For float32 covariances this is exact
-    in float64 (the products need at most ~50 bits), where an eigen-solver rounds; 20x faster
-    than ``torch.linalg.eigvalsh`` on the ~30000 grid vectors of a KITTI frame.
+    in float64 (the products need at most ~50 bits), where an eigen-solver rounds; much faster
+    than ``torch.linalg.eigvalsh`` on the grid vectors of a frame.
     """
     c = cov.astype(np.float64)
     pa, pd = bound - c[:, 0, 0], bound - c[:, 1, 1]
@@ -416,7 +415,7 @@ def estimate_mono(
     """
     check_shape(flow, [2, "H", "W"], "flow")
     flow_np = flow.detach().cpu().numpy()
-    if not np.isfinite(flow_np).all():  # numpy's test is ~15x faster; check_finite words the error
+    if not np.isfinite(flow_np).all():  # numpy's test is faster; check_finite words the error
         check_finite(flow, "flow")
     _, H, W = flow.shape
     if cov is not None:
@@ -442,7 +441,7 @@ def estimate_mono(
     labels = None
     if semantic is not None:
         # Class argmax where it is read: on the vector grid and on every second pixel (the
-        # photometric ground pixels). numpy's argmax over the leading axis is ~3x faster than
+        # photometric ground pixels). numpy's argmax over the leading axis is faster than
         # torch's; both take the first maximum.
         sem_np = semantic.detach().numpy()
         labels = np.argmax(sem_np[:, off::params.step, off::params.step], axis=0).ravel()
@@ -523,8 +522,8 @@ def _cheirality_sign(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray)
 #: Warm start of the essential matrix: the prediction replaces RANSAC when, within this many times the
 #: RANSAC threshold (Sampson distance), it explains at least the given share of the vectors the last pair's
 #: estimate explained (a sudden turn or a mover taking the view fails it). A prediction is not exact (yaw
-#: changes by hundredths of a degree from pair to pair: on KITTI raw ~45-75 % of the vectors lie within
-#: 0.5 px of it, ~97 % within 2 px); its inliers within 2 px start the refinement RANSAC's would.
+#: changes by hundredths of a degree from pair to pair), so the share is counted within a wider bound than
+#: RANSAC's; its inliers within 2 px start the refinement RANSAC's would.
 _WARM_SEED_FACTOR = 4.0
 _WARM_MIN_INLIER_SHARE = 0.9
 
@@ -570,7 +569,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             _, R, t, mask = cv2.recoverPose(E, pc, pp, Kn, mask=mask.copy())
         except cv2.error as err:
             # The 5-point solver asserts on some near-degenerate samples (a zero leading coefficient in
-            # solvePoly: seen after ~200 frames of a soak): a failed estimate of this pair, not a crash.
+            # solvePoly): a failed estimate of this pair, not a crash.
             first = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
             return MotionEstimate(None, False, f"essential matrix: OpenCV failed on these vectors ({first})", 0.0,
                                   kind="unknown")
@@ -605,8 +604,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             start = None
             if warm and pred.normal is not None and float(t @ pred.t_unit) > 0:
                 start = (pred.scale, pred.normal)
-            # Warm, a grid minimum far from sharp is not refined: the pattern search lowered the contrast by
-            # at most 18 % on the KITTI raw drives (0.30 -> 0.25), never from above sharp / 0.7.
+            # Warm, a grid minimum far from sharp is not refined: the pattern search lowers the contrast by
+            # too little to bring it from above sharp / 0.7 to sharp.
             found = _photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt, start,
                                         unsharp=params.photometric_sharp / _PATTERN_MAX_GAIN)
             refine_weak = start is not None

@@ -34,15 +34,14 @@ class MotionTrackParams:
         sequence_prior: filter the metric scale over consecutive pairs (``mono`` only).
         speed_process_std: relative change of speed per second allowed by the model (1/s, std):
             0.3 = 30 %/s, i.e. 2.7 m/s^2 at 9 m/s (braking or accelerating firmly), 3 % per KITTI frame.
-        scale_meas_std: relative error (std) of one pair's monocular scale (KITTI raw: 2-5 %).
+        scale_meas_std: relative error (std) of one pair's monocular scale.
         scale_gate: a pair's scale farther than this many innovation standard deviations from the
             prediction is an outlier and replaced by the prediction. The next pair's scale, again an
             outlier but within this many standard deviations of the first one, restarts the track at it
-            (the track, not the pairs, was wrong: a first pair far off held every later pair out).
+            (then the track, not the pairs, is wrong: a first pair far off would hold every later pair out).
         normal_process_std_deg: how fast the road normal may turn in the camera (degrees per
             square-root second: a random walk; pitching on bumps, a change of slope).
-        normal_meas_std_deg: error (std, degrees) of one pair's fitted road normal (KITTI raw drive
-            0023: consecutive fits differ by 0.3-2 degrees).
+        normal_meas_std_deg: error (std, degrees) of one pair's fitted road normal.
         normal_gate_deg: a fit farther than this from the prediction (degrees, beyond its innovation
             std) is an outlier and the prediction stands. 0 = no normal filter.
         scale_hold_s: a pair whose translation direction is known but not its length
@@ -67,8 +66,8 @@ class MotionTrack:
     Scale: the state is the log speed ``log(|t| / dt)`` (dt seconds between the frames,
     ``meta["dt"]``; 1 per pair when unknown) with its variance. Per pair: predict (constant velocity,
     variance grows by ``(speed_process_std dt)^2``), gate the new measurement, update. Only the
-    length of ``t`` changes (direction and rotation are the pair's own: with ~20 px parallax they are
-    already steady, 0.3-0.6 deg on KITTI raw).
+    length of ``t`` changes (direction and rotation are the pair's own: with a driving camera's parallax
+    they are already steady).
 
     Road normal (the plane the ground stixels lie on, ``ground_normal``): the filtered normal of the
     pair's earlier frame, turned into the current camera (``n_cur = R^T n_prev``), is the prediction
@@ -138,9 +137,9 @@ class MotionTrack:
         last, self._rejected = self._rejected, None
         if abs(innov) > prm.scale_gate * math.sqrt(s):
             # Two outliers in a row that agree with each other (two pairs' errors and the speed change
-            # between them): the track was off, not the pairs; it restarts at this one. (Without this,
-            # a first pair 8 % long held a slowing car's pairs out for the whole drive: their
-            # innovations grew faster than the prediction's variance.)
+            # between them): the track was off, not the pairs; it restarts at this one. Otherwise a track
+            # started off would hold a slowing car's pairs out for good: their innovations grow faster
+            # than the prediction's variance.
             if last is not None and abs(z - last) <= prm.scale_gate * math.sqrt(2 * r + (prm.speed_process_std * dt) ** 2):
                 self._x, self._var = z, r
                 note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
@@ -208,7 +207,7 @@ class MotionTrack:
             n_new, var_new = n_new / n_new.norm(), (1.0 - k) * var_pred
         # Kept: the frames from this pair's earlier frame on. A keyframe pair reaching back past them (pairs
         # (3, 1), (4, 2), ...) starts the normal again at its own fit, which matches its own scale (the two
-        # trade off in the photometric search); continuing the filter over such pairs raised the depth
-        # jitter on every synthetic clip set (docs/experiments.md, "Ego-motion").
+        # trade off in the photometric search); a filtered normal would not match it (docs/experiments.md,
+        # "Ego-motion").
         self._normals = {f: v for f, v in self._normals.items() if f >= prev} | {cur: (n_new, var_new)}
         return dataclasses.replace(est, ground_normal=n_new.to(est.ground_normal.dtype))

@@ -82,8 +82,8 @@ class GatherCorrBlock(torchvision.models.optical_flow.raft.CorrBlock):
     The same values (bilinear, zero outside the volume, the window's first axis the x offset as in
     torchvision): a window of ``2r + 1`` taps around a centroid shares one fractional offset, so the
     ``(2r + 2)^2`` integer cells under it are gathered once and blended with four weights. ONNX Runtime
-    spent about two thirds of RAFT-small's time in ``GridSample`` and the arithmetic on its
-    normalised grid (one batch item per pixel, a 7x7 grid each); the gathers take a fraction of it.
+    spends most of RAFT-small's time in ``GridSample`` and the arithmetic on its normalised grid
+    (one batch item per pixel, a 7x7 grid each); the gathers take a fraction of it.
     """
 
     def index_pyramid(self, centroids_coords: torch.Tensor) -> torch.Tensor:
@@ -224,8 +224,8 @@ def convex_upsample(flow: torch.Tensor, up_mask: torch.Tensor, factor: int = 8) 
     around its cell, times ``factor`` (torchvision's ``upsample_flow`` with a mask, to float rounding).
 
     The softmax is written out (max, exp, sums): ONNX Runtime's ``Softmax`` over the 9 weights, an inner
-    axis of a 7-d tensor, transposes it to the last axis and back, 7x the time of the whole upsampling
-    written this way (138 against 20 ms at 288x936, both ways).
+    axis of a 7-d tensor, transposes it to the last axis and back, several times the time of the whole
+    upsampling written this way.
 
     Args:
         flow: (B, 2, h, w) coarse flow, pixels of the coarse grid. up_mask: (B, 9 * factor^2, h, w) logits.
@@ -300,8 +300,8 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MI
     (B, 2, Hp, Wp). With ``dynamic`` (default; ``torch.export`` through onnxscript) the size is free:
     any ``Hp, Wp`` that are multiples of 8 from :data:`RAFT_MIN_SIZE` to :data:`ONNX_MAX_SIZE`
     (``height``, ``width`` only size the example input), and ``B = 2``: a pair both ways, the
-    forward-backward check in one run (a free batch does not export; one batch of two takes 0.87x the
-    time of two runs of one). Without it the legacy tracer fixes ``(Hp, Wp) = padded_size(height,
+    forward-backward check in one run (a free batch does not export; one batch of two takes less time
+    than two runs of one). Without it the legacy tracer fixes ``(Hp, Wp) = padded_size(height,
     width)`` and ``B = 1``. ``half_weights`` stores the weights as float16 (each cast back to float32
     in the graph): half the file, the same flow as weights loaded from a float16 state dict. The
     exporter's per-node debugging metadata is dropped.
@@ -352,7 +352,7 @@ def export_onnx(module: RaftFlow, path: str | os.PathLike, height: int = RAFT_MI
 def compact_names(proto: Any) -> None:
     """Short names for an ONNX ``ModelProto``'s internal tensors (its inputs and outputs keep theirs), no node
     names, no intermediate shape records: the same graph in fewer bytes (the 12 unrolled updates repeat
-    long module paths thousands of times; a fifth of the INT8 file)."""
+    long module paths thousands of times)."""
     keep = {v.name for v in proto.graph.input} | {v.name for v in proto.graph.output}
     names: dict[str, str] = {}
 

@@ -1,6 +1,6 @@
 """Metric scale and travel direction from the road's marks: the road alignment of ``motion=mono`` (step 4b).
 
-At highway speed the near road moves 30-80 px between frames and most of it is textureless asphalt:
+At highway speed the near road moves tens of pixels between frames and most of it is textureless asphalt:
 the flow there collapses towards zero, and the photometric search over all road pixels
 (:func:`monostixels.inputs.ground._photometric_ground`) finds asphalt matching itself best unwarped.
 What fixes the length of a forward translation on a road is the image gradient *along* the epipolar
@@ -24,8 +24,7 @@ On a stream (``stream.motion_warm_start``) the last pair's length starts the sea
 covers only a window around it (:data:`WARM_SPAN`, :data:`WARM_DIRECTION_DEG`), about 30x fewer warps,
 and the whole grid runs where that window's minimum lies on its edge or is not clear.
 
-The settings are stated rather than tuned; they were checked on the shared dashcam clip (pairs 0, 5, 10,
-15, 30; docs/experiments.md "A dashcam at highway speed").
+The settings are stated rather than tuned (docs/experiments.md, "A dashcam at highway speed").
 """
 from __future__ import annotations
 
