@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from monostixels.classes import DYNAMIC_OBJECT
+from monostixels.core.classes import DYNAMIC_OBJECT
 from monostixels.data.sources import make_source
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import Pipeline, load_config

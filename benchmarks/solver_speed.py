@@ -66,11 +66,11 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 
-from monostixels import _dp_cpp  # noqa: E402
+from monostixels.core import _dp_cpp  # noqa: E402
 from monostixels.data.synthetic import render_pair  # noqa: E402
-from monostixels.energy import PriorParams  # noqa: E402
+from monostixels.core.energy import PriorParams  # noqa: E402
 from monostixels.inputs.semantic import gt_scores  # noqa: E402
-from monostixels.solver import SolverConfig, solve  # noqa: E402
+from monostixels.core.solver import SolverConfig, solve  # noqa: E402
 
 
 def _peak_mb() -> float:

@@ -34,9 +34,9 @@ import numpy as np
 
 from monostixels._checks import InputError
 from monostixels._threads import set_threads
-from monostixels.classes import CLASS_NAMES, TYPE_NAMES
+from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.data._io import IMAGE_EXTENSIONS
-from monostixels.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
+from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
 
 __all__ = ["Clip", "SCHEMA_FIELDS", "discover_clips", "clip_data_config", "process_clip", "read_summary",
            "run_batch"]

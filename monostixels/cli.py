@@ -192,8 +192,8 @@ def _demo(cfg: DictConfig) -> float:
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
     from monostixels.pipeline import Pipeline
-    from monostixels.bev import bev_image
-    from monostixels.viz import (depth_colormap, flow_colormap, image_to_uint8, paper_figure, semantic_colormap,
+    from monostixels.output.bev import bev_image
+    from monostixels.output.viz import (depth_colormap, flow_colormap, image_to_uint8, paper_figure, semantic_colormap,
                                  stixel_depth_overlay, stixel_overlay)
 
     out = Path(cfg.outputs) / "demo"
@@ -224,7 +224,7 @@ def _demo(cfg: DictConfig) -> float:
         pics["semantics.png"] = semantic_colormap(res.semantic.argmax(0))
     if pair.gt.depth is not None:
         pics["depth_ground_truth.png"] = depth_colormap(pair.gt.depth, min_depth=lo, max_depth=hi)
-    from monostixels.io import write_image
+    from monostixels.output.io import write_image
 
     for name, pic in pics.items():
         write_image(out / name, pic)
@@ -339,14 +339,14 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels._checks import InputError
 
-    from monostixels.bev import bev_image
+    from monostixels.output.bev import bev_image
     from monostixels.data._io import MAX_SKIPPED_FRAMES
     from monostixels.data.sources import camera_mount
-    from monostixels.io import depth_to_points, write_depth_png16, write_image, write_ply
+    from monostixels.output.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
-    from monostixels.viewer import open_recorder
-    from monostixels.viz import depth_colormap, side_by_side, stixel_depth_overlay
+    from monostixels.output.viewer import open_recorder
+    from monostixels.output.viz import depth_colormap, side_by_side, stixel_depth_overlay
 
     src = _source(cfg)
     live = hasattr(src, "indices")  # a camera, a URL or data.realtime: frames as they come, no length

@@ -28,20 +28,20 @@ from omegaconf import DictConfig, OmegaConf
 from monostixels._checks import InputError, check_frame_size
 from monostixels._pools import helper_pool
 from monostixels._threads import ensure_threads
-from monostixels.boundaries import refine_object_tops
+from monostixels.post.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
-from monostixels.energy import PriorParams
-from monostixels.sfm import triangulate
-from monostixels.geometry import Camera, Motion
+from monostixels.core.energy import PriorParams
+from monostixels.post.sfm import triangulate
+from monostixels.core.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
 from monostixels.inputs.motion import NO_METRIC_MOTION, MotionEstimate, estimate_motion, implied_height
 from monostixels.inputs.motion_track import MotionTrack
 from monostixels.inputs.semantic import estimate_semantics
-from monostixels.movers import MoverCheckParams, check_movers, static_only
-from monostixels.solver import SolverConfig, solve
-from monostixels.static_regions import crop_ignored
-from monostixels.stixels import StixelWorld
-from monostixels.stream import Carried, StreamState, warp_scores
+from monostixels.post.movers import MoverCheckParams, check_movers, static_only
+from monostixels.core.solver import SolverConfig, solve
+from monostixels.inputs.static_regions import crop_ignored
+from monostixels.core.stixels import StixelWorld
+from monostixels.sequence.stream import Carried, StreamState, warp_scores
 
 __all__ = ["MotionEstimationError", "PipelineResult", "Pipeline", "load_config"]
 
@@ -199,7 +199,7 @@ class Pipeline:
 
         Args:
             pair: the frame pair.
-            state: the stream state of a sequence (:mod:`monostixels.stream`): what the last pair of
+            state: the stream state of a sequence (:mod:`monostixels.sequence.stream`): what the last pair of
                 the stream computed for this pair's previous frame (grey image, flow, semantic scores,
                 camera motion, as the config group ``stream`` says), and where this pair's is kept;
                 with ``stream.overlap`` it also holds this pair's flow and semantics, computed while the
@@ -301,12 +301,12 @@ class Pipeline:
                             self.solver_cfg)
         sec["solver"] = time.perf_counter() - t0
         if self.mover_check.enabled and not motion.degenerate:
-            # Dynamic stixels that an object standing still explains become static (monostixels.movers).
+            # Dynamic stixels that an object standing still explains become static (monostixels.post.movers).
             t0 = time.perf_counter()
             stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check)
             sec["movers"] = time.perf_counter() - t0
         if self.solver_cfg.top_refine_rows and semantic is not None:
-            # Moving objects' tops from cell edges to pixel rows (monostixels.boundaries).
+            # Moving objects' tops from cell edges to pixel rows (monostixels.post.boundaries).
             t0 = time.perf_counter()
             stixels = refine_object_tops(stixels, semantic, self.solver_cfg.top_refine_rows,
                                          self.solver_cfg.top_refine_depth_ratio, float(self.prior.alpha_L),

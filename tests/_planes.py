@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import torch
 
-from monostixels.classes import NUM_CLASSES
-from monostixels.geometry import (
+from monostixels.core.classes import NUM_CLASSES
+from monostixels.core.geometry import (
     Camera,
     Motion,
     apply_homography,

@@ -1,8 +1,8 @@
 """A slow, obviously-correct reference solver for tiny problems (the tests compare against it).
 
-It solves the same column problem as :mod:`monostixels.solver` with plain Python loops over
+It solves the same column problem as :mod:`monostixels.core.solver` with plain Python loops over
 cells, segment bottoms, types, predecessor types, hypotheses and classes; every flow cost is
-computed row by row through the full 3x3 homography (:func:`monostixels.geometry.homography`),
+computed row by row through the full 3x3 homography (:func:`monostixels.core.geometry.homography`),
 not through the solver's factorised form or its prefix sums. It also offers
 :func:`column_energy`, the energy of a given labelled segmentation, and
 :func:`exhaustive_column`, which enumerates every segmentation of a tiny column.
@@ -15,16 +15,16 @@ from dataclasses import dataclass
 
 import torch
 
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
-from monostixels.energy import GRAVITY_TOLERANCE_M, PriorParams
-from monostixels.geometry import (
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, NUM_TYPES, SKY, STATIC_OBJECT, TYPE_CLASSES
+from monostixels.core.energy import GRAVITY_TOLERANCE_M, PriorParams
+from monostixels.core.geometry import (
     apply_homography,
     dynamic_homography,
     homography,
     pixel_rays,
 )
-from monostixels.columns import _DEFAULT_CLASS, ColumnProblem, _hypotheses
-from monostixels.solver import SolverConfig
+from monostixels.core.columns import _DEFAULT_CLASS, ColumnProblem, _hypotheses
+from monostixels.core.solver import SolverConfig
 
 __all__ = ["RefStixel", "reference_column", "column_energy", "exhaustive_column"]
 

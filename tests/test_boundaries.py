@@ -1,13 +1,13 @@
-"""Moving objects' tops at pixel rows (monostixels.boundaries)."""
+"""Moving objects' tops at pixel rows (monostixels.post.boundaries)."""
 from __future__ import annotations
 
 import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.boundaries import refine_object_tops, row_class_cost
-from monostixels.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, NUM_CLASSES, SKY, STATIC_OBJECT
-from monostixels.stixels import StixelWorld
+from monostixels.post.boundaries import refine_object_tops, row_class_cost
+from monostixels.core.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, NUM_CLASSES, SKY, STATIC_OBJECT
+from monostixels.core.stixels import StixelWorld
 
 H, W, WS = 60, 15, 5
 K = torch.tensor([[50.0, 0.0, 7.0], [0.0, 50.0, 20.0], [0.0, 0.0, 1.0]], dtype=torch.float64)

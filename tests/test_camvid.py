@@ -16,7 +16,7 @@ import torch
 from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.camvid import (
     CAMVID_CLASSES,
     CAMVID_CLASSES_PRESENT,
@@ -28,7 +28,7 @@ from monostixels.data.camvid import (
 )
 from monostixels.data.base import FramePair
 from monostixels.eval.semantic import evaluate_semantics, image_pair
-from monostixels.geometry import Camera
+from monostixels.core.geometry import Camera
 from monostixels.inputs.semantic import CITYSCAPES19_MAPPING, estimate_semantics, fcn8s_scale
 from monostixels.pipeline import load_config
 from tests.test_semantic import _load_train_module

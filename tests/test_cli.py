@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from monostixels.stixels import StixelWorld
+from monostixels.core.stixels import StixelWorld
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -250,7 +250,7 @@ def test_run_on_frames_below_the_minimum_size_fails_clearly(tmp_path, size):
 def test_pipeline_refuses_a_frame_below_the_minimum_size():
     from monostixels._checks import MIN_FRAME_SIZE, InputError
     from monostixels.data.base import FramePair
-    from monostixels.geometry import Camera, intrinsics
+    from monostixels.core.geometry import Camera, intrinsics
     from monostixels.pipeline import Pipeline, load_config
 
     H, W = MIN_FRAME_SIZE[0] - 1, 200

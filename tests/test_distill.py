@@ -10,7 +10,7 @@ import torch
 from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from tests.test_camvid import CONF, SHARED, _write_camvid
 from tests.test_semantic import _load_train_module
 

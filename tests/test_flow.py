@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import Camera, intrinsics
+from monostixels.core.geometry import Camera, intrinsics
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 from monostixels.inputs.flow import estimate_flow, flow_metrics
 from monostixels.inputs.raft import OnnxRaft, RaftFlow, TorchRaft, build_raft, export_onnx, load_raft_weights, padded_size

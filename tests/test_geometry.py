@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.geometry import (
+from monostixels.core.geometry import (
     Camera,
     Motion,
     apply_homography,

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES
+from monostixels.core.classes import CLASS_NAMES
 from monostixels.eval.metrics import (
     DepthAccumulator,
     SemanticAccumulator,

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
 from monostixels.data.base import FramePair
-from monostixels.geometry import Camera, Motion, homography, intrinsics, pixel_rays, rotation_yaw
+from monostixels.core.geometry import Camera, Motion, homography, intrinsics, pixel_rays, rotation_yaw
 from monostixels.inputs.flow import FlowResult
 from monostixels.eval.metrics import motion_errors
 from monostixels.inputs.motion import estimate_motion, load_poses
@@ -326,7 +326,7 @@ def test_mono_scale_from_the_images_when_the_road_flow_fails():
 
 def _track_pair(frame: int, seq: str = "s", dt: float = 0.1):
     from monostixels.data.base import FramePair
-    from monostixels.geometry import Camera, intrinsics
+    from monostixels.core.geometry import Camera, intrinsics
 
     cam = Camera(K=intrinsics(10.0, 10.0, 2.0, 2.0), height=1.65,
                  ground_normal=torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
@@ -335,7 +335,7 @@ def _track_pair(frame: int, seq: str = "s", dt: float = 0.1):
 
 
 def _est(norm: float):
-    from monostixels.geometry import Motion
+    from monostixels.core.geometry import Motion
     from monostixels.inputs.motion import MotionEstimate
 
     t = torch.tensor([0.0, 0.0, norm], dtype=torch.float64)
@@ -362,7 +362,7 @@ def test_motion_track_rejects_a_scale_outlier_and_keeps_direction():
 
 
 def _unit(direction=(0.0, 0.0, 1.0)):
-    from monostixels.geometry import Motion
+    from monostixels.core.geometry import Motion
     from monostixels.inputs.motion import MotionEstimate
 
     t = torch.tensor(direction, dtype=torch.float64)

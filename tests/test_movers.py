@@ -1,13 +1,13 @@
-"""The post-solve mover check (monostixels.movers): standing-still objects lose their false motion,
+"""The post-solve mover check (monostixels.post.movers): standing-still objects lose their false motion,
 crossing and oncoming movers keep theirs. Hand-made flow of a fronto-parallel wall."""
 from __future__ import annotations
 
 import torch
 
-from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.geometry import Motion, apply_homography, homography, intrinsics, pixel_rays
-from monostixels.movers import MoverCheckParams, check_movers
-from monostixels.stixels import StixelWorld
+from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.core.geometry import Motion, apply_homography, homography, intrinsics, pixel_rays
+from monostixels.post.movers import MoverCheckParams, check_movers
+from monostixels.core.stixels import StixelWorld
 
 H, W, WS = 40, 60, 10
 K = intrinsics(50.0, 48.0, 31.0, 18.0)
@@ -160,7 +160,7 @@ def test_kept_classes_stay_dynamic_where_the_geometry_cannot_tell():
     # and so does the part stacked on it (the stack stands on the road).
     import dataclasses
 
-    from monostixels.classes import CLASS_NAMES
+    from monostixels.core.classes import CLASS_NAMES
 
     flow = _moving_wall_flow(10.0, 0.05)
     person, vehicle = CLASS_NAMES.index("person"), CLASS_NAMES.index("vehicle")

@@ -10,10 +10,10 @@ import torch
 from matplotlib import colormaps
 
 from monostixels._checks import InputError
-from monostixels.bev import BevView, bev_image, free_space, stixel_footprints
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
-from monostixels.stixels import StixelWorld
-from monostixels.viz import frame_notes, mover_groups, side_by_side, stixel_depth_overlay
+from monostixels.output.bev import BevView, bev_image, free_space, stixel_footprints
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+from monostixels.core.stixels import StixelWorld
+from monostixels.output.viz import frame_notes, mover_groups, side_by_side, stixel_depth_overlay
 
 # An asymmetric camera (fx != fy, cx, cy off centre), level ground at 1.65 m.
 FX, FY, CX, CY, HEIGHT = 100.0, 95.0, 27.0, 18.0, 1.65

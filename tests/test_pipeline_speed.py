@@ -1,5 +1,5 @@
 """The faster paths of the pipeline against their plain definitions: the vectorised mover check
-(monostixels.movers) and the flow at a reduced resolution (``flow.scale``, monostixels.inputs.flow)."""
+(monostixels.post.movers) and the flow at a reduced resolution (``flow.scale``, monostixels.inputs.flow)."""
 from __future__ import annotations
 
 import math
@@ -10,14 +10,14 @@ import torch
 from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
-from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data.base import FramePair
-from monostixels.sfm import triangulate
-from monostixels.geometry import Camera, Motion, apply_homography, homography, intrinsics, pixel_rays
+from monostixels.post.sfm import triangulate
+from monostixels.core.geometry import Camera, Motion, apply_homography, homography, intrinsics, pixel_rays
 from monostixels.inputs.flow import compute_flow, estimate_flow, flow_metrics
-from monostixels.movers import MoverCheckParams, check_movers
-from monostixels.stixels import segment_lower_median
-from monostixels.stixels import StixelWorld
+from monostixels.post.movers import MoverCheckParams, check_movers
+from monostixels.core.stixels import segment_lower_median
+from monostixels.core.stixels import StixelWorld
 
 # Asymmetric camera (fx != fy, cx, cy off centre), H != W, a small yaw.
 H, W, WS = 48, 70, 5
@@ -539,8 +539,8 @@ def test_threaded_photometric_search_equals_the_sequential_one(monkeypatch):
 def test_depth_map_equals_the_ray_plane_formula(seed):
     """StixelWorld.depth_map (the dot product written out per component) is bit for bit the (H, W, 3)
     ray-plane formula, with skew, a tilted ground normal, sky and uncovered pixels."""
-    from monostixels.classes import SKY
-    from monostixels.geometry import object_normals
+    from monostixels.core.classes import SKY
+    from monostixels.core.geometry import object_normals
 
     st, _ = _random_scene(seed)
     n_g = torch.tensor([0.02, 0.995, -0.05], dtype=torch.float64)

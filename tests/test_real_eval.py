@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from monostixels.classes import DYNAMIC_OBJECT
+from monostixels.core.classes import DYNAMIC_OBJECT
 from monostixels.data.sources import make_source
 from monostixels.eval.evaluate import SPLITS, evaluate
 from monostixels.pipeline import Pipeline, PipelineResult, load_config

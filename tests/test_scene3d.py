@@ -1,4 +1,4 @@
-"""Stixels in 3D (monostixels.scene3d): reference points, boxes, chained poses, frame times.
+"""Stixels in 3D (monostixels.output.scene3d): reference points, boxes, chained poses, frame times.
 
 Asymmetric camera (fx != fy, cx, cy off-centre, H != W) so a transposition or sign slip cannot pass.
 """
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
-from monostixels.geometry import Motion
-from monostixels.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
-from monostixels.stixels import StixelWorld
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+from monostixels.core.geometry import Motion
+from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
+from monostixels.core.stixels import StixelWorld
 
 FX, FY, CX, CY = 410.0, 380.0, 147.3, 52.6
 H, W, WS = 120, 320, 8
@@ -128,7 +128,7 @@ def test_pose_chain_maps_every_frame_into_the_first_camera():
 
 def test_pose_chain_keeps_the_recent_frames_only():
     """A camera left running: the chain keeps a bounded number of poses and still chains the last frames."""
-    from monostixels.scene3d import _KEPT_POSES
+    from monostixels.output.scene3d import _KEPT_POSES
 
     chain = PoseChain()
     R, t = _rot_y(0.5), np.array([0.0, 0.0, 1.0])
@@ -156,7 +156,7 @@ def test_pose_chain_follows_the_previous_frame_not_the_previous_pair(caplog):
         return SimpleNamespace(meta={"path": f"{k}.png", "path_prev": f"{k - 2}.png"}, name=f"{k}")
 
     T2 = chain.update(pair(2), _res(*M[2]))
-    with caplog.at_level(logging.WARNING, logger="monostixels.scene3d"):
+    with caplog.at_level(logging.WARNING, logger="monostixels.output.scene3d"):
         chain.update(pair(3), _res(*M[3]))  # frame 1 was never a current frame: approximate, said once
     assert "pose is unknown" in caplog.text
     T4 = chain.update(pair(4), _res(*M[4]))

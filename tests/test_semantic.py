@@ -12,9 +12,9 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import Camera
+from monostixels.core.geometry import Camera
 from monostixels.inputs.fcn8s import (
     OUTPUT_STRIDE,
     export_onnx,

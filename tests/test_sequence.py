@@ -12,11 +12,11 @@ from monostixels._checks import InputError
 from monostixels.data.base import PreviousFrame
 from monostixels.data.sources import make_source
 from monostixels.data.synthetic import SyntheticSequence, render_pair
-from monostixels.geometry import Motion, object_normals, pixel_rays
+from monostixels.core.geometry import Motion, object_normals, pixel_rays
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import KeyframeParams, SequenceRunner, choose_keyframe
-from monostixels.stixels import StixelWorld
-from monostixels.tracking import TrackParams, Tracks, TtcParams, critical, time_to_collision
+from monostixels.core.stixels import StixelWorld
+from monostixels.sequence.tracking import TrackParams, Tracks, TtcParams, critical, time_to_collision
 
 
 def _prev(back: int, tz: float | None, dt: float = 0.1) -> PreviousFrame:
@@ -264,7 +264,7 @@ def test_time_to_collision_of_a_hand_made_closing_object():
 def test_a_warning_waits_for_its_track_to_be_confirmed():
     """A car closing in the path is warned about once its track has continued ttc.confirm_frames frames; a
     stixel critical in one frame only (a new track each time) never is."""
-    from monostixels.tracking import confirmed
+    from monostixels.sequence.tracking import confirmed
 
     params = TtcParams(confirm_frames=2)
     tracks, warned = Tracks(TrackParams()), []
@@ -468,9 +468,9 @@ def test_a_pair_whose_camera_motion_is_unknown_shows_no_movers_and_no_warning(mo
     """A pair whose metric motion is unknown (no scale, or no estimate at all) calls nothing moving, raises no
     collision warning, has no pose and is no later pair's partner; the frames around it are solved as before."""
     import monostixels.pipeline as pipeline_module
-    from monostixels.classes import DYNAMIC_OBJECT
+    from monostixels.core.classes import DYNAMIC_OBJECT
     from monostixels.inputs.motion import MotionEstimate
-    from monostixels.viz import frame_notes
+    from monostixels.output.viz import frame_notes
 
     ov = ["data=synthetic", "data.frames=1", "data.sequence_length=6", "data.ego_speed_mps=3", "data.scale=0.25",
           "flow=gt", "semantic=gt", "motion=gt"]

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.sfm import triangulate, triangulate_depth, triangulate_points
-from monostixels.geometry import Motion, intrinsics, rotation_yaw
+from monostixels.post.sfm import triangulate, triangulate_depth, triangulate_points
+from monostixels.core.geometry import Motion, intrinsics, rotation_yaw
 
 H, W = 18, 27  # H != W
 K = intrinsics(fx=52.0, fy=61.0, cx=14.3, cy=8.1)  # fx != fy, cx != cy

@@ -8,8 +8,8 @@ import pytest
 
 from benchmarks.soak import pingpong_index, run_soak, soak_config, write_pingpong_clip
 from monostixels.sequence import KeyframeParams
-from monostixels.stream import _HISTORY_FRAMES
-from monostixels.tracking import TrackParams
+from monostixels.sequence.stream import _HISTORY_FRAMES
+from monostixels.sequence.tracking import TrackParams
 
 #: Frame pairs of the short soak; scene frames one way (a period of 2 * LENGTH = 40 frames, so each
 #: third of the soak holds 2.5 periods); image size over KITTI's (75x248: still tracks to make).

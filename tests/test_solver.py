@@ -7,12 +7,12 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
-from monostixels.energy import PriorParams
-from monostixels.geometry import Camera, Motion, intrinsics, rotation_yaw
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+from monostixels.core.energy import PriorParams
+from monostixels.core.geometry import Camera, Motion, intrinsics, rotation_yaw
 from tests.reference import column_energy, exhaustive_column, reference_column
-from monostixels.columns import prepare_columns
-from monostixels.solver import SolverConfig, solve, solve_columns
+from monostixels.core.columns import prepare_columns
+from monostixels.core.solver import SolverConfig, solve, solve_columns
 
 from tests import _planes
 
@@ -175,7 +175,7 @@ def test_planar_scene_depth_map(planar):
         v = (tr["foot_v"] + tr["top_v"]) // 2
         uc = c * _planes.WS + 2
         ray = torch.linalg.inv(_planes.K) @ torch.tensor([uc, v, 1.0], dtype=torch.float64)
-        from monostixels.geometry import object_normals
+        from monostixels.core.geometry import object_normals
 
         n_o = object_normals(_planes.K, _planes.CAM.ground_normal.double(), torch.tensor(uc, dtype=torch.float64))
         z_true = obj.dist / float(ray @ n_o)
@@ -218,7 +218,7 @@ def test_ground_and_sky_keep_to_their_side_of_the_horizon():
     # A forward-moving camera and the flow of the ground plane's homography over the whole image:
     # above the horizon that flow is the plane's mirror image behind the camera, which no ground
     # can produce (on real images: noise near the focus of expansion that a far ground fits).
-    from monostixels.geometry import apply_homography, homography
+    from monostixels.core.geometry import apply_homography, homography
 
     H, W, cy = 60, 20, 24.5
     K = intrinsics(60.0, 60.0, 9.5, cy)

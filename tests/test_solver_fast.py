@@ -8,14 +8,14 @@ import math
 import pytest
 import torch
 
-from monostixels import _dp_cpp
-from monostixels import columns as columns_mod
-from monostixels import solver as solver_mod
+from monostixels.core import _dp_cpp
+from monostixels.core import columns as columns_mod
+from monostixels.core import solver as solver_mod
 from monostixels.data.synthetic import render_pair
-from monostixels.energy import PriorParams
+from monostixels.core.energy import PriorParams
 from monostixels.inputs.semantic import gt_scores
 from tests.reference import reference_column
-from monostixels.solver import SolverConfig, solve, solve_columns
+from monostixels.core.solver import SolverConfig, solve, solve_columns
 
 from tests.test_solver import random_problem
 
@@ -104,10 +104,10 @@ def test_build_failure_falls_back_with_one_warning(monkeypatch, caplog):
     monkeypatch.setattr(_dp_cpp, "_build", broken_build)
     prob, prm, cfg = random_problem(4)
     expected = solve_columns(prob, prm, _with(cfg, backend="eager")).energy
-    with caplog.at_level(logging.WARNING, logger="monostixels._dp_cpp"):
+    with caplog.at_level(logging.WARNING, logger="monostixels.core._dp_cpp"):
         for _ in range(3):
             assert torch.equal(solve_columns(prob, prm, _with(cfg, backend="auto")).energy, expected)
-    warnings = [r for r in caplog.records if r.name == "monostixels._dp_cpp"]
+    warnings = [r for r in caplog.records if r.name == "monostixels.core._dp_cpp"]
     assert len(warnings) == 1 and "no C++ compiler (test)" in warnings[0].getMessage()
     with pytest.raises(RuntimeError, match="solver.backend=cpp.*no C\\+\\+ compiler"):
         solve_columns(prob, prm, _with(cfg, backend="cpp"))
@@ -121,7 +121,7 @@ def test_killed_build_leaves_no_lock_that_blocks(tmp_path, caplog):
 
     build_dir = tmp_path / "monostixels_column_dp_x"
     # A process that holds the build lock, writes torch's baton file as a build does, and is killed.
-    code = ("import sys, time; from pathlib import Path; from monostixels._dp_cpp import build_lock\n"
+    code = ("import sys, time; from pathlib import Path; from monostixels.core._dp_cpp import build_lock\n"
             "d = Path(sys.argv[1])\n"
             "with build_lock(d):\n"
             "    (d / 'lock').touch(); print('building', flush=True); time.sleep(600)\n")
@@ -133,7 +133,7 @@ def test_killed_build_leaves_no_lock_that_blocks(tmp_path, caplog):
     finally:
         p.kill()
     assert (build_dir / "lock").exists()
-    with caplog.at_level(logging.WARNING, logger="monostixels._dp_cpp"):
+    with caplog.at_level(logging.WARNING, logger="monostixels.core._dp_cpp"):
         with _dp_cpp.build_lock(build_dir):
             assert not (build_dir / "lock").exists()
     assert any("did not finish" in r.getMessage() for r in caplog.records)
@@ -198,7 +198,7 @@ def test_cpp_preparation_identical_to_torch(seed, dtype):
 def test_fit_threshold_is_geometrys():
     import inspect
 
-    from monostixels.geometry import solve_dynamic_dof, solve_static_dof
+    from monostixels.core.geometry import solve_dynamic_dof, solve_static_dof
 
     for f in (solve_static_dof, solve_dynamic_dof):
         assert inspect.signature(f).parameters["eps"].default == columns_mod._FIT_EPS

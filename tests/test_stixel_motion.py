@@ -9,10 +9,10 @@ import torch
 from monostixels.data.base import FramePair
 from monostixels.data.synthetic import SyntheticSource
 from monostixels.eval.evaluate import evaluate, frame_interval, moving_stixel_mask
-from monostixels.geometry import Camera, Motion, intrinsics
+from monostixels.core.geometry import Camera, Motion, intrinsics
 from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import load_config
-from monostixels.stixels import paint_index_map
+from monostixels.core.stixels import paint_index_map
 
 
 def test_moving_stixel_mask_by_speed():

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.energy import PriorParams
-from monostixels.solver import SolverConfig, solve
-from monostixels.stixels import StixelWorld
+from monostixels.core.energy import PriorParams
+from monostixels.core.solver import SolverConfig, solve
+from monostixels.core.stixels import StixelWorld
 
 from tests import _planes
 
@@ -71,7 +71,7 @@ def test_bad_files(tmp_path):
 
 
 def test_neighbours_and_segment_medians_against_loops():
-    from monostixels.stixels import neighbours, segment_lower_median
+    from monostixels.core.stixels import neighbours, segment_lower_median
 
     g = torch.Generator().manual_seed(1)
     col = torch.randint(0, 8, (40,), generator=g)

@@ -25,8 +25,8 @@ from monostixels.inputs.flow import compose_flows, estimate_flow, flow_metrics
 from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import SequenceRunner
-from monostixels.stream import StreamParams, StreamState, warp_scores
-from monostixels.stixels import StixelWorld
+from monostixels.sequence.stream import StreamParams, StreamState, warp_scores
+from monostixels.core.stixels import StixelWorld
 
 from tests.test_cli import _cli
 

@@ -13,8 +13,8 @@ import pytest
 import torch
 import yaml
 
-from monostixels.energy import PriorParams
-from monostixels.solver import SolverConfig, solve_columns
+from monostixels.core.energy import PriorParams
+from monostixels.core.solver import SolverConfig, solve_columns
 from tests.test_solver import random_problem
 from train.priors import labelling_energy, perceptron_loss, write_prior_yaml
 

@@ -14,11 +14,11 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES
+from monostixels.core.classes import CLASS_NAMES
 from monostixels.data._render import _cast_points, _geometry
 from monostixels.data.synthetic import KITTI_INTRINSICS, SyntheticSource, render_pair
 from monostixels.data._scene import sample_scene
-from monostixels.geometry import apply_homography, homography
+from monostixels.core.geometry import apply_homography, homography
 
 SCALE = 0.25
 SEEDS = (0, 1, 2)

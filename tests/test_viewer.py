@@ -105,7 +105,7 @@ def test_run_writes_a_rerun_recording(tmp_path):
 def test_rerun_missing_names_the_extra(monkeypatch):
     """Without rerun-sdk, output.rerun=true fails at once with the install command of the extra."""
     from monostixels._checks import InputError
-    from monostixels.viewer import require_rerun
+    from monostixels.output.viewer import require_rerun
 
     hide_module(monkeypatch, "rerun")
     with pytest.raises(InputError, match=r'pip install -e "\.\[viewer\]"'):
@@ -120,10 +120,10 @@ def test_sequence_fields_reach_the_recording_and_the_rows(tmp_path):
     import torch
 
     from monostixels.batch import frame_rows
-    from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
-    from monostixels.geometry import Camera
-    from monostixels.scene3d import reference_points
-    from monostixels.viewer import RerunRecorder
+    from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+    from monostixels.core.geometry import Camera
+    from monostixels.output.scene3d import reference_points
+    from monostixels.output.viewer import RerunRecorder
     from tests.test_scene3d import _world
 
     st = _world()

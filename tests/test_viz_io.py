@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import PALETTE, TYPE_PALETTE
-from monostixels.geometry import intrinsics
-from monostixels.io import (
+from monostixels.core.classes import PALETTE, TYPE_PALETTE
+from monostixels.core.geometry import intrinsics
+from monostixels.output.io import (
     KITTI_DEPTH_PNG_SCALE,
     depth_to_points,
     read_depth_png16,
@@ -22,7 +22,7 @@ from monostixels.io import (
     write_image,
     write_ply,
 )
-from monostixels.viz import depth_colormap, flow_colormap, paper_figure, semantic_colormap, stixel_overlay
+from monostixels.output.viz import depth_colormap, flow_colormap, paper_figure, semantic_colormap, stixel_overlay
 
 
 # ---------------------------------------------------------------- colour maps

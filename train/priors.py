@@ -45,11 +45,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
-from monostixels.energy import PriorParams, gravity, ordering_from_depths
-from monostixels.geometry import ground_basis, pixel_rays
-from monostixels.columns import ColumnProblem, _row_costs, beyond_horizon, prepare_columns
-from monostixels.solver import ColumnSolution, SolverConfig, solve_columns
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+from monostixels.core.energy import PriorParams, gravity, ordering_from_depths
+from monostixels.core.geometry import ground_basis, pixel_rays
+from monostixels.core.columns import ColumnProblem, _row_costs, beyond_horizon, prepare_columns
+from monostixels.core.solver import ColumnSolution, SolverConfig, solve_columns
 
 __all__ = ["labelling_energy", "perceptron_loss", "build_problems", "learn_priors", "write_prior_yaml",
            "priors_from_sweep", "subsample_columns", "main"]

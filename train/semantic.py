@@ -53,7 +53,7 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset, SubsetRandomSam
 from tqdm import tqdm
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSource, read_camvid_split
 from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.eval.semantic import image_pair

@@ -48,7 +48,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from monostixels._checks import InputError
-from monostixels.classes import NUM_CLASSES
+from monostixels.core.classes import NUM_CLASSES
 
 __all__ = [
     "SoftEntry",

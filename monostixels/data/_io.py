@@ -20,7 +20,7 @@ import torch
 
 from monostixels._checks import InputError, check_same_size
 from monostixels.data.base import FramePair, PreviousFrame
-from monostixels.geometry import Camera, Motion, intrinsics
+from monostixels.core.geometry import Camera, Motion, intrinsics
 
 __all__ = [
     "IMAGE_EXTENSIONS",

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 
 __all__ = [
     "FRAME_INTERVAL_S",
@@ -54,7 +54,7 @@ GROUND_HALF_WIDTH_M = 60.0
 #: The ground starts this far behind the camera (metres).
 GROUND_START_M = -30.0
 
-# Class ids (monostixels.classes.CLASS_NAMES order).
+# Class ids (monostixels.core.classes.CLASS_NAMES order).
 ROAD, SIDEWALK, TERRAIN, BUILDING, POLE, VEGETATION, VEHICLE, TWO_WHEELER, PERSON, SKY = range(10)
 
 # Surface styles (texture programs) of boxes.
@@ -64,7 +64,7 @@ STYLE_PLAIN, STYLE_FACADE, STYLE_GLASS, STYLE_CLOTHES = range(4)
 def yaw_matrix(yaw: float) -> np.ndarray:
     """Rotation (3, 3) about the vertical (camera y) axis; maps box-local to world coordinates.
 
-    Convention: same as :func:`monostixels.geometry.rotation_yaw` (local z = box length axis maps
+    Convention: same as :func:`monostixels.core.geometry.rotation_yaw` (local z = box length axis maps
     to ``(sin yaw, 0, cos yaw)``).
     """
     c, s = math.cos(yaw), math.sin(yaw)

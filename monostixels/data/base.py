@@ -7,7 +7,7 @@ from typing import Any
 import torch
 
 from monostixels._checks import InputError, check_finite, check_same_size, check_shape
-from monostixels.geometry import Camera, Motion
+from monostixels.core.geometry import Camera, Motion
 
 __all__ = ["GroundTruth", "FramePair", "PreviousFrame"]
 

@@ -7,7 +7,7 @@ Layout (the SegNet tutorial repository's, as in ``../shared/data/camvid``)::
 
 Label values: 0 sky, 1 building, 2 pole, 3 road, 4 pavement, 5 tree, 6 sign/symbol, 7 fence,
 8 car, 9 pedestrian, 10 bicyclist, 11 void (not scored). They are mapped to our 10 classes
-(``monostixels.classes.CLASS_NAMES``) by :data:`CAMVID_TO_OURS`:
+(``monostixels.core.classes.CLASS_NAMES``) by :data:`CAMVID_TO_OURS`:
 
 ======================  =============  ====================================================
 CamVid                  ours           why
@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL
 
 __all__ = [
     "CAMVID_CLASSES",

@@ -51,7 +51,7 @@ from monostixels.data._io import (
     require_file,
 )
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import Motion
+from monostixels.core.geometry import Motion
 
 __all__ = [
     "DDADSource",

@@ -59,9 +59,9 @@ from monostixels.data._io import (
     require_dir,
 )
 from monostixels.data._lens import FrameWarp
-from monostixels.static_regions import AUTO_FRAMES, AUTO_MASK, with_static_region
+from monostixels.inputs.static_regions import AUTO_FRAMES, AUTO_MASK, with_static_region
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
 __all__ = ["FramesSource", "INTRINSICS_NAMES"]
 
@@ -92,7 +92,7 @@ class FramesSource(LazySource):
         pitch: camera pitch (radians, positive = looking down).
         poses: optional poses file (see the module docstring).
         mask: optional mask image, non-zero = ignore (see the module docstring), or ``auto``: a static
-            region at the bottom found from the first images (a bonnet, :mod:`monostixels.static_regions`).
+            region at the bottom found from the first images (a bonnet, :mod:`monostixels.inputs.static_regions`).
 
     Raises:
         InputError: missing root, empty folder, missing / malformed intrinsics (or distortion) or poses
@@ -210,7 +210,7 @@ class FramesSource(LazySource):
             raise UnreadableFrame(str(err), name=path.stem, label=path.name, current=current) from None
 
     def _sample(self, images: list[Path], step: int) -> list[np.ndarray]:
-        """Up to :data:`~monostixels.static_regions.AUTO_FRAMES` of the first images, ``step`` apart (BGR,
+        """Up to :data:`~monostixels.inputs.static_regions.AUTO_FRAMES` of the first images, ``step`` apart (BGR,
         undistorted where the folder's lens asks for it), for the static region search; unreadable ones and
         ones of another size than the first readable one are left out (the pairs report them)."""
         out: list[np.ndarray] = []

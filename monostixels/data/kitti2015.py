@@ -49,7 +49,7 @@ from monostixels.data._io import (
     require_file,
 )
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera
 
 __all__ = [
     "Kitti2015Source",

@@ -55,7 +55,7 @@ from monostixels.data._io import (
     require_file,
 )
 from monostixels.data.base import FramePair, GroundTruth
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
 __all__ = [
     "KittiRawSource", "POSES_FILE", "BOTTOMS_FILE", "CALIB_FILE", "OXTS_MODES", "read_stixel_bottoms", "cam2_offset",

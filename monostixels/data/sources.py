@@ -13,8 +13,8 @@ from typing import Any, Callable, Mapping, Sequence
 
 from monostixels._checks import InputError, config_value
 from monostixels.data.base import FramePair
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M
-from monostixels.static_regions import AUTO_MASK
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
+from monostixels.inputs.static_regions import AUTO_MASK
 
 __all__ = ["SOURCE_NAMES", "camera_mount", "make_source"]
 
@@ -130,7 +130,7 @@ def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
 
 
 def _mask(value: Any) -> str | Path | None:
-    """``data.mask``: None, ``auto`` (found from the frames: :mod:`monostixels.static_regions`) or an image file."""
+    """``data.mask``: None, ``auto`` (found from the frames: :mod:`monostixels.inputs.static_regions`) or an image file."""
     if value is None:
         return None
     return AUTO_MASK if str(value).strip().lower() == AUTO_MASK else Path(str(value))

@@ -45,7 +45,7 @@ from monostixels._checks import InputError
 from monostixels.data._render import _cast_grid, _flow_validity, _geometry, _render, _sample_appearance, _Surface
 from monostixels.data._scene import FRAME_INTERVAL_S, KERB_HEIGHT_M, sample_scene
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion, intrinsics
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion, intrinsics
 
 __all__ = [
     "KITTI_IMAGE_SIZE",

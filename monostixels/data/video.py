@@ -45,8 +45,8 @@ from monostixels.data._io import (LazySource, UnreadableFrame, check_intrinsics_
                                   read_distortion, read_intrinsics_file, read_mask_file, require_file)
 from monostixels.data._lens import FrameWarp
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
-from monostixels.geometry import KITTI_CAMERA_HEIGHT_M, Camera
-from monostixels.static_regions import AUTO_FRAMES, AUTO_MASK, AUTO_SPACING_S, with_static_region
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera
+from monostixels.inputs.static_regions import AUTO_FRAMES, AUTO_MASK, AUTO_SPACING_S, with_static_region
 
 __all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path", "AUTO_PIXELS"]
 
@@ -101,7 +101,7 @@ class VideoSource(LazySource):
         pitch: camera pitch (radians, positive = looking down).
         mask: an image of the stored frame size, non-zero = ignore (see the module docstring), ``auto``
             (a static region at the bottom found from the clip's first frames: a bonnet,
-            :mod:`monostixels.static_regions`), or None.
+            :mod:`monostixels.inputs.static_regions`), or None.
 
     Raises:
         InputError: missing file, a file OpenCV cannot decode, fewer than two frames in the chosen
@@ -173,8 +173,8 @@ class VideoSource(LazySource):
                     self.intrinsics_source)
 
     def _sample_frames(self, used: list[int]) -> list[np.ndarray]:
-        """Up to :data:`~monostixels.static_regions.AUTO_FRAMES` frames from the start of the used range,
-        :data:`~monostixels.static_regions.AUTO_SPACING_S` apart (BGR, undistorted and resized), for the static
+        """Up to :data:`~monostixels.inputs.static_regions.AUTO_FRAMES` frames from the start of the used range,
+        :data:`~monostixels.inputs.static_regions.AUTO_SPACING_S` apart (BGR, undistorted and resized), for the static
         region search; undecodable ones are left out."""
         spacing = max(1, round(AUTO_SPACING_S * self.fps)) if self.fps else max(1, self.step)
         wanted = set(range(used[0], used[-1] + 1, spacing)[:AUTO_FRAMES])

@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data.base import FramePair
 from monostixels.eval.metrics import (
     DepthAccumulator,
@@ -26,7 +26,7 @@ from monostixels.eval.metrics import (
 from monostixels.inputs.flow import flow_metrics
 from monostixels.eval.temporal import TemporalAccumulator
 from monostixels.sequence import SequenceRunner
-from monostixels.stixels import StixelWorld
+from monostixels.core.stixels import StixelWorld
 
 __all__ = ["evaluate", "predicted_bottoms", "moving_stixel_mask", "frame_interval", "write_report", "SPLITS", "MOTION_KEYS"]
 

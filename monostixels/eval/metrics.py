@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, check_shape
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
-from monostixels.geometry import Motion, angle_deg
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.core.geometry import Motion, angle_deg
 
 __all__ = [
     "DEPTH_THRESHOLDS",

@@ -21,7 +21,7 @@ from monostixels._checks import InputError
 from monostixels.data.base import FramePair
 from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidSource
 from monostixels.eval.metrics import SemanticAccumulator
-from monostixels.geometry import Camera
+from monostixels.core.geometry import Camera
 from monostixels.inputs.semantic import estimate_semantics
 
 __all__ = ["evaluate_semantics", "format_semantic_table", "image_pair"]

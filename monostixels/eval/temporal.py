@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.geometry import Motion, pixel_rays
-from monostixels.stixels import StixelWorld
+from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.core.geometry import Motion, pixel_rays
+from monostixels.core.stixels import StixelWorld
 
 __all__ = ["TemporalAccumulator", "carry_depth"]
 

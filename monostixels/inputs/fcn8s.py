@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from monostixels._checks import InputError, check_shape
-from monostixels.classes import NUM_CLASSES
+from monostixels.core.classes import NUM_CLASSES
 
 __all__ = ["FCN8s", "fcn8s_vgg16", "vgg16_features", "load_vgg16_backbone", "VGG16_CFG", "OUTPUT_STRIDE",
            "export_onnx", "save_fcn8s", "load_fcn8s", "ONNX_INPUT", "ONNX_OUTPUT"]
@@ -126,7 +126,7 @@ class FCN8s(nn.Module):
 
     Args:
         backbone: a VGG trunk (see :func:`vgg16_features`) with five ``MaxPool2d`` layers.
-        num_classes: number of output channels (10 = ``monostixels.classes.CLASS_NAMES``).
+        num_classes: number of output channels (10 = ``monostixels.core.classes.CLASS_NAMES``).
         fc_channels: channels of fc6 and fc7.
         fc_kernel: kernel of fc6 (odd; "same" padding).
         dropout: dropout probability after fc6 and fc7 (training only).

@@ -644,7 +644,7 @@ def estimate_flow(pair: FramePair, cfg: Any, *, init: np.ndarray | None = None,
             and backend keys (``preset``; ``size``, ``weights``,
             ``onnx``, ``runtime``, ``iters``).
         init: (H, W, 2) float32 start of the flow (pixels, current -> previous), e.g. a stream's last
-            flow (:mod:`monostixels.stream`); taken by the backends with a DIS stage (``dis``, and
+            flow (:mod:`monostixels.sequence.stream`); taken by the backends with a DIS stage (``dis``, and
             ``deepflow``'s DIS matches), ignored by ``raft`` and ``gt``. None = start from zero.
         grey_prev: (H, W) uint8 grey of ``pair.image_prev`` (``FlowResult.grey`` of the pair it was the
             current image of), or None: converted here. The same values either way.

@@ -73,10 +73,10 @@ import torch
 
 from monostixels._pools import helper_pool
 from monostixels._checks import InputError, check_finite, check_shape, config_value
-from monostixels.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
+from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
 from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
-from monostixels.geometry import Motion, angle_deg
+from monostixels.core.geometry import Motion, angle_deg
 from monostixels.inputs.ground import (_PATTERN_MAX_GAIN, _ROAD_CLASS, _fit_ground, _ground_candidates, _ground_system,
                                        _photometric_ground, _photometric_inputs, _rays, _tilt_deg)
 from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
@@ -400,7 +400,7 @@ def estimate_mono(
         semantic: (10, H, W) class scores or None.
         images: (current, previous) (3, H, W) RGB in [0, 1], for the photometric scale (step 4a);
             None: the scale from the flow of the ground only.
-        prior: a stream's last estimate (:mod:`monostixels.stream`, ``stream.motion_warm_start``), the
+        prior: a stream's last estimate (:mod:`monostixels.sequence.stream`, ``stream.motion_warm_start``), the
             start of this one at constant velocity: its motion (rotation angle and translation scaled
             by ``interval_ratio``, this pair's interval over its) replaces the essential matrix's
             RANSAC when its Sampson inliers make at least 90 % of its own inlier ratio (then refined
@@ -408,7 +408,7 @@ def estimate_mono(
             (see :func:`_photometric_ground`). Where either test fails, that step runs from scratch.
             None: from scratch.
         interval_ratio: see ``prior``.
-        ignore: (H, W) bool pixels to leave out (a bonnet, :mod:`monostixels.static_regions`), or None.
+        ignore: (H, W) bool pixels to leave out (a bonnet, :mod:`monostixels.inputs.static_regions`), or None.
 
     Returns:
         A :class:`MotionEstimate` (metres).

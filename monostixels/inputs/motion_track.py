@@ -18,7 +18,7 @@ import torch
 
 from monostixels._checks import config_value
 from monostixels.data.base import FramePair
-from monostixels.geometry import Motion
+from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import MotionEstimate
 
 __all__ = ["MotionTrack", "MotionTrackParams"]

@@ -1,7 +1,7 @@
 """Semantic backends: 10-class pixel-wise scores for the stixel energy (config group ``semantic``).
 
 Every backend returns a (10, H, W) float32 tensor of pseudo-probabilities (each pixel sums to 1)
-in ``monostixels.classes.CLASS_NAMES`` order, or None for ``none``
+in ``monostixels.core.classes.CLASS_NAMES`` order, or None for ``none``
 (docs/conventions.md, sections 4.9 and 5):
 
 - ``gt``: one-hot ground-truth labels, softened: the true class gets ``confidence``, the others
@@ -37,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 from monostixels._checks import InputError, check_finite, check_shape
 from monostixels._paths import REPO_ROOT, find_file, path_candidates
 from monostixels._threads import onnx_session_options
-from monostixels.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
+from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair
 
 __all__ = [

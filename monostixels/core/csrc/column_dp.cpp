@@ -1,5 +1,5 @@
 // Fused hard column DP of the mono-stixel solver (tau == 0): the C++ twin of the eager stage
-// loop in monostixels/columns.py and solver.py (`_flow_prefix` + the loop of `solve_columns`).
+// loop in monostixels/core/columns.py and solver.py (`_flow_prefix` + the loop of `solve_columns`).
 //
 // Why it exists: the eager loop runs ~100 torch ops per DP stage over (columns x hypotheses x
 // types); it is bound by op overhead and memory traffic. Here one column is solved start to
@@ -125,7 +125,7 @@ inline at::Tensor contiguous_as(const at::Tensor& x, const at::Tensor& ref, cons
   return x.contiguous();
 }
 
-// Prior parameters, in the order of `_PARAM_ORDER` in monostixels/_dp_cpp.py.
+// Prior parameters, in the order of `_PARAM_ORDER` in monostixels/core/_dp_cpp.py.
 template <typename T>
 struct Params {
   T beta_mc, a_gb, b_gb, a_ga, b_ga, a_ord, b_ord, a_flat, b_flat, alpha_F, delta_F, alpha_dyn;

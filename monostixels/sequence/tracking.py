@@ -44,9 +44,9 @@ from typing import Any
 import torch
 
 from monostixels._checks import InputError, params_from_config
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.geometry import Motion, ground_basis, pixel_rays
-from monostixels.stixels import StixelWorld, neighbours, segment_lower_median
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
+from monostixels.core.geometry import Motion, ground_basis, pixel_rays
+from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
 
 __all__ = ["TrackParams", "TtcParams", "TrackState", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed"]
 

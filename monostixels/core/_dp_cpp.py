@@ -1,4 +1,4 @@
-"""Build and call the fused C++ column DP and its preparation ops (``monostixels/csrc/column_dp.cpp``).
+"""Build and call the fused C++ column DP and its preparation ops (``monostixels/core/csrc/column_dp.cpp``).
 
 The kernel is compiled at first use with :func:`torch.utils.cpp_extension.load` (g++ and ninja)
 and cached in torch's extension directory (``$TORCH_EXTENSIONS_DIR``, default

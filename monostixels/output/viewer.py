@@ -9,7 +9,7 @@ Entities, per frame on the ``frame`` timeline (the pair's index in the run) and,
 - ``world``: the first camera's frame, declared to the viewer as x right, y down, z forward (RDF,
   docs/conventions.md, section 2); ``world/trajectory``: the camera centres so far.
 - ``world/camera``: the camera pose (camera-to-world, chained ego-motion, see
-  :class:`monostixels.scene3d.PoseChain`); ``world/camera/image``: its pinhole (K, image size) with
+  :class:`monostixels.output.scene3d.PoseChain`); ``world/camera/image``: its pinhole (K, image size) with
   ``rgb`` (the image) and ``depth`` (the stixel depth map, metres) below it;
   ``world/camera/points``: the point cloud of the depth map (camera frame, every k-th pixel).
 - ``world/stixels``: one box per static or dynamic object stixel (world frame), coloured by class
@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import DYNAMIC_OBJECT, PALETTE
-from monostixels.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
+from monostixels.core.classes import DYNAMIC_OBJECT, PALETTE
+from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
 
 __all__ = ["RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
 
@@ -148,7 +148,7 @@ class RerunRecorder(RecordingHook):
         """RGB (M, 3) uint8 of the boxes of stixels ``index``."""
         if self.colors == "class":
             return np.asarray(PALETTE, dtype=np.uint8)[world.cls[index].numpy()]
-        from monostixels.viz import depth_colormap
+        from monostixels.output.viz import depth_colormap
 
         depth = world.depth[index].double().numpy()
         return depth_colormap(depth[None, :], min_depth=self.min_depth, max_depth=self.max_depth)[0]
@@ -185,8 +185,8 @@ class RerunRecorder(RecordingHook):
             pair: the :class:`~monostixels.data.base.FramePair`. res: its
                 :class:`~monostixels.pipeline.PipelineResult` (optionally with ``pose`` (4, 4)).
         """
-        from monostixels.io import depth_to_points
-        from monostixels.viz import image_to_uint8
+        from monostixels.output.io import depth_to_points
+        from monostixels.output.viz import image_to_uint8
 
         rr, rec = self._rr, self._rec
         world = res.stixels

@@ -25,12 +25,12 @@ Structure (paper section C; Cordts et al. 2017 simplification):
    ``tau -> 0``.
 
 Steps 1 and 2 (the cells, the hypotheses and their prefix-summed costs) live in
-:mod:`monostixels.columns`; this module holds the DP, its back-tracking and the frame-level API.
+:mod:`monostixels.core.columns`; this module holds the DP, its back-tracking and the frame-level API.
 
 The Python loop runs over DP stages (cells, ``n`` iterations); every iteration works on all
 columns, hypotheses and classes at once. This eager code is the readable definition and the soft
 DP. The hard DP (``tau = 0``, no gradients) runs by default (``solver.backend: auto``) in a fused
-C++ kernel (``csrc/column_dp.cpp``, built at first use by :mod:`monostixels._dp_cpp`): flow
+C++ kernel (``csrc/column_dp.cpp``, built at first use by :mod:`monostixels.core._dp_cpp`): flow
 costs, prefix sums and all stages of one column in cache-sized buffers, columns in parallel over
 torch's threads, every float operation in the eager order, so its results are bit-identical
 (tests/test_solver_fast.py). Where it is loaded, the preparation runs there too, with the same
@@ -47,15 +47,15 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from monostixels import _dp_cpp
+from monostixels.core import _dp_cpp
 from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
-from monostixels.boundaries import REFINE_OBJECTS
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT
-from monostixels.columns import (_Z_MIN, ColumnProblem, _cpp_prep, _flow_geometry, _flow_prefix, _geometry, _hypotheses,
+from monostixels.post.boundaries import REFINE_OBJECTS
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT
+from monostixels.core.columns import (_Z_MIN, ColumnProblem, _cpp_prep, _flow_geometry, _flow_prefix, _geometry, _hypotheses,
                                  _semantic_prefix, prepare_columns)
-from monostixels.energy import GRAVITY_TOLERANCE_M, PriorParams, gravity, load_config_group, ordering_from_depths
-from monostixels.geometry import Camera, Motion, dynamic_motion, ground_basis
-from monostixels.stixels import StixelWorld
+from monostixels.core.energy import GRAVITY_TOLERANCE_M, PriorParams, gravity, load_config_group, ordering_from_depths
+from monostixels.core.geometry import Camera, Motion, dynamic_motion, ground_basis
+from monostixels.core.stixels import StixelWorld
 
 __all__ = ["SolverConfig", "ColumnSolution", "solve_columns", "solve", "solve_batch"]
 
@@ -85,7 +85,7 @@ class SolverConfig:
     standing_hypotheses: bool
     backend: str
     sky_horizon_margin_deg: float
-    # Applied after the DP by the pipeline (monostixels.boundaries.refine_object_tops).
+    # Applied after the DP by the pipeline (monostixels.post.boundaries.refine_object_tops).
     top_refine_rows: int
     top_refine_depth_ratio: float
     top_refine_objects: str
@@ -140,7 +140,7 @@ class SolverConfig:
 
 @dataclass
 class ColumnSolution:
-    """Stixels of all columns as a flat table (see :class:`monostixels.stixels.StixelWorld`).
+    """Stixels of all columns as a flat table (see :class:`monostixels.core.stixels.StixelWorld`).
 
     Attributes:
         col: (N,) index into the problem's columns. b, t: (N,) bottom / top cell (inclusive).

@@ -1,11 +1,11 @@
 """The solver's data per column: cells, the stixel hypotheses and their prefix-summed costs.
 
-Steps 1 and 2 of :mod:`monostixels.solver`'s method: each column of width ``w_s`` is cut into cells
+Steps 1 and 2 of :mod:`monostixels.core.solver`'s method: each column of width ``w_s`` is cut into cells
 of ``r`` pixel rows counted from the image bottom, with the flow, covariance and semantic scores
 averaged per cell (:func:`prepare_columns`, a :class:`ColumnProblem`); every ``hypothesis_stride``-th
 cell gives a ground / static-object inverse depth or a dynamic object's motion, and the flow cost
 of each hypothesis on each cell is prefix-summed over the cells (:func:`_flow_prefix`), as are the
-semantic costs (:func:`_semantic_prefix`). The DP (:func:`monostixels.solver.solve_columns`) reads
+semantic costs (:func:`_semantic_prefix`). The DP (:func:`monostixels.core.solver.solve_columns`) reads
 segment costs as differences of these sums. Where the C++ kernel is loaded the same expressions
 run there (``csrc/column_dp.cpp``).
 """
@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import torch
 
-from monostixels import _dp_cpp
-from monostixels.classes import NUM_CLASSES, SKY, TYPE_CLASSES
-from monostixels.energy import PriorParams, flow_cost
-from monostixels.geometry import (
+from monostixels.core import _dp_cpp
+from monostixels.core.classes import NUM_CLASSES, SKY, TYPE_CLASSES
+from monostixels.core.energy import PriorParams, flow_cost
+from monostixels.core.geometry import (
     Camera,
     Motion,
     ground_basis,
@@ -32,7 +32,7 @@ from monostixels.geometry import (
 )
 
 if TYPE_CHECKING:
-    from monostixels.solver import SolverConfig
+    from monostixels.core.solver import SolverConfig
 
 __all__ = ["ColumnProblem", "prepare_columns", "beyond_horizon"]
 

@@ -1,7 +1,7 @@
 """Bird's-eye view of a stixel world: occupancy, free space and the camera's field of view, in metres.
 
 Convention: the view lies in the road plane. Its axes are those of
-:func:`monostixels.geometry.ground_basis`: ``x`` to the right (camera x projected onto the road),
+:func:`monostixels.core.geometry.ground_basis`: ``x`` to the right (camera x projected onto the road),
 ``z`` forward (camera z projected), both metres, the camera at the origin. An object stixel
 ``p n^T X = 1`` (``n`` its column's horizontal viewing direction) stands at horizontal distance
 ``d = 1 / p``; its footprint is the segment of that vertical plane between the rays of its
@@ -17,10 +17,10 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.geometry import ground_basis, object_normals, pixel_rays
-from monostixels.stixels import StixelWorld
-from monostixels.viz import (_ARROW_MIN_COLUMNS, COLORMAP_MAX_DEPTH_M, COLORMAP_MIN_DEPTH_M, MOTION_ARROW_FRAMES, _draw_arrow,
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
+from monostixels.core.geometry import ground_basis, object_normals, pixel_rays
+from monostixels.core.stixels import StixelWorld
+from monostixels.output.viz import (_ARROW_MIN_COLUMNS, COLORMAP_MAX_DEPTH_M, COLORMAP_MIN_DEPTH_M, MOTION_ARROW_FRAMES, _draw_arrow,
                              depth_colormap, draw_notes, frame_notes, mover_groups)
 
 __all__ = ["BevView", "stixel_footprints", "free_space", "bev_image"]
@@ -159,8 +159,8 @@ def bev_image(
 
     The camera's field of view (the rays of the image's left and right edges) is drawn over the
     unseen background, free space in light grey, each object stixel as its footprint in the colour
-    of its depth (as :func:`monostixels.viz.stixel_depth_overlay`), moving objects outlined in white
-    with an arrow of their motion on the road over :data:`monostixels.viz.MOTION_ARROW_FRAMES`
+    of its depth (as :func:`monostixels.output.viz.stixel_depth_overlay`), moving objects outlined in white
+    with an arrow of their motion on the road over :data:`monostixels.output.viz.MOTION_ARROW_FRAMES`
     frames, a distance grid every ``view.grid_m`` metres, and frame notes top left.
 
     Args:

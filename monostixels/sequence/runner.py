@@ -20,13 +20,13 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    scene model), but the movers still are found and measured from the flow: their depth from the
    ground contact, their motion from ``t̃``. Static stixels whose track was measured with a baseline
    keep the track's depth (``flags["carried_stixels"]``).
-3. **Tracks** (:mod:`monostixels.tracking`): every object stixel gets a ``track_id``, a filtered depth
+3. **Tracks** (:mod:`monostixels.sequence.tracking`): every object stixel gets a ``track_id``, a filtered depth
    and a world velocity (m/s, world = the sequence's first camera); with ``temporal.enabled=false``
    velocities come from the pair alone and no depth is filtered.
 4. **Time to collision** per object stixel (``ttc_s``), and the frame's pose (camera to world).
 
 Everything carried from frame to frame lives here: the kept frames and their poses, the speed the
-keyframes read, the stream's reused work (:class:`~monostixels.stream.StreamState`), the monocular
+keyframes read, the stream's reused work (:class:`~monostixels.sequence.stream.StreamState`), the monocular
 scale's speed prior (:class:`~monostixels.inputs.motion_track.MotionTrack`, handed to each
 :meth:`Pipeline.run <monostixels.pipeline.Pipeline.run>`) and the tracks. The pipeline itself keeps
 nothing between pairs.
@@ -48,15 +48,15 @@ import torch
 from omegaconf import DictConfig
 
 from monostixels._checks import InputError, params_from_config
-from monostixels.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
-from monostixels.geometry import Motion
+from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, motion_track_for
-from monostixels.stixels import StixelWorld
-from monostixels.stream import StreamState
-from monostixels.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, stixel_points,
+from monostixels.core.stixels import StixelWorld
+from monostixels.sequence.stream import StreamState
+from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, stixel_points,
                                    time_to_collision)
 
 __all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
@@ -189,7 +189,7 @@ class SequenceRunner:
         self.use_gt_distance = str(cfg.motion.get("name", "")) in ("gt", "file")
         self.standing_m = float(self.pipeline.solver_cfg.min_translation)
         self.default_dt = float(cfg.eval.get("frame_interval_s", 0.1)) if "eval" in cfg else 0.1
-        # Work carried from frame to frame (config group stream; monostixels.stream).
+        # Work carried from frame to frame (config group stream; monostixels.sequence.stream).
         self.stream = StreamState.from_config(cfg)
         self.stream.chain_frames = self.keyframes.window if self.keyframes.chain_flow else 0
         # The speed prior of the monocular scale: it restarts by itself where pairs do not continue a

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 from monostixels._checks import InputError, check_finite, check_shape
-from monostixels.geometry import Motion, pixel_rays
+from monostixels.core.geometry import Motion, pixel_rays
 
 __all__ = ["DEFAULT_MIN_PARALLAX_RAD", "Triangulation", "triangulate", "triangulate_depth", "triangulate_points"]
 
@@ -84,7 +84,7 @@ def triangulate(
     check_shape(K, [3, 3], "K")
     check_finite(K, "K")
     if not isinstance(motion, Motion):
-        raise InputError(f"motion: expected a monostixels.geometry.Motion, got {type(motion).__name__}")
+        raise InputError(f"motion: expected a monostixels.core.geometry.Motion, got {type(motion).__name__}")
     if not (math.isfinite(min_parallax_rad) and min_parallax_rad >= 0):
         raise InputError(f"min_parallax_rad: must be a non-negative number, got {min_parallax_rad}")
     out_dtype = flow.dtype if flow.is_floating_point() else torch.float32

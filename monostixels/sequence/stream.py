@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, params_from_config
-from monostixels.static_regions import crop_ignored
+from monostixels.inputs.static_regions import crop_ignored
 from monostixels.data.base import FramePair
 
 __all__ = ["StreamParams", "StreamState", "Carried", "Chain", "warp_scores"]

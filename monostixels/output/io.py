@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, check_shape
-from monostixels.geometry import pixel_rays
+from monostixels.core.geometry import pixel_rays
 
 __all__ = [
     "KITTI_DEPTH_PNG_SCALE",

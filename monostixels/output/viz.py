@@ -3,16 +3,16 @@
 ``run``'s picture is :func:`stixel_depth_overlay`: every object stixel a box in the colour of its
 depth, the ground a translucent tint of its per-pixel depth, movers outlined with a motion arrow,
 a legend of the depth scale, and frame notes such as a standing camera. The bird's-eye view is
-:mod:`monostixels.bev`.
+:mod:`monostixels.output.bev`.
 
 All functions return RGB ``uint8`` arrays (H, W, 3); files are written with OpenCV through
-:func:`monostixels.io.write_image` (RGB -> BGR at that boundary). No screen is needed: figures use
+:func:`monostixels.output.io.write_image` (RGB -> BGR at that boundary). No screen is needed: figures use
 matplotlib's Agg canvas directly (no pyplot state).
 
 Colour conventions (paper figures, docs/conventions.md, section 2): depth is coloured by *inverse*
 depth with matplotlib's ``jet``: close = red, far = dark blue, invalid (``<= 0``, NaN, inf, or 0 =
 no ground truth) = black. Semantic classes use the Cityscapes palette
-(:data:`monostixels.classes.PALETTE`). Optical flow uses the Middlebury colour wheel (Baker et al.,
+(:data:`monostixels.core.classes.PALETTE`). Optical flow uses the Middlebury colour wheel (Baker et al.,
 "A Database and Evaluation Methodology for Optical Flow", IJCV 2011).
 """
 from __future__ import annotations
@@ -26,10 +26,10 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, IGNORE_LABEL, PALETTE, STATIC_OBJECT, TYPE_PALETTE
-from monostixels.geometry import pixel_rays
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, IGNORE_LABEL, PALETTE, STATIC_OBJECT, TYPE_PALETTE
+from monostixels.core.geometry import pixel_rays
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.stixels import neighbours, paint_index_map
+from monostixels.core.stixels import neighbours, paint_index_map
 
 __all__ = [
     "image_to_uint8",
@@ -255,7 +255,7 @@ def stixel_overlay(
         image: (3, H, W) float RGB in [0, 1] (or (H, W, 3) uint8).
         stixels: object with ``column_width``, ``image_size`` (H, W) and flat (N,) tensors
             ``column``, ``v_top``, ``v_bottom``, ``type``, ``cls``, ``depth`` (metres)
-            (:class:`monostixels.stixels.StixelWorld`).
+            (:class:`monostixels.core.stixels.StixelWorld`).
         mode: ``"type"`` (ground / static / dynamic / sky colours), ``"class"`` (Cityscapes
             palette) or ``"depth"`` (inverse-depth jet; sky / invalid black).
         alpha: opacity of the fill, 0..1.
@@ -302,7 +302,7 @@ def mover_groups(stixels: Any, moving: np.ndarray | None = None) -> list[np.ndar
     """Moving objects: groups of moving stixels in adjacent columns whose rows overlap.
 
     Args:
-        stixels: a :class:`monostixels.stixels.StixelWorld` (or an object with its fields).
+        stixels: a :class:`monostixels.core.stixels.StixelWorld` (or an object with its fields).
         moving: (N,) bool, the stixels to group; default the dynamic object stixels.
 
     Returns:
@@ -516,7 +516,7 @@ def stixel_depth_overlay(
 
     Args:
         image: (3, H, W) float RGB in [0, 1] (or (H, W, 3) uint8).
-        stixels: a :class:`monostixels.stixels.StixelWorld` of the image.
+        stixels: a :class:`monostixels.core.stixels.StixelWorld` of the image.
         min_depth, max_depth: colour-map range, metres.
         alpha, ground_alpha: fill opacity of objects and of the ground, 0..1.
         moving: (N,) bool, the stixels to outline as moving; default the dynamic ones.
@@ -525,7 +525,7 @@ def stixel_depth_overlay(
         notes: more lines for the top-left box (e.g. warnings of a caller).
         legend: draw the depth scale.
         ttc_warning: (N,) bool, stixels closing within the TTC warning time in the camera's path
-            (:mod:`monostixels.tracking`): a red outline and their time to collision; default
+            (:mod:`monostixels.sequence.tracking`): a red outline and their time to collision; default
             ``stixels.ttc_warning`` where the sequence layer set it.
 
     Returns:
@@ -653,7 +653,7 @@ def paper_figure(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from monostixels.io import write_image
+    from monostixels.output.io import write_image
 
     if len(rows) == 0:
         raise InputError("rows: no panels to draw")

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.classes import CLASS_NAMES, SKY, TYPE_NAMES
-from monostixels.geometry import object_normals, pixel_rays
+from monostixels.core.classes import CLASS_NAMES, SKY, TYPE_NAMES
+from monostixels.core.geometry import object_normals, pixel_rays
 
 __all__ = ["StixelWorld", "paint_index_map", "neighbours", "segment_lower_median"]
 

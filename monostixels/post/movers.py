@@ -43,10 +43,10 @@ from typing import Any
 import torch
 
 from monostixels._checks import InputError, config_value
-from monostixels.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.sfm import triangulate_points
-from monostixels.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
-from monostixels.stixels import StixelWorld, neighbours, segment_lower_median
+from monostixels.core.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
+from monostixels.post.sfm import triangulate_points
+from monostixels.core.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
+from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
 
 __all__ = ["MoverCheckParams", "check_movers", "static_only"]
 
@@ -75,7 +75,7 @@ class MoverCheckParams:
         max_dynamic_residual_ratio: a stixel the static plane leaves unexplained still stands still
             unless the solver's dynamic plane leaves at most this fraction of the static residual
             (``inf`` = off).
-        keep_classes: class names (:data:`monostixels.classes.CLASS_NAMES`) whose dynamic stixels
+        keep_classes: class names (:data:`monostixels.core.classes.CLASS_NAMES`) whose dynamic stixels
             are never made static; empty = the purely geometric check.
         contact_sliver_rows: a stixel on an object at most this many rows tall that stands on a
             ground stixel stands on that ground for the contact test (0 = off).
@@ -136,7 +136,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     All dynamic stixels are checked at once: their pixels are gathered into flat arrays with a
     stixel index, and the per-stixel medians are segment medians of the sorted values (the lower
     median, as ``torch.median``). Only those pixels are triangulated when ``point_depth`` is not
-    given (the midpoint method of :func:`monostixels.sfm.triangulate`).
+    given (the midpoint method of :func:`monostixels.post.sfm.triangulate`).
 
     Args:
         stixels: the solver's result.

@@ -24,8 +24,8 @@ import dataclasses
 import torch
 
 from monostixels._checks import InputError, check_shape
-from monostixels.classes import DYNAMIC_OBJECT, NUM_CLASSES, SKY, STATIC_OBJECT
-from monostixels.stixels import StixelWorld
+from monostixels.core.classes import DYNAMIC_OBJECT, NUM_CLASSES, SKY, STATIC_OBJECT
+from monostixels.core.stixels import StixelWorld
 
 __all__ = ["REFINE_OBJECTS", "row_class_cost", "refine_object_tops"]
 

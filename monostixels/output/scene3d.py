@@ -1,6 +1,6 @@
 """Stixels in 3D: reference points, boxes, camera poses chained over a clip, frame times.
 
-What the 3D viewer (:mod:`monostixels.viewer`) draws and the batch dataset
+What the 3D viewer (:mod:`monostixels.output.viewer`) draws and the batch dataset
 (:mod:`monostixels.batch`) stores, computed once here so both agree.
 
 Convention (docs/conventions.md, section 2): camera x right, y down, z forward, metres. The world
@@ -19,9 +19,9 @@ from typing import Any, Hashable
 import numpy as np
 import torch
 
-from monostixels.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
-from monostixels.geometry import object_normals, pixel_rays
-from monostixels.stixels import StixelWorld
+from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+from monostixels.core.geometry import object_normals, pixel_rays
+from monostixels.core.stixels import StixelWorld
 
 __all__ = ["StixelBoxes", "PoseChain", "frame_time", "optional_field", "reference_points", "stixel_boxes",
            "to_world"]
