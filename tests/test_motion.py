@@ -490,3 +490,36 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     assert rep["metric"] == 3 and rep["no_metric_motion"] == 1 and rep["height_fit_m"] is None
     assert camera_summary(rep)[0] == ("camera motion metric on 3 of 4 pair(s) (scale: 1 photometric, 1 sequence); "
                                              "1 without a metric motion (no movers, no collision warnings there)")
+
+
+def test_road_marks_are_read_only_where_the_road_flow_falls_short_of_the_stream_prediction(monkeypatch):
+    """On a stream, a flow of the ground within FLOW_NEAR_PREDICTION of the predicted length is taken as
+    it is (the road marks are not read: they could not override it); well short of it, the marks are
+    read; without a prediction they are read as before. The scale is the flow's either way here."""
+    from monostixels.inputs import motion as motion_mod
+    from monostixels.inputs.motion import FLOW_NEAR_PREDICTION, MotionEstimate
+
+    calls = []
+    real = motion_mod.road_marks_scale
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("start"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(motion_mod, "road_marks_scale", counted)
+    gt = Motion(R=_rot(0.8, -0.3, 0.1), t=torch.tensor([0.06, 0.01, 0.95], dtype=torch.float64))
+    pair, fr = _pair_and_flow(gt)  # blank images: no photometric minimum, the flow of the ground decides
+
+    def prior(length: float) -> MotionEstimate:
+        t = gt.t / gt.t.norm() * length
+        return MotionEstimate(Motion(gt.R.clone(), t), False, "ok", 1.0)
+
+    true_len = float(gt.t.norm())
+    runs = {}
+    for name, p in (("scratch", None), ("near", prior(true_len * 1.05)), ("short", prior(true_len / (0.9 * FLOW_NEAR_PREDICTION)))):
+        calls.clear()
+        est = estimate_motion(pair, fr, MONO, prior=p)
+        assert est.motion is not None and est.scale_from == "ground_flow", est.reason
+        assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.005
+        runs[name] = len(calls)
+    assert runs == {"scratch": 1, "near": 0, "short": 1}

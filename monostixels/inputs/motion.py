@@ -47,9 +47,10 @@ Backends (``cfg.name``):
      c. From the flow: ``m`` is linear in the flow equations (RANSAC with the tilt bounded by
         ``ground_max_tilt``, then least squares); ``s = camera.height * |m|``. It is taken unless
         the road marks gave a length and it is shorter than :data:`FLOW_SHORT_RATIO` of theirs:
-        the flow of textureless asphalt errs short, pulled towards zero, not long. When the flow
-        finds no plane, the road marks are used, else a weak photometric minimum; with neither,
-        no estimate.
+        the flow of textureless asphalt errs short, pulled towards zero, not long. On a stream (a
+        constant-velocity prediction of the length), a flow within :data:`FLOW_NEAR_PREDICTION` of the predicted
+        length is not short, and the marks are not read. When the flow finds no plane, the road marks
+        are used, else a weak photometric minimum; with neither, no estimate.
 
   5. Over a sequence (:class:`monostixels.inputs.motion_track.MotionTrack`, kept by the sequence layer,
      :mod:`monostixels.sequence`, for the consecutive pairs of one sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
@@ -347,6 +348,10 @@ def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_s
 
 #: The flow of the ground is taken over the road marks' scale unless it is shorter than this share of it.
 FLOW_SHORT_RATIO = 0.7
+#: With a stream's constant-velocity prediction, a flow of the ground at least this share of the predicted
+#: length is taken without reading the road marks (they would need to say ``FLOW_NEAR_PREDICTION /
+#: FLOW_SHORT_RATIO`` = 1.14x the prediction to override it).
+FLOW_NEAR_PREDICTION = 0.8
 
 def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray, t: np.ndarray, n_g: np.ndarray,
                           head: str, pixels: str, inlier_ratio: float, note: str = "") -> MotionEstimate:
@@ -595,6 +600,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     failures = []
     found = None
     marks = None
+    marks_pending = False
     refine_weak = False
     if prep is not None:
         grey_cur, grey_prev, pts = prep.result()
@@ -615,12 +621,21 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             return _photometric_estimate(found, R, t, n_g, head, pixels, inlier_ratio)
         else:
             failures.append(f"photometric minimum not sharp: contrast {found[2]:.2f} > {params.photometric_sharp}")
-        if params.road_marks and len(pts) >= params.min_points:
-            # Its own generator: the ground-flow RANSAC below draws the same numbers with or without it.
+        marks_pending = params.road_marks and len(pts) >= params.min_points
+    marks_note_at = len(failures)
+
+    def road_marks() -> RoadMarksFit | None:
+        """The road marks' fit, read at the first call (where the flow of the ground needs it)."""
+        nonlocal marks, marks_pending
+        if marks_pending:
+            marks_pending = False
+            # Its own generator: the ground-flow RANSAC draws the same numbers with or without it.
             marks = road_marks_scale(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, np.random.default_rng(params.seed),
                                      start=pred.scale if warm else None)
             if marks is None:
-                failures.append(f"road marks: no clear alignment over {pixels})")
+                failures.insert(marks_note_at, f"road marks: no clear alignment over {pixels})")
+        return marks
+
     # The flow of the ground: the corridor ahead first; with road labels, the whole road if a
     # vehicle blocks the corridor.
     base = ((labels == _ROAD_CLASS) & ok) if road else ok
@@ -640,7 +655,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         else:
             failures.append(f"ground fit normal {tilt:.1f} deg from camera.ground_normal (> {params.ground_max_tilt})")
     else:
-        if marks is not None:
+        if road_marks() is not None:
             return _road_marks_estimate(marks, R, t, head, pixels, inlier_ratio, "; ".join(failures))
         if found is not None:  # a weak photometric minimum is still better than none
             if refine_weak:  # warm, it may not have been refined: the search from scratch
@@ -651,7 +666,10 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio,
                               kind="scale_unknown", unit_motion=unit)
     scale = height * q
-    if marks is not None and scale < FLOW_SHORT_RATIO * marks.scale:
+    # Near a stream's prediction the flow is not short: marks could only override it by saying the speed
+    # rose by a seventh or more in one interval where the flow says it fell; they are not read then.
+    near_prediction = pred is not None and scale >= FLOW_NEAR_PREDICTION * pred.scale
+    if not near_prediction and road_marks() is not None and scale < FLOW_SHORT_RATIO * marks.scale:
         # The flow of textureless asphalt errs short (pulled towards zero), not long: well short of the
         # marks' length, it is the flow that failed.
         failures.append(f"{int(ginl.sum())} ground vectors give {scale:.3f} m, short of the marks' {marks.scale:.3f} m")
