@@ -7,7 +7,9 @@ holdout it was trained without, it measures:
   the mIoU and pixel agreement of the student's most likely class against the teacher's (our 10
   classes; classes absent from both are not counted), per held-out source; the student runs as the
   ``fcn8s`` backend does (the window resized to the focal length ``--focal-px``), the comparison
-  is at the cache's resolution (half the teacher's input);
+  is at the cache's resolution (half the teacher's input), without the rows where training gives the
+  teacher no say (``data.soft.void_below``: the dashcam's bottom quarter, where the teacher calls the
+  lane a vehicle);
 - ``kitti``: stixel bottoms on the labelled frames of KITTI drive 0028
   (``benchmarks.semantic_real``: ``flow=deepflow motion=mono``), unseen when the holdout names
   ``kitti_0028``;
@@ -45,13 +47,16 @@ TASKS = ("teacher", "kitti", "camvid_val", "camvid_test", "lidar")
 
 
 @torch.no_grad()
-def teacher_agreement(weights: str | Path, entries: list, *, focal_px: float) -> dict[str, dict[str, Any]]:
+def teacher_agreement(weights: str | Path, entries: list, *, focal_px: float,
+                      void_below: dict[str, float] | None = None) -> dict[str, dict[str, Any]]:
     """Student vs teacher on cached entries, per source.
 
     Args:
         weights: the student ``.pt`` (``load_fcn8s``).
         entries: ``SoftEntry`` items (``train.teacher_labels.read_manifest``).
         focal_px: focal length the windows are resized to (the backend's ``semantic.focal_px``).
+        void_below: per source, the fraction of the frame height from which the teacher's labels are
+            not compared (training's ``data.soft.void_below``: rows where the teacher is known wrong).
 
     Returns:
         ``{source: {"miou", "agreement", "per_class_iou", "entries"}}``.
@@ -72,6 +77,11 @@ def teacher_agreement(weights: str | Path, entries: list, *, focal_px: float) ->
         teacher = load_entry(e.probs)
         student = F.interpolate(probs[None], size=teacher.shape[-2:], mode="area")[0]
         s, t = student.argmax(0), teacher.argmax(0)
+        if e.source in (void_below or {}):
+            h = t.shape[0]
+            rows = y0 + (torch.arange(h, dtype=torch.float64) + 0.5) * ((y1 - y0) / h)
+            keep = rows < void_below[e.source] * bgr.shape[0]
+            s, t = s[keep], t[keep]
         acc.setdefault(e.source, SemanticAccumulator()).add(s, t)
         agree.setdefault(e.source, []).append(float((s == t).float().mean()))
     out = {}
@@ -88,7 +98,7 @@ def _semantic_overrides(weights: str | Path) -> list[str]:
 
 
 def measure(task: str, weights: str | Path, *, holdout: list, manifest: str | Path, focal_px: float,
-            views: list[str] | None = None) -> dict[str, Any]:
+            views: list[str] | None = None, void_below: dict[str, float] | None = None) -> dict[str, Any]:
     """One task of the table for one student; see the module docstring."""
     if task == "teacher":
         from train.semantic import held_out
@@ -96,7 +106,7 @@ def measure(task: str, weights: str | Path, *, holdout: list, manifest: str | Pa
 
         entries = [e for e in read_manifest(manifest) if held_out(e.source, e.frame, holdout)
                    and (views is None or e.view.split("_")[0] in views)]
-        return {"teacher": teacher_agreement(weights, entries, focal_px=focal_px)}
+        return {"teacher": teacher_agreement(weights, entries, focal_px=focal_px, void_below=void_below)}
     if task in ("camvid_val", "camvid_test"):
         from monostixels.data.camvid import CamVidSource
         from monostixels.eval.semantic import evaluate_semantics
@@ -121,14 +131,22 @@ def main() -> None:
     ap.add_argument("--focal-px", type=float, default=480.0)
     ap.add_argument("--views", nargs="*", default=["full"], help="cache views to compare on (full, zoom2)")
     ap.add_argument("--tasks", nargs="+", default=["teacher", "kitti", "camvid_val"], choices=TASKS)
+    ap.add_argument("--void-below", nargs="*", default=None, metavar="SOURCE=FRACTION",
+                    help="rows of a source not compared with the teacher (default: data.soft.void_below of "
+                    "conf/train_semantic_soft.yaml)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     holdout = OmegaConf.to_container(OmegaConf.create({"h": OmegaConf.create(args.holdout)}))["h"]
-    row: dict[str, Any] = {"weights": str(args.weights), "holdout": holdout}
+    if args.void_below is None:
+        soft = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "train_semantic_soft.yaml").data.soft
+        void_below = {str(k): float(v) for k, v in (soft.get("void_below") or {}).items()}
+    else:
+        void_below = {k: float(v) for k, v in (item.split("=", 1) for item in args.void_below)}
+    row: dict[str, Any] = {"weights": str(args.weights), "holdout": holdout, "void_below": void_below}
     for task in args.tasks:
         res = measure(task, args.weights, holdout=holdout, manifest=args.manifest, focal_px=args.focal_px,
-                      views=args.views or None)
+                      views=args.views or None, void_below=void_below)
         row.update(res)
         print(task, json.dumps(res, default=str)[:600], flush=True)
         if args.json:

@@ -426,3 +426,30 @@ def test_loso_teacher_agreement_of_the_teacher_itself_is_one(tmp_path: Path) -> 
     mod.save_fcn8s(net, tmp_path / "other.pt", arch=arch)
     diff = teacher_agreement(tmp_path / "other.pt", entries, focal_px=50.0)
     assert diff["a"]["agreement"] < 0.5 < same["a"]["agreement"]
+
+
+def test_loso_teacher_agreement_leaves_out_the_void_rows(tmp_path: Path, monkeypatch) -> None:
+    """benchmarks.distill_loso compares nothing below ``void_below`` of the frame (the rows training gives
+    the teacher no say in): a student that disagrees there only agrees fully once they are left out."""
+    import monostixels.inputs.semantic as semantic_mod
+    from benchmarks.distill_loso import teacher_agreement
+
+    class SkyEverywhere:
+        def __init__(self, weights: object) -> None:
+            pass
+
+        def __call__(self, rgb: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+            probs = torch.zeros(NUM_CLASSES, *rgb.shape[-2:])
+            probs[IDS["sky"]] = 1.0
+            return probs
+
+    monkeypatch.setattr(semantic_mod, "TorchSegmenter", SkyEverywhere)
+    # The cached teacher: sky over the top half of each 40x64 frame, road below.
+    manifest = _write_manifest(tmp_path, [("dashcam", 0), ("dashcam", 1)])
+    entries = _teacher_module().read_manifest(manifest)
+    whole = teacher_agreement("unused.pt", entries, focal_px=100.0)
+    assert whole["dashcam"]["agreement"] == pytest.approx(0.5)
+    top = teacher_agreement("unused.pt", entries, focal_px=100.0, void_below={"dashcam": 0.5})
+    assert top["dashcam"]["agreement"] == pytest.approx(1.0) and top["dashcam"]["entries"] == 2
+    other = teacher_agreement("unused.pt", entries, focal_px=100.0, void_below={"kitti_0028": 0.5})
+    assert other["dashcam"]["agreement"] == pytest.approx(0.5)
