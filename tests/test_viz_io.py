@@ -12,11 +12,11 @@ import torch
 from monostixels._checks import InputError
 from monostixels.core.classes import PALETTE, TYPE_PALETTE
 from monostixels.core.geometry import intrinsics
+from monostixels.data._io import read_rgb
 from monostixels.output.io import (
     KITTI_DEPTH_PNG_SCALE,
     depth_to_points,
     read_depth_png16,
-    read_image,
     read_ply,
     write_depth_png16,
     write_image,
@@ -152,7 +152,7 @@ def test_paper_figure_layout(tmp_path):
     blue = np.zeros((30, 50, 3), np.uint8)
     blue[..., 2] = 255
     path = paper_figure([("Ground Truth", red), ("Mono-Stixels", blue)], tmp_path / "fig" / "f.png", ncols=2, dpi=50)
-    img = (read_image(path).numpy().transpose(1, 2, 0) * 255).round().astype(int)
+    img = (read_rgb(path).numpy().transpose(1, 2, 0) * 255).round().astype(int)
     is_red = (img[..., 0] == 255) & (img[..., 1] == 0) & (img[..., 2] == 0)
     is_blue = (img[..., 0] == 0) & (img[..., 1] == 0) & (img[..., 2] == 255)
     assert is_red.sum() > 100 and is_blue.sum() > 100
@@ -168,7 +168,7 @@ def test_write_read_image_roundtrip_and_channel_order(tmp_path):
     rgb[1, 2] = (10, 20, 30)
     p = write_image(tmp_path / "a" / "b" / "img.png", rgb)
     assert tuple(cv2.imread(str(p))[0, 0]) == (0, 0, 200)  # on disk: BGR
-    back = read_image(p)
+    back = read_rgb(p)
     assert back.shape == (3, 4, 5) and back.dtype == torch.float32
     assert np.array_equal((back.numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8), rgb)
 
@@ -176,11 +176,11 @@ def test_write_read_image_roundtrip_and_channel_order(tmp_path):
 def test_image_errors_name_the_file(tmp_path):
     missing = tmp_path / "nope.png"
     with pytest.raises(InputError, match="nope.png"):
-        read_image(missing)
+        read_rgb(missing)
     junk = tmp_path / "junk.png"
     junk.write_text("not an image")
     with pytest.raises(InputError, match="junk.png"):
-        read_image(junk)
+        read_rgb(junk)
     blocker = tmp_path / "file"
     blocker.write_text("x")
     with pytest.raises(InputError, match="out.png"):

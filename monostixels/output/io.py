@@ -1,7 +1,8 @@
-"""Reading and writing images, 16-bit depth PNGs and PLY point clouds.
+"""Writing images, 16-bit depth PNGs and PLY point clouds (and reading the last two back).
 
-Images are read and written with OpenCV; the conversion BGR <-> RGB happens here, at the
-boundary, so everything inside the package is RGB. Failures raise :class:`InputError` naming the
+Images are written with OpenCV (and read by :func:`monostixels.data._io.read_rgb`, the package's one
+image reader); the conversion BGR <-> RGB happens at that boundary, so everything inside the package
+is RGB. Failures raise :class:`InputError` naming the
 file (docs/conventions.md, section 7).
 """
 from __future__ import annotations
@@ -18,7 +19,6 @@ from monostixels.core.geometry import pixel_rays
 
 __all__ = [
     "KITTI_DEPTH_PNG_SCALE",
-    "read_image",
     "write_image",
     "write_depth_png16",
     "read_depth_png16",
@@ -42,33 +42,6 @@ _PLY_TYPES = {
     "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
     "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
 }
-
-
-def read_image(path: str | Path) -> torch.Tensor:
-    """Read a colour image file as (3, H, W) float32 RGB in [0, 1].
-
-    Grey images are replicated to three channels; 16-bit images are scaled by 65535.
-
-    Raises:
-        InputError: the file is missing or not a readable image (the message names it).
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"image file {p}: does not exist or is not a file")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None or img.size == 0:
-        raise InputError(f"image file {p}: not a readable image (OpenCV could not decode it)")
-    scale = float(np.iinfo(img.dtype).max) if np.issubdtype(img.dtype, np.integer) else 1.0
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=2)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    elif img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    else:
-        raise InputError(f"image file {p}: unsupported number of channels {img.shape[2]}")
-    arr = img.astype(np.float32) / scale
-    return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
 
 
 def write_image(path: str | Path, rgb: np.ndarray | torch.Tensor) -> Path:
