@@ -48,9 +48,9 @@ Backends (``cfg.name``):
         ``ground_max_tilt``, then least squares); ``s = camera.height * |m|``. It is taken unless
         the road marks gave a length and it is shorter than :data:`FLOW_SHORT_RATIO` of theirs:
         the flow of textureless asphalt errs short, pulled towards zero, not long. On a stream (a
-        constant-velocity prediction of the length), a flow within :data:`FLOW_NEAR_PREDICTION` of the predicted
-        length is not short, and the marks are not read. When the flow finds no plane, the road marks
-        are used, else a weak photometric minimum; with neither, no estimate.
+        constant-velocity prediction of the length), a flow within :data:`FLOW_NEAR_PREDICTION` of
+        the predicted length is not short, and the marks are not read. When the flow finds no plane,
+        the road marks are used, else a weak photometric minimum; with neither, no estimate.
 
   5. Over a sequence (:class:`monostixels.inputs.motion_track.MotionTrack`, kept by the sequence layer,
      :mod:`monostixels.sequence`, for the consecutive pairs of one sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
