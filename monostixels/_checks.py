@@ -5,14 +5,15 @@ fails with a message that names it (docs/conventions.md, section 7).
 """
 from __future__ import annotations
 
+import re
 from dataclasses import fields
 from typing import Any, Iterable, Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_keys", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size", "params_from_config", "config_value"]
+__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
+           "check_rotation", "check_same_size", "config_params", "config_error", "config_value"]
 
 
 class InputError(ValueError):
@@ -184,14 +185,6 @@ def _leaves(node: Any, prefix: str) -> Iterable[tuple[str, Any]]:
         yield prefix, node
 
 
-def check_keys(given: Iterable[str], expected: Iterable[str], name: str) -> None:
-    """Fail unless a config node has exactly the ``expected`` keys, naming unknown and missing ones."""
-    given, expected = set(given), set(expected)
-    unknown, missing = given - expected, expected - given
-    if unknown or missing:
-        raise InputError(f"{name}: unknown keys {sorted(unknown)}, missing keys {sorted(missing)}")
-
-
 def config_value(cfg: Any, key: str, default: Any = None) -> Any:
     """``cfg[key]`` of an OmegaConf node, a dict or an object with that attribute; ``default`` where
     ``cfg`` is None or the key is absent or null (the reading of every config group without a
@@ -202,30 +195,75 @@ def config_value(cfg: Any, key: str, default: Any = None) -> Any:
     return default if value is None else value
 
 
-def params_from_config(cls: type, cfg: Any, group: str) -> Any:
-    """The dataclass ``cls`` of settings from the config node ``group`` (None: the defaults).
+def config_params(cls: type, cfg: Any, group: str) -> Any:
+    """The settings dataclass ``cls`` of the config group ``group`` from its config node.
 
-    A key the node leaves out takes the dataclass default; a key it sets, ``null`` included, is passed
-    on for ``cls`` to validate (a ``null`` is never silently replaced by the default). An unknown key
-    fails with the known ones named (``name``, a config group's own label, is ignored). Text given for
-    a field typed ``float`` / ``int`` is converted where it is a number, else an error naming
-    ``group.key`` (:func:`check_number`).
+    A node composed against ``cls`` as its schema (the package config: monostixels.config_schema) is
+    converted as it is (``OmegaConf.to_object``: ``cls`` validates the values); any other node, a dict or
+    None is first merged onto ``cls``'s schema, which refuses unknown keys and wrong types the way
+    Hydra's composition does. Errors are an :class:`InputError` naming ``group.key``.
     """
-    if cfg is None:
-        return cls()
-    known = {f.name for f in fields(cls)}
-    if not hasattr(cfg, "keys"):
-        raise InputError(f"{group}: expected a config node of settings, got {type(cfg).__name__}")
-    keys = list(cfg.keys())
-    extra = [k for k in keys if k not in known | {"name"}]
-    if extra:
-        raise InputError(f"{group}: unknown setting(s) {', '.join(map(str, extra))}; known: {', '.join(sorted(known))}")
-    types = {f.name: str(f.type) for f in fields(cls)}
-    values = {k: cfg[k] for k in keys if k in known}
-    for k, v in values.items():
-        if isinstance(v, str):
-            # A number field given as text: name the option here, not in the dataclass's float().
-            kinds = set(types[k].replace("|", " ").replace(",", " ").split())
-            if kinds & {"float", "int"} and not kinds & {"str", "Any"}:
-                values[k] = check_number(v, f"{group}.{k}", float if "float" in kinds else int)
-    return cls(**values)
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(cfg, cls):
+        return cfg
+    try:
+        if not (isinstance(cfg, DictConfig) and isinstance(OmegaConf.get_type(cfg), type)
+                and issubclass(OmegaConf.get_type(cfg), cls)):
+            if cfg is not None and not hasattr(cfg, "keys"):
+                raise InputError(f"{group}: expected a config node of settings, got {type(cfg).__name__}")
+            cfg = OmegaConf.merge(OmegaConf.structured(cls), {} if cfg is None else cfg)
+        # A key added on the command line (+group.key=...) composes; it is no setting of the schema.
+        known = [f.name for f in fields(OmegaConf.get_type(cfg))]
+        extra = [str(k) for k in cfg.keys() if k not in known]
+        if extra:
+            raise InputError(f"{group}.{extra[0]}: unknown setting; known: {', '.join(known)}")
+        return OmegaConf.to_object(cfg)
+    except OmegaConfBaseException as e:
+        raise config_error(e, group) from None
+
+
+def config_error(error: BaseException, group: str = "") -> InputError:
+    """One line naming the option for OmegaConf's refusal of a value or key (``error``; ``group``: the
+    config group the refused node belongs to, where the error's key is relative to it).
+
+    ``solver.cell_rows: expected an integer, got 'abc'``, ``movers.no_such_key: unknown setting; known: ...``.
+    """
+    from omegaconf.errors import ConfigKeyError, ValidationError
+
+    key = str(getattr(error, "full_key", "") or getattr(error, "key", "") or "")
+    # The key is relative to the refused node's root: the whole config (group in it) or the group's node.
+    name = f"{group}.{key}" if group and key and not key.startswith(f"{group}.") else (key or group)
+    msg = str(getattr(error, "msg", "") or error).splitlines()[0]
+    value = getattr(error, "value", None)
+    if isinstance(error, ValidationError):
+        m = re.search(r"could not be converted to (\w+)|is not a valid (bool)\b", msg)
+        if m:
+            kind = m.group(1) or m.group(2)
+            what = {"Float": "a number", "Integer": "an integer", "Boolean": "true or false", "bool": "true or false"}.get(kind, kind)
+            return InputError(f"{name}: expected {what}, got {value!r}")
+        if "is not Optional" in msg:
+            return InputError(f"{name}: expected a value, got null")
+        return InputError(f"{name}: {msg}")
+    if isinstance(error, (ConfigKeyError, AttributeError)) or "not in" in msg:
+        known = _known_keys(error)
+        return InputError(f"{name}: unknown setting" + (f"; known: {', '.join(known)}" if known else ""))
+    return InputError(f"{name}: {msg}")
+
+
+def _known_keys(error: BaseException) -> list[str]:
+    """The keys of the dataclass schema an unknown-key error was raised against (none if not known)."""
+    from dataclasses import is_dataclass
+
+    for node in (getattr(error, "child_node", None), getattr(error, "parent_node", None)):
+        try:
+            from omegaconf import OmegaConf
+
+            t = OmegaConf.get_type(node) if node is not None else None
+        except Exception:  # noqa: BLE001 - a node of no known type names no keys
+            t = None
+        if isinstance(t, type) and is_dataclass(t):
+            return [f.name for f in fields(t)]
+    t = getattr(error, "object_type", None)
+    return [f.name for f in fields(t)] if isinstance(t, type) and is_dataclass(t) else []

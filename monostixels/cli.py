@@ -127,7 +127,26 @@ def main() -> None:
     overrides = [a for a in rest if "=" in a and not a.startswith("-")]
     flags = [a for a in rest if a not in overrides]
     sys.argv = [f"monostixels {cmd}", *flags, *overrides, f"command={cmd}"]
+    _refuse_bad_settings(cmd, flags, overrides)
     _hydra_main()
+
+
+def _refuse_bad_settings(cmd: str, flags: list[str], overrides: list[str]) -> None:
+    """An override of a group with a schema (monostixels.config_schema) that Hydra refuses (an unknown
+    key, a value of the wrong type): one line naming the option and exit 1, as for any bad input (Hydra
+    itself would print its composition error over several lines). Sweeps (their overrides are ranges)
+    are left to Hydra."""
+    if {"--multirun", "-m"} & set(flags):
+        return
+    from monostixels.config_schema import SCHEMAS, check_overrides
+
+    groups = {g for g, _, _ in SCHEMAS}
+    if not any(o.lstrip("+~").split("=", 1)[0].split(".", 1)[0] in groups for o in overrides):
+        return  # the packaged options compose (tests/test_config_schema.py): only a user's value can fail
+    error = check_overrides([*overrides, f"command={cmd}"])
+    if error is not None:
+        print(f"monostixels {cmd}: error: {error}", file=sys.stderr)
+        sys.exit(1)
 
 
 def _run_command(cfg: DictConfig) -> Any:
@@ -165,6 +184,8 @@ def _run_command(cfg: DictConfig) -> Any:
 
 def _hydra_main() -> None:
     import hydra
+
+    import monostixels.config_schema  # noqa: F401 - registers the groups' schemas before Hydra composes
 
     @hydra.main(version_base="1.3", config_path="pkg://monostixels.conf", config_name="config")
     def _entry(cfg: DictConfig) -> Any:

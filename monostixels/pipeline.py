@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from importlib import resources
 import time
 from concurrent.futures import wait
 from dataclasses import dataclass, field
@@ -25,17 +24,17 @@ from typing import Sequence
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from monostixels._checks import InputError, check_frame_size
+from monostixels._checks import InputError, check_frame_size, config_params
 from monostixels._pools import helper_pool
 from monostixels._threads import ensure_threads
 from monostixels.post.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
-from monostixels.core.energy import PriorParams
+from monostixels.core.energy import PriorConfig, load_config_group
 from monostixels.post.sfm import triangulate
 from monostixels.core.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
 from monostixels.inputs.motion import NO_METRIC_MOTION, MotionEstimate, estimate_motion, implied_height
-from monostixels.inputs.motion_track import MotionTrack
+from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack
 from monostixels.inputs.semantic import estimate_semantics
 from monostixels.post.movers import MoverCheckParams, check_movers, static_only
 from monostixels.core.solver import SolverConfig, solve
@@ -56,11 +55,28 @@ def load_config(overrides: Sequence[str] = ()) -> DictConfig:
     """Compose the package's Hydra config (``conf/config.yaml``) with ``key=value`` overrides.
 
     For use from Python (notebooks, tests); the ``monostixels`` command does the same through Hydra.
+    An unknown key or a value of the wrong type in a group with a schema (monostixels.config_schema) is
+    an :class:`InputError` naming the option.
     """
-    from hydra import compose, initialize_config_module
+    from contextlib import nullcontext
 
-    with initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import ConfigCompositionException
+
+    from monostixels.config_schema import composition_error  # (registers the groups' schemas)
+
+    # Under a Hydra app (the command, train/) its search path holds the package config already.
+    inside_app = GlobalHydra.instance().is_initialized()
+    with nullcontext() if inside_app else initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
+        try:
+            return compose(config_name="config", overrides=list(overrides))
+        except ConfigCompositionException as e:
+            # An unknown key or a wrong type refused by a group's schema: one line naming the option.
+            named = composition_error(e)
+            if named is None:
+                raise
+            raise named from None
 
 
 @dataclass
@@ -100,7 +116,7 @@ def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
     """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
     with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
     if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)):
-        return MotionTrack.from_config(cfg.motion)
+        return MotionTrack(config_params(MonoMotionConfig, cfg.motion, "motion"))
     return None
 
 
@@ -125,22 +141,23 @@ class Pipeline:
         self.cfg = cfg
         self.report_height = report_height
         # The monocular estimator's own settings, for the camera height the road implies beside a given motion.
-        self._mono_cfg = OmegaConf.load(str(resources.files("monostixels.conf") / "motion" / "mono.yaml")) \
+        self._mono_cfg = config_params(MonoMotionConfig, load_config_group("motion", "mono"), "motion") \
             if report_height else None
         self.sfm = sfm
         self.overlap = overlap
         # The config's thread budget, unless the command line (or a library user) already set one.
         ensure_threads(cfg.get("threads", "auto"))
-        prior = OmegaConf.to_container(cfg.prior, resolve=True)
+        prior = config_params(PriorConfig, cfg.get("prior"), "prior")
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
         overrides = cfg.semantic.get("prior_overrides")
         if overrides:
-            prior.update(OmegaConf.to_container(overrides, resolve=True))
-        self.prior = PriorParams.from_config(prior)
+            prior = config_params(PriorConfig, {**dataclasses.asdict(prior), **OmegaConf.to_container(overrides, resolve=True)},
+                                  "semantic.prior_overrides")
+        self.prior = prior.params()
         self.allow_motion_failure = allow_motion_failure
-        self.solver_cfg = SolverConfig.from_config(OmegaConf.to_container(cfg.solver, resolve=True))
-        self.mover_check = MoverCheckParams.from_config(cfg.get("movers"))
+        self.solver_cfg = config_params(SolverConfig, cfg.get("solver"), "solver")
+        self.mover_check = config_params(MoverCheckParams, cfg.get("movers"), "movers")
 
     def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None,
                    prior: MotionEstimate | None = None, interval_ratio: float = 1.0,

@@ -280,16 +280,18 @@ def test_numeric_option_given_as_text_fails_clearly(tmp_path, option, key, what)
 def test_number_checks_name_the_option():
     from dataclasses import dataclass
 
-    from monostixels._checks import InputError, check_number, numeric_text_error, params_from_config
+    from monostixels._checks import InputError, check_number, config_params, numeric_text_error
 
     @dataclass
     class P:
         gain: float = 1.0
         label: str = "x"
 
-    assert params_from_config(P, {"gain": "2.5", "label": "y"}, "grp") == P(2.5, "y")
+    assert config_params(P, {"gain": "2.5", "label": "y"}, "grp") == P(2.5, "y")
     with pytest.raises(InputError, match=r"^grp\.gain: expected a number, got 'wide'$"):
-        params_from_config(P, {"gain": "wide"}, "grp")
+        config_params(P, {"gain": "wide"}, "grp")
+    with pytest.raises(InputError, match=r"^grp\.loss: unknown setting; known: gain, label$"):
+        config_params(P, {"loss": 1.0}, "grp")
     assert check_number("3", "n", int) == 3
     with pytest.raises(InputError, match="n: expected an integer, got '2.5'"):
         check_number("2.5", "n", int)

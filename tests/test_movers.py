@@ -2,12 +2,21 @@
 crossing and oncoming movers keep theirs. Hand-made flow of a fronto-parallel wall."""
 from __future__ import annotations
 
+import math
+
 import torch
 
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.core.geometry import Motion, apply_homography, homography, intrinsics, pixel_rays
 from monostixels.post.movers import MoverCheckParams, check_movers
 from monostixels.core.stixels import StixelWorld
+
+
+def geometric(**kw) -> MoverCheckParams:
+    """The purely geometric check (no kept classes, no dynamic-residual test, no isolated stand-still, no
+    contact slivers) with ``kw`` on top: what these scenes test; the shipped check is the defaults."""
+    return MoverCheckParams(**{"keep_classes": (), "max_dynamic_residual_ratio": math.inf, "isolated_stand_still": False,
+                               "contact_sliver_rows": 0.0, **kw})
 
 H, W, WS = 40, 60, 10
 K = intrinsics(50.0, 48.0, 31.0, 18.0)
@@ -43,7 +52,7 @@ def test_standing_still_vs_crossing_vs_oncoming():
     # Column 2: a static object stixel (never touched). Columns 3, 4: the crossing mover.
     st = _world([1 / 10.5, 1 / 4.0, 1 / 10.5, 1 / 10.0, 1 / 10.0, 1 / 10.0],
                 [DYNAMIC_OBJECT, DYNAMIC_OBJECT, STATIC_OBJECT, DYNAMIC_OBJECT, DYNAMIC_OBJECT, DYNAMIC_OBJECT])
-    out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    out = check_movers(st, flow, MOTION, params=geometric())
     # Column normals are horizontal viewing directions, not the wall's (0, 0, 1): the static fit is
     # the median over the column's pixels of their distance along the normal, d = z (n . r), z = 10 m.
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(WS, dtype=torch.float64), indexing="ij")
@@ -57,7 +66,7 @@ def test_standing_still_vs_crossing_vs_oncoming():
         assert out.type[k] == st.type[k]
     assert out.flags["static_checked"] == 2  # columns 0 and 5 (5: the wall beside the mover)
     # Disabled, or without translation: unchanged.
-    assert check_movers(st, flow, MOTION, params=MoverCheckParams(enabled=False)) is st
+    assert check_movers(st, flow, MOTION, params=geometric(enabled=False)) is st
     still = Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
     assert check_movers(st, flow, still) is st
 
@@ -110,17 +119,17 @@ def test_mover_along_epipolar_lines_on_the_ground_stays_dynamic():
     # static object at 13.3 m would meet the road 19 rows above the stixel's bottom (tolerance 12).
     flow = _moving_wall_flow(10.0, 0.25)
     st = _contact_world(10.0)
-    old = check_movers(st, flow, MOTION, params=MoverCheckParams(max_contact_gap_px=float("inf"), follow_below=False))
+    old = check_movers(st, flow, MOTION, params=geometric(max_contact_gap_px=float("inf"), follow_below=False))
     assert old.flags["static_checked"] == 2  # the old rule flipped both columns
-    out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    out = check_movers(st, flow, MOTION, params=geometric())
     assert out.flags["static_checked"] == 0
     assert torch.equal(out.type, st.type) and torch.equal(out.inverse_depth, st.inverse_depth)
     # The upper part of the same moving object (stacked on it) stays dynamic too: the stack stands on the road.
     flow_u = _moving_wall_flow(10.0, 0.25)
     st_u = _contact_world(10.0, upper=True)
-    old_u = check_movers(st_u, flow_u, MOTION, params=MoverCheckParams(max_contact_gap_px=float("inf"), follow_below=False))
+    old_u = check_movers(st_u, flow_u, MOTION, params=geometric(max_contact_gap_px=float("inf"), follow_below=False))
     assert old_u.flags["static_checked"] == 4
-    assert check_movers(st_u, flow_u, MOTION, params=MoverCheckParams()).flags["static_checked"] == 0
+    assert check_movers(st_u, flow_u, MOTION, params=geometric()).flags["static_checked"] == 0
 
 
 def test_parked_object_on_the_ground_still_becomes_static():
@@ -129,7 +138,7 @@ def test_parked_object_on_the_ground_still_becomes_static():
     flow = _wall_flow_kc(10.5)
     for upper in (False, True):
         st = _contact_world(10.0, upper=upper)
-        out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+        out = check_movers(st, flow, MOTION, params=geometric())
         dyn = st.type == DYNAMIC_OBJECT
         assert out.flags["static_checked"] == int(dyn.sum())
         assert bool((out.type[dyn] == STATIC_OBJECT).all()) and float(out.motion[dyn].abs().max()) == 0.0
@@ -144,9 +153,9 @@ def test_static_part_above_a_parked_object_follows_its_static_depth():
     flow = _wall_flow_kc(10.5)
     flow[:, :30] = _wall_flow_kc(14.7)[:, :30]
     st = _contact_world(10.0, upper=True)
-    out = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    out = check_movers(st, flow, MOTION, params=geometric())
     assert out.flags["static_checked"] == 4
-    no_follow = check_movers(st, flow, MOTION, params=MoverCheckParams(follow_below=False))
+    no_follow = check_movers(st, flow, MOTION, params=geometric(follow_below=False))
     assert no_follow.flags["static_checked"] == 2
 
 
@@ -169,8 +178,8 @@ def test_kept_classes_stay_dynamic_where_the_geometry_cannot_tell():
         dyn = base.type == DYNAMIC_OBJECT
         walker = dataclasses.replace(base, cls=torch.where(dyn, person, 0))
         car = dataclasses.replace(base, cls=torch.where(dyn, vehicle, 0))
-        keep = MoverCheckParams(keep_classes=("person", "two_wheeler"))
-        assert check_movers(walker, flow, MOTION, params=MoverCheckParams()).flags["static_checked"] == int(dyn.sum())
+        keep = geometric(keep_classes=("person", "two_wheeler"))
+        assert check_movers(walker, flow, MOTION, params=geometric()).flags["static_checked"] == int(dyn.sum())
         out = check_movers(walker, flow, MOTION, params=keep)
         assert out.flags["static_checked"] == 0
         assert torch.equal(out.type, walker.type) and torch.equal(out.inverse_depth, walker.inverse_depth)
@@ -182,17 +191,22 @@ def test_keep_classes_from_the_config_and_bad_names():
     import pytest
     from omegaconf import OmegaConf
 
-    from monostixels._checks import InputError
+    from monostixels._checks import InputError, config_params
     from monostixels.pipeline import load_config
 
-    assert MoverCheckParams.from_config(load_config([]).movers).keep_classes == ("person", "two_wheeler")
-    assert MoverCheckParams.from_config(OmegaConf.create({"keep_classes": []})).keep_classes == ()
+    def params(cfg):
+        return config_params(MoverCheckParams, cfg, "movers")
+
+    assert OmegaConf.to_object(load_config([]).movers).keep_classes == ("person", "two_wheeler")
+    assert params(OmegaConf.create({"keep_classes": []})).keep_classes == ()
     with pytest.raises(InputError, match="movers.keep_classes.*'pedestrian'"):
-        MoverCheckParams.from_config(OmegaConf.create({"keep_classes": ["person", "pedestrian"]}))
-    with pytest.raises(InputError, match="movers.keep_classes.*string"):
-        MoverCheckParams.from_config(OmegaConf.create({"keep_classes": "person"}))
+        params(OmegaConf.create({"keep_classes": ["person", "pedestrian"]}))
+    with pytest.raises(InputError, match="movers.keep_classes"):
+        params(OmegaConf.create({"keep_classes": "person"}))
     with pytest.raises(InputError, match="movers.max_dynamic_residual_ratio.*'lots'"):
-        MoverCheckParams.from_config(OmegaConf.create({"max_dynamic_residual_ratio": "lots"}))
+        params(OmegaConf.create({"max_dynamic_residual_ratio": "lots"}))
+    with pytest.raises(InputError, match="movers.max_dynamic_residual_ratio: expected a number, got 'lots'"):
+        load_config(["movers.max_dynamic_residual_ratio=lots"])
 
 
 
@@ -232,17 +246,17 @@ def test_dynamic_plane_must_explain_the_flow_markedly_better():
     # Give the mover the static fit's depth (so that only the residual tests decide) and the motion that
     # makes its dynamic plane produce its flow there: g = p (t - Δ) equal to the true wall's.
     probe = check_movers(world(0.1, torch.tensor([dx, 0.0, 0.0], dtype=torch.float64)), flow, MOTION,
-                         params=MoverCheckParams(max_static_residual_px=float("inf"), min_depth_discrepancy=float("inf")))
+                         params=geometric(max_static_residual_px=float("inf"), min_depth_discrepancy=float("inf")))
     p1 = float(probe.inverse_depth[1])
     g = 0.1 * (MOTION.t - torch.tensor([dx, 0.0, 0.0], dtype=torch.float64))
     st = world(p1, MOTION.t - g / p1)
-    off = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    off = check_movers(st, flow, MOTION, params=geometric())
     assert off.flags["static_checked"] == 0  # the residual test alone keeps both dynamic
-    on = check_movers(st, flow, MOTION, params=MoverCheckParams(max_dynamic_residual_ratio=0.3))
+    on = check_movers(st, flow, MOTION, params=geometric(max_dynamic_residual_ratio=0.3))
     assert on.type.tolist() == [STATIC_OBJECT, DYNAMIC_OBJECT]
     assert float(on.motion[0].abs().max()) == 0.0 and torch.equal(on.motion[1], st.motion[1])
     # Without the residual test the mover's flow would pass as static: its dynamic plane alone keeps it.
-    assert check_movers(st, flow, MOTION, params=MoverCheckParams(max_static_residual_px=float("inf"))).type[1] == STATIC_OBJECT
+    assert check_movers(st, flow, MOTION, params=geometric(max_static_residual_px=float("inf"))).type[1] == STATIC_OBJECT
     # The static depth is the road points' median distance along the viewing direction.
     assert abs(1.0 / float(on.inverse_depth[0]) / d_road - 1.0) < 0.05
 
@@ -256,9 +270,9 @@ def test_background_above_a_parked_object_may_lie_behind_it():
         flow[:, :30] = _wall_flow_kc(d_up)[:, :30]
         st = _contact_world(10.0, upper=True)
         upper = st.v_bottom == 29
-        default = check_movers(st, flow, MOTION, params=MoverCheckParams())
+        default = check_movers(st, flow, MOTION, params=geometric())
         assert bool((default.type[upper] == DYNAMIC_OBJECT).all())
-        out = check_movers(st, flow, MOTION, params=MoverCheckParams(allow_behind_still=True))
+        out = check_movers(st, flow, MOTION, params=geometric(allow_behind_still=True))
         assert bool((out.type[~upper & (st.type == DYNAMIC_OBJECT)] == STATIC_OBJECT).all())
         assert bool((out.type[upper] == (STATIC_OBJECT if behind else DYNAMIC_OBJECT)).all())
         if behind:
@@ -272,7 +286,7 @@ def test_an_isolated_dynamic_stixel_stands_still():
     # the static fit's depth. A kept class is never made static.
     import dataclasses
 
-    prm = MoverCheckParams(isolated_stand_still=True)
+    prm = geometric(isolated_stand_still=True)
     for cols, want_dynamic in (((3, 4), True), ((3,), False)):
         flow = _wall_flow(10.0)
         for c in cols:
@@ -281,7 +295,7 @@ def test_an_isolated_dynamic_stixel_stands_still():
         for c in cols:
             types[c] = DYNAMIC_OBJECT
         st = _world([1 / 10.0] * 6, types)
-        assert check_movers(st, flow, MOTION, params=MoverCheckParams()).flags["static_checked"] == 0
+        assert check_movers(st, flow, MOTION, params=geometric()).flags["static_checked"] == 0
         out = check_movers(st, flow, MOTION, params=prm)
         assert bool((out.type[list(cols)] == DYNAMIC_OBJECT).all()) == want_dynamic
         if not want_dynamic:
@@ -302,12 +316,12 @@ def test_mover_on_a_contact_sliver_keeps_its_ground_contact():
     sliver, mover = torch.tensor([1, 4]), torch.tensor([2, 5])
     # Off: the sliver stands still (its flow is the road's), and the mover above it, compared only with
     # the sliver's static depth (10.4 m vs 13.3 m: within the 30 % window), stands still at 13.3 m.
-    off = check_movers(st, flow, MOTION, params=MoverCheckParams(contact_sliver_rows=0.0))
+    off = check_movers(st, flow, MOTION, params=geometric(contact_sliver_rows=0.0))
     assert bool((off.type[sliver] == STATIC_OBJECT).all()) and bool((off.type[mover] == STATIC_OBJECT).all())
     # On: the mover stands on the road through the sliver; a static object at 13.3 m would meet it 19 rows
     # above the contact (tolerance 12), so it keeps its motion and the contact's depth.
-    on = check_movers(st, flow, MOTION, params=MoverCheckParams(contact_sliver_rows=12.0))
+    on = check_movers(st, flow, MOTION, params=geometric(contact_sliver_rows=12.0))
     assert bool((on.type[sliver] == STATIC_OBJECT).all())
     assert bool((on.type[mover] == DYNAMIC_OBJECT).all()) and torch.equal(on.inverse_depth[mover], st.inverse_depth[mover])
     # A sliver taller than the setting is an object of its own: the old comparison applies.
-    assert bool((check_movers(st, flow, MOTION, params=MoverCheckParams(contact_sliver_rows=4.0)).type[mover] == STATIC_OBJECT).all())
+    assert bool((check_movers(st, flow, MOTION, params=geometric(contact_sliver_rows=4.0)).type[mover] == STATIC_OBJECT).all())

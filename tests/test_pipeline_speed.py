@@ -131,9 +131,9 @@ def _random_scene(seed: int) -> tuple[StixelWorld, torch.Tensor]:
 def test_vectorised_mover_check_equals_the_loop(seed, variant):
     st, flow = _random_scene(seed)
     # The test camera is small (f = 60 px): a tight contact tolerance makes the ground-contact test decide.
-    prm = {"default": MoverCheckParams(min_pixels=5),
-           "tight_contact": MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3),
-           "no_follow": MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3, follow_below=False)}[variant]
+    prm = {"default": MoverCheckParams(keep_classes=(), max_dynamic_residual_ratio=math.inf, isolated_stand_still=False, contact_sliver_rows=0.0, min_pixels=5),
+           "tight_contact": MoverCheckParams(keep_classes=(), max_dynamic_residual_ratio=math.inf, isolated_stand_still=False, contact_sliver_rows=0.0, min_pixels=5, max_contact_gap_px=0.3),
+           "no_follow": MoverCheckParams(keep_classes=(), max_dynamic_residual_ratio=math.inf, isolated_stand_still=False, contact_sliver_rows=0.0, min_pixels=5, max_contact_gap_px=0.3, follow_below=False)}[variant]
     want = _check_movers_loop(st, flow, MOTION, prm)
     got = check_movers(st, flow, MOTION, params=prm)
     assert torch.equal(got.type, want.type)
@@ -153,9 +153,9 @@ def test_mover_check_variants_decide_differently():
     differ = {"contact": 0, "follow": 0}
     for seed in range(6):
         st, flow = _random_scene(seed)
-        a = check_movers(st, flow, MOTION, params=MoverCheckParams(min_pixels=5, max_contact_gap_px=math.inf))
-        b = check_movers(st, flow, MOTION, params=MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3))
-        c = check_movers(st, flow, MOTION, params=MoverCheckParams(min_pixels=5, max_contact_gap_px=0.3, follow_below=False))
+        a = check_movers(st, flow, MOTION, params=MoverCheckParams(keep_classes=(), max_dynamic_residual_ratio=math.inf, isolated_stand_still=False, contact_sliver_rows=0.0, min_pixels=5, max_contact_gap_px=math.inf))
+        b = check_movers(st, flow, MOTION, params=MoverCheckParams(keep_classes=(), max_dynamic_residual_ratio=math.inf, isolated_stand_still=False, contact_sliver_rows=0.0, min_pixels=5, max_contact_gap_px=0.3))
+        c = check_movers(st, flow, MOTION, params=MoverCheckParams(keep_classes=(), max_dynamic_residual_ratio=math.inf, isolated_stand_still=False, contact_sliver_rows=0.0, min_pixels=5, max_contact_gap_px=0.3, follow_below=False))
         differ["contact"] += int((a.type != b.type).sum())
         differ["follow"] += int((b.type != c.type).sum())
     assert differ["contact"] > 0 and differ["follow"] > 0

@@ -73,9 +73,9 @@ def test_keyframe_when_nothing_is_far_enough():
     ("+temporal.eta_gates", 3, "unknown setting"),
 ])
 def test_bad_sequence_settings_are_named(key, value, match):
-    cfg = load_config(["data=synthetic", f"{key}={value}"])
+    # A value of the wrong type (or a null) is refused as the config composes, a bad number where it is read.
     with pytest.raises(InputError, match=match):
-        SequenceRunner(cfg)
+        SequenceRunner(load_config(["data=synthetic", f"{key}={value}"]))
 
 
 # ---------------------------------------------------------------------------------------------- synthetic sequences

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from omegaconf import OmegaConf
+
 from benchmarks.soak import pingpong_index, run_soak, soak_config, write_pingpong_clip
-from monostixels.sequence import KeyframeParams
 from monostixels.sequence.stream import _HISTORY_FRAMES
-from monostixels.sequence.tracking import TrackParams
 
 #: Frame pairs of the short soak; scene frames one way (a period of 2 * LENGTH = 40 frames, so each
 #: third of the soak holds 2.5 periods); image size over KITTI's (75x248: still tracks to make).
@@ -42,7 +42,7 @@ def test_soak_tracks_are_born_die_and_stay_bounded(soak):
     assert (np.diff(live) < 0).sum() > n // 10
     # A track unseen for more than max_age_frames is dropped, so no more can be alive than the
     # stixels of that many frames (+ the current one) of this scene.
-    max_age = TrackParams.from_config(cfg.get("temporal")).max_age_frames
+    max_age = OmegaConf.to_object(cfg.temporal).max_age_frames
     assert live[2 * n // 3:].max() <= (max_age + 1) * max(rec.stixels)
     # No growth trend: the last third holds no more tracks on average than the middle third (each
     # covers whole periods of the forward-and-back drive but half a one), with a margin for that half.
@@ -51,7 +51,7 @@ def test_soak_tracks_are_born_die_and_stay_bounded(soak):
 
 def test_soak_buffers_stay_bounded(soak):
     cfg, rec = soak
-    window = KeyframeParams.from_config(cfg.get("keyframes")).window
+    window = OmegaConf.to_object(cfg.keyframes).window
     sizes = {k: max(b[k] for b in rec.buffers) for k in rec.buffers[0]}
     # The sequence layer's frames (poses) and the source's decoded frames: the keyframe window and the
     # current frame; the stream's kept frames: its history or the chain window.

@@ -271,12 +271,12 @@ def test_bad_inputs_fail_clearly():
         Camera(torch.zeros(3, 3))
     with pytest.raises(InputError, match="solver.cell_rows"):
         SolverConfig.from_yaml(cell_rows=0)
-    with pytest.raises(InputError, match="solver config: unknown keys \\['rows'\\]"):
+    with pytest.raises(InputError, match="solver.rows: unknown setting"):
         SolverConfig.from_yaml(rows=3)
-    with pytest.raises(InputError, match="prior config"):
-        PriorParams.from_config({"beta_mc": 1.0})
+    with pytest.raises(InputError, match="prior.beta_mc: expected a number, got 'big'"):
+        PriorParams.from_yaml(beta_mc="big")
     with pytest.raises(InputError, match="prior.beta_mc: must be >= 0"):
-        PriorParams.from_config({**PriorParams.from_yaml().to_dict(), "beta_mc": -1.0})
+        PriorParams.from_yaml(beta_mc=-1.0)
 
 
 def test_image_sizes_not_multiple_of_cells():

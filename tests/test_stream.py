@@ -90,8 +90,9 @@ def test_a_missing_preset_model_falls_back_as_before(monkeypatch):
 
 @pytest.mark.parametrize("key,value,match", [
     ("stream.semantic_every", 0, "semantic_every"),
-    ("stream.flow_init", "'yes'", "flow_init"),
-    ("+stream.warm", "true", "unknown setting"),
+    ("stream.flow_init", "'maybe'", "stream.flow_init: expected true or false, got 'maybe'"),
+    ("stream.semantic_every", "two", "stream.semantic_every: expected an integer, got 'two'"),
+    ("+stream.warm", "true", "stream.warm: unknown setting"),
 ])
 def test_bad_stream_settings_are_named(key, value, match):
     with pytest.raises(InputError, match=match):

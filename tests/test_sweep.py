@@ -105,13 +105,19 @@ def test_perceptron_loss_gradcheck():
 
 
 def test_written_prior_yaml_loads(tmp_path):
-    """write_prior_yaml gives a file PriorParams reads back with every key of conf/prior/default.yaml."""
+    """write_prior_yaml gives a prior option (the schema, then every parameter) that composes back to the
+    same values; the written options of conf/prior/ have that form."""
+    from omegaconf import OmegaConf
+
+    from monostixels.core.energy import PriorConfig
+
     prm = PriorParams.from_yaml("default", beta_mc=31.5)
     path = write_prior_yaml(prm, tmp_path / "p.yaml", note="test")
-    back = PriorParams.from_config(yaml.safe_load(path.read_text()))
+    written = yaml.safe_load(path.read_text())
+    assert written.pop("defaults") == ["base_prior", "_self_"] and list(written) == PriorParams.names()
+    back = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(PriorConfig), written)).params()
     assert back.to_dict() == pytest.approx(prm.to_dict(), rel=1e-4)
-    default = yaml.safe_load((REPO / "conf" / "prior" / "default.yaml").read_text())
     for name in ("tuned", "learned"):
         f = REPO / "conf" / "prior" / f"{name}.yaml"
         if f.exists():
-            assert list(yaml.safe_load(f.read_text())) == list(default), f
+            assert list(yaml.safe_load(f.read_text())) == ["defaults", *PriorParams.names()], f

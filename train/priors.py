@@ -46,6 +46,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+import monostixels.config_schema  # noqa: F401 - registers the groups' schemas (main composes the package config)
 from monostixels.core.energy import PriorParams, gravity, ordering_from_depths
 from monostixels.core.geometry import ground_basis, pixel_rays
 from monostixels.core.columns import ColumnProblem, _row_costs, beyond_horizon, prepare_columns
@@ -61,7 +62,7 @@ CONFIG_NAME = "train_priors"
 _YAML_HEADER = (
     "# Learned stixel priors: gradient descent through the soft-min DP, written by\n"
     "# `python -m train.priors` (train/priors.py; settings in conf/train_priors.yaml).\n"
-    "# Keys and units as in conf/prior/default.yaml. Use: monostixels eval prior=learned\n"
+    "# Keys and units: PriorConfig (monostixels/core/energy.py). Use: monostixels eval prior=learned\n"
 )
 
 
@@ -251,11 +252,15 @@ def learn_priors(noisy: ColumnProblem, gt: ColumnProblem, init: PriorParams, lea
 
 
 def write_prior_yaml(prm: PriorParams, path: str | Path, note: str = "", header: str | None = None) -> Path:
-    """Write ``prm`` as a ``prior`` config file (same keys and order as conf/prior/default.yaml)."""
+    """Write ``prm`` as a ``prior`` config file: the schema (``base_prior``) and every parameter, in the
+    order of :class:`~monostixels.core.energy.PriorConfig`."""
     path = Path(path)
     lines = [(_YAML_HEADER if header is None else header).rstrip("\n")]
     if note:
         lines += [f"# {ln}" for ln in note.splitlines()]
+    lines += ["# Every parameter is written, equal to the schema's default or not: the set as found, kept",
+              "# whatever the defaults (PriorConfig, monostixels/core/energy.py) become.",
+              "defaults:", "  - base_prior", "  - _self_", ""]
     lines += [f"{k}: {round(v, 4)}" for k, v in prm.to_dict().items()]
     path.write_text("\n".join(lines) + "\n")
     return path

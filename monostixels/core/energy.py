@@ -1,21 +1,25 @@
 """Data and prior terms of the mono-stixel energy (paper eq. 2-9), as torch ops.
 
 All terms are in units of one pixel row of a column: data terms are summed over the rows of a
-stixel. Every parameter comes from the Hydra config group ``prior`` (:class:`PriorParams`); the
+stixel. Every parameter comes from the Hydra config group ``prior`` (:class:`PriorConfig`); the
 fields may be tensors with ``requires_grad`` so that the soft DP differentiates through them.
 """
 from __future__ import annotations
 
+import copy
+import math
 from dataclasses import dataclass, fields
-from typing import Any, Mapping
+from functools import lru_cache
+from typing import Any
 
 import torch
 
-from monostixels._checks import InputError, check_keys, check_number
+from monostixels._checks import InputError, check_number, config_params
 
 __all__ = [
     "GRAVITY_TOLERANCE_M",
     "load_config_group",
+    "PriorConfig",
     "PriorParams",
     "flow_cost",
     "semantic_nll",
@@ -34,11 +38,69 @@ GRAVITY_TOLERANCE_M = 1e-4
 
 
 @dataclass
-class PriorParams:
-    """Prior parameters and data-term weights (config group ``prior``; units in conf/prior/default.yaml).
+class PriorConfig:
+    """The stixel priors and data-term weights as settings: the schema of the config group ``prior``
+    (monostixels.config_schema); the defaults are the paper's priors (conf/prior/default.yaml chooses them).
 
-    There are no defaults in code: :meth:`from_yaml` reads ``conf/prior/<name>.yaml``. Fields may
-    be floats or 0-d tensors (for learning them through the soft DP).
+    Energies are in units of one pixel row of a column: every data term is summed over the rows of a
+    stixel. :meth:`params` gives the :class:`PriorParams` the solver takes.
+
+    Attributes:
+        beta_mc: model complexity, the cost of every new stixel. It must exceed the capped flow cost of a
+            cell that straddles a boundary (``cell_rows x (alpha_F - log det C)``), else such cells split off.
+        alpha_grav_below, beta_grav_below, alpha_grav_above, beta_grav_above: gravity (an object stixel
+            above ground/sky, or the min with ordering above an object). ``dh`` = height of the object's
+            bottom over the reference ground (metres); ``dh < 0`` (sunk into the ground):
+            ``alpha_grav_below + beta_grav_below * |dh|``; ``dh >= 0`` (floating):
+            ``alpha_grav_above + beta_grav_above * dh``.
+        alpha_ord, beta_ord: ordering (an object above an object that is farther away):
+            ``alpha_ord + beta_ord * (1/p_prev - 1/p)``, metres.
+        alpha_flat, beta_flat: flat ground, ``alpha_flat + beta_flat * dh^2``, ``dh`` = height change to
+            the reference ground (metres).
+        alpha_F, alpha_L: robust caps of the flow and semantic data terms (outlier levels, per row).
+        delta_F, delta_L: weights of the flow and semantic data terms.
+        alpha_dyn: extra cost per row of a dynamic-object stixel (0 in the paper). With semantics off, the
+            2-DOF dynamic type fits any flow at least as well as the 1-DOF static types; this keeps it honest.
+
+    Every value must be finite and >= 0 (``alpha_flat`` may be negative).
+    """
+
+    beta_mc: float = 25.0
+    alpha_grav_below: float = 2.0
+    beta_grav_below: float = 20.0
+    alpha_grav_above: float = 1.0
+    beta_grav_above: float = 10.0
+    alpha_ord: float = 4.0
+    beta_ord: float = 1.0
+    alpha_flat: float = 0.0
+    beta_flat: float = 200.0
+    alpha_F: float = 4.0
+    alpha_L: float = 4.0
+    delta_F: float = 1.0
+    delta_L: float = 1.0
+    alpha_dyn: float = 0.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = float(check_number(getattr(self, f.name), f"prior.{f.name}"))
+            if not math.isfinite(v):
+                raise InputError(f"prior.{f.name}: must be finite, got {v}")
+            if v < 0 and f.name != "alpha_flat":
+                raise InputError(f"prior.{f.name}: must be >= 0, got {v}")
+            setattr(self, f.name, v)
+
+    def params(self) -> "PriorParams":
+        """The solver's :class:`PriorParams` (floats)."""
+        return PriorParams(**{k: getattr(self, k) for k in PriorParams.names()})
+
+
+@dataclass
+class PriorParams:
+    """Prior parameters and data-term weights as the solver takes them (config group ``prior``: its
+    settings are :class:`PriorConfig`, which documents each).
+
+    Fields may be floats or 0-d tensors (for learning them through the soft DP); there are no defaults
+    here: :meth:`from_yaml` gives those of a packaged option, :meth:`PriorConfig.params` those of a config.
     """
 
     beta_mc: Any
@@ -58,25 +120,13 @@ class PriorParams:
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: float) -> "PriorParams":
-        """Parameters of ``conf/prior/<name>.yaml`` (as packaged), with keyword overrides."""
-        return cls.from_config({**load_config_group("prior", name), **overrides})
+        """Parameters of the packaged option ``prior=<name>`` as composed, with keyword overrides."""
+        return config_params(PriorConfig, {**load_config_group("prior", name), **overrides}, "prior").params()
 
     @staticmethod
     def names() -> list[str]:
         """Names of all parameters, in declaration order."""
         return [f.name for f in fields(PriorParams)]
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> "PriorParams":
-        """Build from the ``prior`` config node; unknown or missing keys are errors."""
-        check_keys(cfg.keys(), cls.names(), "prior config")
-        values = {k: float(check_number(cfg[k], f"prior.{k}")) for k in cls.names()}
-        for k, v in values.items():
-            if not torch.isfinite(torch.tensor(v)):
-                raise InputError(f"prior.{k}: must be finite, got {v}")
-            if v < 0 and k != "alpha_flat":
-                raise InputError(f"prior.{k}: must be >= 0, got {v}")
-        return cls(**values)
 
     def as_tensors(self, dtype: torch.dtype = torch.float32) -> "PriorParams":
         """A copy whose float fields are 0-d tensors of ``dtype`` (tensors are kept, cast)."""
@@ -92,15 +142,24 @@ class PriorParams:
 
 
 def load_config_group(group: str, name: str) -> dict[str, Any]:
-    """The packaged config file ``conf/<group>/<name>.yaml`` as a plain dict."""
-    from importlib.resources import files
+    """The packaged option ``<group>=<name>`` as Hydra composes it (its schema's defaults, the YAML's
+    choices and overrides), as a plain dict."""
+    return copy.deepcopy(_composed_group(group, name))
 
+
+@lru_cache(maxsize=None)
+def _composed_group(group: str, name: str) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
-    res = files("monostixels.conf").joinpath(group, f"{name}.yaml")
-    if not res.is_file():
-        raise InputError(f"config {group}={name}: no file conf/{group}/{name}.yaml")
-    return OmegaConf.to_container(OmegaConf.create(res.read_text()), resolve=True)  # type: ignore[return-value]
+    from monostixels.pipeline import load_config  # (composes the package config; imports this module)
+
+    try:
+        cfg = load_config([f"{group}={name}"])
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - Hydra's MissingConfigException and kin: no such option
+        raise InputError(f"config {group}={name}: no such option in conf/{group}/ ({str(e).splitlines()[0]})") from None
+    return OmegaConf.to_container(cfg[group], resolve=True)  # type: ignore[return-value]
 
 
 def flow_cost(residual: torch.Tensor, cov_inv: torch.Tensor, logdet: torch.Tensor, alpha_F: Any) -> torch.Tensor:

@@ -42,13 +42,13 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import torch
 
 from monostixels.core import _dp_cpp
-from monostixels._checks import InputError, check_finite, check_keys, check_same_size, check_shape
+from monostixels._checks import InputError, check_finite, check_same_size, check_shape, config_params
 from monostixels.post.boundaries import REFINE_OBJECTS
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT
 from monostixels.core.columns import (_Z_MIN, ColumnProblem, _cpp_prep, _flow_geometry, _flow_prefix, _geometry, _hypotheses,
@@ -69,39 +69,59 @@ BACKENDS = ("auto", "eager", "cpp")
 
 @dataclass
 class SolverConfig:
-    """Solver settings (config group ``solver``; units in conf/solver/default.yaml).
+    """Solver settings: the schema of the config group ``solver`` (monostixels.config_schema).
 
-    No defaults in code: :meth:`from_yaml` reads ``conf/solver/<name>.yaml``.
+    Attributes:
+        column_width: column width w_s (pixels).
+        cell_rows: vertical cell size r (pixel rows per DP cell).
+        hypothesis_stride: hypotheses per column from every ``hypothesis_stride``-th cell (1 = every
+            cell, the per-column superset of the paper's per-segment MLESAC hypotheses).
+        standing_hypotheses: add, per cell, the static-object hypothesis that stands on the reference
+            ground at the cell's lower edge (the scene model's depth), beside the flow-fitted ones.
+        min_depth, max_depth: depth range of object and ground hypotheses (metres); others are discarded.
+        tau: soft-min temperature of the DP (0 = hard min; > 0 for learning the priors).
+        dtype: compute dtype, ``float32`` (fast) or ``float64`` (tests, gradient checks).
+        min_translation: camera translations below this (metres) carry no depth: the frame is flagged
+            and depths come from the scene model only (docs/conventions.md, section 7).
+        backend: DP implementation: ``auto`` = the fused C++ kernel (monostixels/core/csrc/column_dp.cpp,
+            built at first use, cached in ~/.cache/torch_extensions) for the hard DP, the eager torch code
+            where it cannot be built (one warning) and for the soft DP (tau > 0) and gradients;
+            ``eager`` = always the torch code; ``cpp`` = the kernel or an error. Both give bit-identical results.
+        sky_horizon_margin_deg: sky is not seen more than this many degrees below the horizon of the road
+            plane: there the sky class pays the flow and semantic caps on top (with semantics; YAML ``.inf``,
+            command line ``inf`` = off). Where the flow fails (the image's lower corners) the net's score
+            alone would decide, and bright road read as sky would become a sky stixel a few metres ahead.
+        top_refine_rows, top_refine_depth_ratio, top_refine_objects: moving objects' tops at pixel rows
+            (monostixels/post/boundaries.py; applied by the pipeline after the DP and the mover check, with
+            semantics only): where an object stixel (of ``top_refine_objects``: dynamic | all) has sky or an
+            object more than ``top_refine_depth_ratio`` times farther above it, their boundary moves to the
+            row within ``top_refine_rows`` rows (0 = off) where the two stixels' semantic term, read row by
+            row, is least (docs/experiments.md, "Tops of movers").
     """
 
-    column_width: int
-    cell_rows: int
-    hypothesis_stride: int
-    min_depth: float
-    max_depth: float
-    tau: float
-    dtype: str
-    min_translation: float
-    standing_hypotheses: bool
-    backend: str
-    sky_horizon_margin_deg: float
+    column_width: int = 5
+    cell_rows: int = 3
+    hypothesis_stride: int = 1
+    min_depth: float = 0.5
+    max_depth: float = 300.0
+    tau: float = 0.0
+    dtype: str = "float32"
+    min_translation: float = 0.05
+    standing_hypotheses: bool = True
+    backend: str = "auto"
+    sky_horizon_margin_deg: float = 5.0
     # Applied after the DP by the pipeline (monostixels.post.boundaries.refine_object_tops).
-    top_refine_rows: int
-    top_refine_depth_ratio: float
-    top_refine_objects: str
+    top_refine_rows: int = 3
+    top_refine_depth_ratio: float = 1.5
+    top_refine_objects: str = "dynamic"
+
+    def __post_init__(self) -> None:
+        self.validate()
 
     @classmethod
     def from_yaml(cls, name: str = "default", **overrides: Any) -> "SolverConfig":
-        """Settings of ``conf/solver/<name>.yaml`` (as packaged), with keyword overrides."""
-        return cls.from_config({**load_config_group("solver", name), **overrides})
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> "SolverConfig":
-        """Build from the ``solver`` config node, checking every value."""
-        check_keys(cfg.keys(), (f.name for f in fields(cls)), "solver config")
-        out = cls(**{k: cfg[k] for k in cfg.keys()})
-        out.validate()
-        return out
+        """Settings of the packaged option ``solver=<name>`` as composed, with keyword overrides."""
+        return config_params(cls, {**load_config_group("solver", name), **overrides}, "solver")
 
     def validate(self) -> None:
         """Raise :class:`InputError` naming the first bad setting."""

@@ -73,7 +73,7 @@ import numpy as np
 import torch
 
 from monostixels._pools import helper_pool
-from monostixels._checks import InputError, check_finite, check_shape, config_value
+from monostixels._checks import InputError, check_finite, check_shape, config_params, config_value
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
 from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
@@ -144,7 +144,8 @@ class MotionEstimate:
 
 @dataclass
 class MonoParams:
-    """Parameters of the ``mono`` estimator (keys of the ``motion`` config group).
+    """Parameters of the ``mono`` estimator (keys of the ``motion`` config group's option ``mono``;
+    its schema is :class:`~monostixels.inputs.motion_track.MonoMotionConfig`).
 
     Attributes:
         step: stride (pixels) of the grid of flow vectors used.
@@ -190,9 +191,11 @@ class MonoParams:
 
 
 def _mono_params(cfg: Any) -> MonoParams:
-    d = MonoParams()
-    kw = {k: type(getattr(d, k))(config_value(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
-    return MonoParams(**kw)
+    """The estimator's settings of the ``motion`` config node (``motion=mono``; its schema
+    :class:`~monostixels.inputs.motion_track.MonoMotionConfig` holds them)."""
+    from monostixels.inputs.motion_track import MonoMotionConfig  # (that module imports this one)
+
+    return config_params(MonoMotionConfig, cfg, "motion")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -16,12 +16,11 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import config_value
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion
-from monostixels.inputs.motion import MotionEstimate
+from monostixels.inputs.motion import MonoParams, MotionEstimate
 
-__all__ = ["MotionTrack", "MotionTrackParams"]
+__all__ = ["MonoMotionConfig", "MotionTrack", "MotionTrackParams"]
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +59,22 @@ class MotionTrackParams:
     scale_hold_s: float = 2.0
 
 
+@dataclass
+class MonoMotionConfig(MonoParams, MotionTrackParams):
+    """Schema of the option ``mono`` of the config group ``motion`` (monostixels.config_schema): the
+    estimator's settings (:class:`~monostixels.inputs.motion.MonoParams`), the sequence prior's
+    (:class:`MotionTrackParams`) and:
+
+    Attributes:
+        name: the backend (``mono``).
+        use_ground_normal: solve with the road normal fitted for the scale instead of
+            ``camera.ground_normal`` (a real camera is not mounted exactly level and roads tilt by a few degrees).
+    """
+
+    name: str = "mono"
+    use_ground_normal: bool = True
+
+
 class MotionTrack:
     """Steadies the metric scale and the road normal of monocular ego-motion over a sequence.
 
@@ -92,12 +107,6 @@ class MotionTrack:
         self._rejected: float | None = None  # log speed of the last pair, where it was an outlier
         self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
         self._held_s = 0.0  # seconds since the last pair with a measured scale
-
-    @staticmethod
-    def from_config(cfg: Any) -> "MotionTrack":
-        d = MotionTrackParams()
-        kw = {k: type(getattr(d, k))(config_value(cfg, k, getattr(d, k))) for k in d.__dataclass_fields__}
-        return MotionTrack(MotionTrackParams(**kw))
 
     def reset(self) -> None:
         self._key, self._x, self._var = None, 0.0, math.inf

@@ -47,7 +47,7 @@ from typing import Any, Iterator, Sequence
 import torch
 from omegaconf import DictConfig
 
-from monostixels._checks import InputError, params_from_config
+from monostixels._checks import InputError, config_params
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
@@ -66,7 +66,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class KeyframeParams:
-    """Keyframe choice (config group ``keyframes``).
+    """Keyframe choice: the schema of the config group ``keyframes`` (monostixels.config_schema).
 
     Attributes:
         min_distance_m: the least driven distance between the two frames of a pair (metres; 0 = always
@@ -97,10 +97,6 @@ class KeyframeParams:
         v = self.standing_max_s
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
             raise InputError(f"keyframes.standing_max_s: a time > 0 seconds, got {v!r}")
-
-    @staticmethod
-    def from_config(cfg: Any) -> "KeyframeParams":
-        return params_from_config(KeyframeParams, cfg, "keyframes")
 
 
 def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams, speed_mps: float | None,
@@ -183,9 +179,9 @@ class SequenceRunner:
     def __init__(self, cfg: DictConfig, pipeline: Pipeline | None = None) -> None:
         self.cfg = cfg
         self.pipeline = pipeline if pipeline is not None else Pipeline(cfg)
-        self.keyframes = KeyframeParams.from_config(cfg.get("keyframes"))
-        self.track_params = TrackParams.from_config(cfg.get("temporal"))
-        self.ttc = TtcParams.from_config(cfg.get("ttc"))
+        self.keyframes = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes")
+        self.track_params = config_params(TrackParams, cfg.get("temporal"), "temporal")
+        self.ttc = config_params(TtcParams, cfg.get("ttc"), "ttc")
         self.use_gt_distance = str(cfg.motion.get("name", "")) in ("gt", "file")
         self.standing_m = float(self.pipeline.solver_cfg.min_translation)
         self.default_dt = float(cfg.eval.get("frame_interval_s", 0.1)) if "eval" in cfg else 0.1

@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 import torch
 
-from monostixels._checks import InputError, params_from_config
+from monostixels._checks import InputError, config_params
 from monostixels.inputs.static_regions import crop_ignored
 from monostixels.data.base import FramePair
 
@@ -64,7 +64,8 @@ _HISTORY_FRAMES = 4
 
 @dataclass
 class StreamParams:
-    """What a stream carries from frame to frame (config group ``stream``).
+    """What a stream carries from frame to frame: the schema of the config group ``stream``
+    (monostixels.config_schema). The defaults carry nothing that changes a result (``stream=cold``).
 
     Attributes:
         flow_init: start each pair's flow from the last pair's flow (image backends with a DIS stage).
@@ -78,7 +79,7 @@ class StreamParams:
     flow_init: bool = False
     semantic_every: int = 1
     motion_warm_start: bool = False
-    overlap: bool = False
+    overlap: bool = True
 
     def __post_init__(self) -> None:
         for key in ("flow_init", "motion_warm_start", "overlap"):
@@ -87,11 +88,6 @@ class StreamParams:
         k = self.semantic_every
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise InputError(f"stream.semantic_every: a whole number >= 1 (1 = the net on every frame), got {k!r}")
-
-    @staticmethod
-    def from_config(cfg: Any) -> "StreamParams":
-        """From the ``stream`` config node (None: nothing carried)."""
-        return params_from_config(StreamParams, cfg, "stream")
 
 
 @dataclass
@@ -182,7 +178,7 @@ class StreamState:
     @staticmethod
     def from_config(cfg: Any) -> "StreamState":
         """The state of the ``stream`` group of a composed config (nothing carried where it has none)."""
-        return StreamState(StreamParams.from_config(cfg.get("stream") if hasattr(cfg, "get") else None))
+        return StreamState(config_params(StreamParams, cfg.get("stream") if hasattr(cfg, "get") else None, "stream"))
 
     def reset(self) -> None:
         """Forget the stream (a new clip, a failed pair); work started ahead is dropped."""

@@ -39,11 +39,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any
 
 import torch
 
-from monostixels._checks import InputError, params_from_config
+from monostixels._checks import InputError
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.core.geometry import Motion, ground_basis, pixel_rays
 from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
@@ -58,7 +57,7 @@ _CHI2_2DOF_999 = 13.82
 
 @dataclass
 class TrackParams:
-    """Settings of the stixel tracks (config group ``temporal``).
+    """Settings of the stixel tracks: the schema of the config group ``temporal`` (monostixels.config_schema).
 
     Attributes:
         enabled: track (False: every frame on its own; velocities and TTC from the pair alone).
@@ -138,14 +137,10 @@ class TrackParams:
         if self.group_depth_ratio < 0:
             raise InputError(f"temporal.group_depth_ratio: must be >= 0 (0 = off), got {self.group_depth_ratio}")
 
-    @staticmethod
-    def from_config(cfg: Any) -> "TrackParams":
-        return params_from_config(TrackParams, cfg, "temporal")
-
 
 @dataclass
 class TtcParams:
-    """Time-to-collision warnings (config group ``ttc``).
+    """Time-to-collision warnings: the schema of the config group ``ttc`` (monostixels.config_schema).
 
     Attributes:
         warn_s: a stixel closing in less than this (seconds) within the corridor is critical.
@@ -167,10 +162,6 @@ class TtcParams:
         v = self.confirm_frames
         if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
             raise InputError(f"ttc.confirm_frames: a whole number >= 0, got {v!r}")
-
-    @staticmethod
-    def from_config(cfg: Any) -> "TtcParams":
-        return params_from_config(TtcParams, cfg, "ttc")
 
 
 def object_groups(world: StixelWorld, depth_ratio: float) -> torch.Tensor:

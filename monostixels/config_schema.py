@@ -1,0 +1,96 @@
+"""The schemas of the config groups, registered with Hydra's ConfigStore.
+
+Each group below has one settings dataclass, its schema: the defaults live there, and every YAML
+option of the group (conf/<group>/*.yaml) lists the schema first in its defaults list
+(``defaults: [base_<group>, _self_]``), then chooses or overrides values. Hydra then refuses an unknown
+key or a value of the wrong type when it composes the config (``movers.no_such_key=1``,
+``solver.cell_rows=abc``), and the code takes the settings as the dataclass
+(``OmegaConf.to_object(cfg.<group>)``; :func:`monostixels._checks.config_params`).
+
+Importing this module registers the schemas; the package config (``pkg://monostixels.conf``) imports it
+when it is loaded, and so does every place that composes it (:func:`monostixels.pipeline.load_config`,
+the command line, train/).
+
+============  ==========================================================  ===========================
+group         schema                                                      registered as
+============  ==========================================================  ===========================
+movers        :class:`monostixels.post.movers.MoverCheckParams`           ``movers/base_movers``
+solver        :class:`monostixels.core.solver.SolverConfig`               ``solver/base_solver``
+prior         :class:`monostixels.core.energy.PriorConfig`                ``prior/base_prior``
+stream        :class:`monostixels.sequence.stream.StreamParams`           ``stream/base_stream``
+keyframes     :class:`monostixels.sequence.runner.KeyframeParams`         ``keyframes/base_keyframes``
+temporal      :class:`monostixels.sequence.tracking.TrackParams`          ``temporal/base_temporal``
+ttc           :class:`monostixels.sequence.tracking.TtcParams`            ``ttc/base_ttc``
+motion (mono) :class:`monostixels.inputs.motion_track.MonoMotionConfig`   ``motion/base_mono``
+============  ==========================================================  ===========================
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+from hydra.core.config_store import ConfigStore
+
+from monostixels._checks import InputError, config_error
+from monostixels.core.energy import PriorConfig
+from monostixels.core.solver import SolverConfig
+from monostixels.inputs.motion_track import MonoMotionConfig
+from monostixels.post.movers import MoverCheckParams
+from monostixels.sequence.runner import KeyframeParams
+from monostixels.sequence.stream import StreamParams
+from monostixels.sequence.tracking import TrackParams, TtcParams
+
+__all__ = ["SCHEMAS", "register", "composition_error", "check_overrides"]
+
+#: ``(group, name in the ConfigStore, schema)`` of every group with a schema.
+SCHEMAS: tuple[tuple[str, str, type], ...] = (
+    ("movers", "base_movers", MoverCheckParams),
+    ("solver", "base_solver", SolverConfig),
+    ("prior", "base_prior", PriorConfig),
+    ("stream", "base_stream", StreamParams),
+    ("keyframes", "base_keyframes", KeyframeParams),
+    ("temporal", "base_temporal", TrackParams),
+    ("ttc", "base_ttc", TtcParams),
+    ("motion", "base_mono", MonoMotionConfig),
+)
+
+
+def register() -> None:
+    """Store every schema of :data:`SCHEMAS` in Hydra's ConfigStore (again: the same nodes)."""
+    cs = ConfigStore.instance()
+    for group, name, schema in SCHEMAS:
+        cs.store(group=group, name=name, node=schema)
+
+
+def composition_error(error: BaseException) -> InputError | None:
+    """The one-line :class:`InputError` for Hydra's refusal to compose (``error``, a
+    ``ConfigCompositionException``) of an unknown key or a value of the wrong type, naming the option;
+    None for any other composition error (a missing config file, a bad override's syntax)."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    cause = error.__cause__
+    if not isinstance(cause, OmegaConfBaseException):
+        return None
+    return config_error(cause)
+
+
+def check_overrides(overrides: Sequence[str]) -> InputError | None:
+    """Compose the package config with ``overrides`` as the command line would; the one-line error of
+    an unknown key or a wrong type among them (:func:`composition_error`), else None (the config
+    composes, or fails for a reason Hydra reports itself)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import ConfigCompositionException
+
+    if GlobalHydra.instance().is_initialized():
+        return None
+    try:
+        with initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
+            compose(config_name="config", overrides=list(overrides))
+    except ConfigCompositionException as e:
+        return composition_error(e)
+    except Exception:  # noqa: BLE001 - not ours to report: Hydra's own run reports it
+        return None
+    return None
+
+
+register()
