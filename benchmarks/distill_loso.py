@@ -64,6 +64,7 @@ def teacher_agreement(weights: str | Path, entries: list, *, focal_px: float,
     import cv2
 
     from monostixels.inputs.semantic import TorchSegmenter
+    from train.semantic import void_rows
     from train.teacher_labels import load_entry
 
     seg = TorchSegmenter(weights)
@@ -78,9 +79,7 @@ def teacher_agreement(weights: str | Path, entries: list, *, focal_px: float,
         student = F.interpolate(probs[None], size=teacher.shape[-2:], mode="area")[0]
         s, t = student.argmax(0), teacher.argmax(0)
         if e.source in (void_below or {}):
-            h = t.shape[0]
-            rows = y0 + (torch.arange(h, dtype=torch.float64) + 0.5) * ((y1 - y0) / h)
-            keep = rows < void_below[e.source] * bgr.shape[0]
+            keep = ~void_rows(e.box, bgr.shape[0], t.shape[0], void_below[e.source])
             s, t = s[keep], t[keep]
         acc.setdefault(e.source, SemanticAccumulator()).add(s, t)
         agree.setdefault(e.source, []).append(float((s == t).float().mean()))

@@ -41,7 +41,7 @@ import shlex
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, NamedTuple, Sequence
 
 import cv2
 import hydra
@@ -306,6 +306,14 @@ def distill_frames(dcfg: DictConfig | dict) -> list[DistillFrame]:
     return frames
 
 
+def void_rows(box: Sequence[int], frame_height: int, rows: int, fraction: float) -> torch.Tensor:
+    """Mask (rows,) of the rows of a window ``box = (x0, y0, x1, y1)`` of a frame, sampled at ``rows`` rows,
+    whose centre lies at or below ``fraction`` of the frame's height (``data.soft.void_below``)."""
+    y0, y1 = box[1], box[3]
+    centre = y0 + (torch.arange(rows, dtype=torch.float64) + 0.5) * ((y1 - y0) / rows)
+    return centre >= fraction * frame_height
+
+
 def held_out(source: str, frame: int, holdout: list | None) -> bool:
     """Whether ``(source, frame)`` is excluded by ``holdout``.
 
@@ -385,9 +393,7 @@ class SoftLabelled(Dataset):
             lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
         soft = F.interpolate(load_entry(e.probs)[None], size=(h, w), mode="bilinear", align_corners=False)[0]
         if e.source in self.void_below:
-            # Frame row of each output row's centre; at and below the limit the teacher says nothing.
-            rows = y0 + (torch.arange(h, dtype=torch.float64) + 0.5) * ((y1 - y0) / h)
-            soft[:, rows >= self.void_below[e.source] * bgr.shape[0]] = 0.0
+            soft[:, void_rows(e.box, bgr.shape[0], h, self.void_below[e.source])] = 0.0
         return rgb, lab, soft
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
