@@ -74,23 +74,21 @@ def composition_error(error: BaseException) -> InputError | None:
 
 
 def check_overrides(overrides: Sequence[str]) -> InputError | None:
-    """Compose the package config with ``overrides`` as the command line would; the one-line error of
-    an unknown key or a wrong type among them (:func:`composition_error`), else None (the config
-    composes, or fails for a reason Hydra reports itself)."""
-    from hydra import compose, initialize_config_module
+    """Compose the package config with ``overrides`` as the command line would
+    (:func:`monostixels.pipeline.load_config`); the one-line error of an unknown key or a wrong type among
+    them, else None (the config composes, or fails for a reason Hydra reports itself)."""
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import ConfigCompositionException
+
+    from monostixels.pipeline import load_config
 
     if GlobalHydra.instance().is_initialized():
         return None
     try:
-        with initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
-            compose(config_name="config", overrides=list(overrides))
-    except ConfigCompositionException as e:
-        return composition_error(e)
+        load_config(overrides)
+    except InputError as e:
+        return e
     except Exception:  # noqa: BLE001 - not ours to report: Hydra's own run reports it
         return None
     return None
-
 
 register()
