@@ -256,10 +256,10 @@ def _known_keys(error: BaseException) -> list[str]:
     """The keys of the dataclass schema an unknown-key error was raised against (none if not known)."""
     from dataclasses import is_dataclass
 
+    from omegaconf import OmegaConf
+
     for node in (getattr(error, "child_node", None), getattr(error, "parent_node", None)):
         try:
-            from omegaconf import OmegaConf
-
             t = OmegaConf.get_type(node) if node is not None else None
         except Exception:  # noqa: BLE001 - a node of no known type names no keys
             t = None
