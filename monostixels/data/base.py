@@ -6,7 +6,7 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import InputError, check_finite, check_same_size, check_shape
+from monostixels._checks import InputError, check_finite_fast, check_same_size, check_shape
 from monostixels.core.geometry import Camera, Motion
 
 __all__ = ["GroundTruth", "FramePair", "PreviousFrame"]
@@ -89,7 +89,7 @@ class FramePair:
         check_shape(self.image, [3, "H", "W"], f"{self.name or 'frame'}: image")
         check_shape(self.image_prev, [3, "H", "W"], f"{self.name or 'frame'}: image_prev")
         check_same_size(self.image, self.image_prev, "image (current)", "image_prev (previous)")
-        check_finite(self.image, "image")
+        check_finite_fast(self.image, "image")
         if self.gt.depth is not None:
             check_same_size(self.gt.depth, self.image, "gt.depth", "image")
         ignore = self.meta.get("ignore_mask")

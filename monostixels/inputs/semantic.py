@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
-from monostixels._checks import InputError, check_finite, check_shape
+from monostixels._checks import InputError, check_finite_fast, check_shape
 from monostixels._paths import REPO_ROOT, find_file, path_candidates
 from monostixels._threads import onnx_session_options
 from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
@@ -246,7 +246,7 @@ def _preprocess(
         ((1, 3, h_pad, w_pad) float32 network input, (h, w) unpadded size).
     """
     check_shape(image, [3, "H", "W"], "image")
-    check_finite(image, "image")
+    check_finite_fast(image, "image")
     H, W = int(image.shape[-2]), int(image.shape[-1])
     x = image.float()[None]
     if input_size is not None:
@@ -292,7 +292,7 @@ def _postprocess(logits: torch.Tensor, size: tuple[int, int], out_hw: tuple[int,
     # Crop what belongs to the unpadded input.
     ch, cw = max(1, round(size[0] / sh)), max(1, round(size[1] / sw))
     logits = logits[..., :ch, :cw].float()
-    check_finite(logits, f"{model}: output")
+    check_finite_fast(logits, f"{model}: output")
     logits = F.interpolate(logits, size=out_hw, mode="bilinear", align_corners=False)
     return torch.softmax(logits[0], dim=0)
 

@@ -626,10 +626,11 @@ class Tracks:
         row_of = torch.full((n_prev,), -1, dtype=torch.long)
         ok_rows = self.state.stixel[last] < n_prev
         row_of[self.state.stixel[last[ok_rows]]] = last[ok_rows]
+        # Every second pixel of every second row, row-major: strided views instead of gathers.
         vv, uu = torch.meshgrid(torch.arange(0, H, 2), torch.arange(0, W, 2), indexing="ij")
         vv, uu = vv.reshape(-1), uu.reshape(-1)
-        s_idx = index[vv, uu]
-        f = flow[:, vv, uu].double()
+        s_idx = index[::2, ::2].reshape(-1)
+        f = flow[:, ::2, ::2].reshape(2, -1).double()
         u2 = (uu + f[0]).round()
         v2 = (vv + f[1]).round()
         valid = (s_idx >= 0) & torch.isfinite(u2) & torch.isfinite(v2)
