@@ -525,3 +525,22 @@ def test_the_sequence_layer_owns_the_speed_prior():
     assert seen == [s.pair.name for s in steps] and len(seen) == 4
     assert SequenceRunner(load_config(ov[:-1] + ["motion=gt"])).motion_track is None
     assert SequenceRunner(load_config(ov + ["motion.sequence_prior=false"])).motion_track is None
+
+
+def test_start_up_objects_leave_the_garbage_collector_once_after_the_first_pair(monkeypatch):
+    """After the first solved pair every object then alive (libraries, configs, models) is frozen out of
+    the collector's generations, once per process: later pairs freeze nothing more."""
+    import gc
+
+    from monostixels.sequence import runner as runner_mod
+
+    monkeypatch.setattr(runner_mod, "_frozen", False)
+    gc.unfreeze()
+    try:
+        cfg = load_config(["data=synthetic", "data.frames=1", "data.sequence_length=4", "data.scale=0.25",
+                           "flow=gt", "semantic=gt", "motion=gt"])
+        counts = [gc.get_freeze_count() for _ in SequenceRunner(cfg).run(make_source(cfg))]
+        assert len(counts) >= 3 and counts[0] > 1000
+        assert all(c <= counts[0] for c in counts[1:])  # frozen objects may still be freed; none are added
+    finally:
+        gc.unfreeze()
