@@ -344,7 +344,13 @@ def calibration_pairs(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor]
 
 def export(cfg: DictConfig) -> None:
     """Export ``cfg.out_weights`` to ONNX (``cfg.export``), and with ``export.int8`` its INT8 copy beside it
-    (``<name>_int8.onnx``, the file ``flow.precision=int8`` looks for beside the weights)."""
+    (``<name>_int8.onnx``, the file ``flow.precision=int8`` looks for beside the weights). With
+    ``export.onnx: null`` only the weights are kept (a run to be exported later with ``export_only``)."""
+    if not cfg.export.onnx:
+        if cfg.export_only:
+            raise ValueError("export_only=true needs export.onnx: the ONNX file to write")
+        logger.info("no ONNX export (export.onnx is null): the weights are %s", cfg.out_weights)
+        return
     model = load_raft_weights(cfg.out_weights, cfg.size)
     path = export_onnx(RaftFlow(model, int(cfg.export.updates)), cfg.export.onnx, int(cfg.export.height),
                        int(cfg.export.width), half_weights=bool(cfg.export.get("half_weights", False)))
