@@ -4,6 +4,7 @@ Run from the repository root (CPU work: be nice to other users of the machine)::
 
     nice -n 10 python -m train.flow                 # train (resumes run_dir/ckpt.pt), then export
     python -m train.flow export_only=true           # only export the last checkpoint to models/
+    nice -n 10 python -m train.flow export.onnx=null  # train only (the weights; export later as above)
 
 The shipped weights add RAFT's convex upsampler to those, trained alone on the frozen body
 (``mask_hidden``, ``trainable``; models/MODEL_CARD.md), then fine-tune the whole network at the scale
