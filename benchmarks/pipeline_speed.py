@@ -125,7 +125,14 @@ def onnx_threads() -> int:
     except ImportError:
         return 0
     counts = []
-    for obj in gc.get_objects():
+    # The sequence layer freezes its start-up objects (the sessions among them) out of the collector's
+    # lists: back in for the search, then frozen again.
+    frozen = gc.get_freeze_count() > 0
+    gc.unfreeze()
+    objects = gc.get_objects()
+    if frozen:
+        gc.freeze()
+    for obj in objects:
         if isinstance(obj, ort.InferenceSession):
             n = obj.get_session_options().intra_op_num_threads
             # 0: ONNX Runtime's own default, one thread per physical core.

@@ -26,8 +26,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["available_cores", "resolve_threads", "set_threads", "threads", "onnx_session_options", "thread_counts", "auto_threads",
-           "ensure_threads", "cgroup_cpu_limit", "quiet_spinning", "spinning"]
+__all__ = ["available_cores", "resolve_threads", "set_threads", "set_opencv_threads", "threads", "onnx_session_options",
+           "thread_counts", "auto_threads", "ensure_threads", "cgroup_cpu_limit", "quiet_spinning", "spinning"]
 
 logger = logging.getLogger(__name__)
 
@@ -141,6 +141,21 @@ def set_threads(value: Any = "auto") -> int:
         logger.debug("threads: %d (torch, OpenCV, ONNX Runtime intra-op)%s", n, "; spinning left on" if spinning() else "")
     _applied = n
     return n
+
+
+def set_opencv_threads(n: int | None) -> int:
+    """OpenCV's pool at ``n`` threads (None: the process's :func:`threads`); returns the count.
+
+    A pipeline whose flow runs in a thread of its own beside other work (``Pipeline(overlap=True)``: the
+    semantic net, and on a stream the solver of the pair before) gives OpenCV one thread less than the
+    budget (one on 2 cores): that work keeps a core busy, and on it the pool's share of DIS and the
+    refinement only waits and hands off. OpenCV's flows are bit-identical with one thread or more.
+    """
+    import cv2
+
+    count = threads() if n is None else max(1, int(n))
+    cv2.setNumThreads(count)
+    return count
 
 
 def threads() -> int:

@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from monostixels._checks import InputError, check_frame_size, config_params
 from monostixels._pools import helper_pool
-from monostixels._threads import ensure_threads
+from monostixels._threads import ensure_threads, set_opencv_threads, threads
 from monostixels.post.boundaries import refine_object_tops
 from monostixels.data.base import FramePair
 from monostixels.core.energy import PriorConfig, load_config_group
@@ -147,6 +147,9 @@ class Pipeline:
         self.overlap = overlap
         # The config's thread budget, unless the command line (or a library user) already set one.
         ensure_threads(cfg.get("threads", "auto"))
+        # Overlapped, the flow runs in its own thread beside the semantic net (and the last pair's solve),
+        # which keep a core busy: OpenCV's pool gets the rest (monostixels._threads.set_opencv_threads).
+        set_opencv_threads(max(1, threads() - 1) if overlap else None)
         prior = config_params(PriorConfig, cfg.get("prior"), "prior")
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.

@@ -115,3 +115,24 @@ def test_import_makes_idle_pool_threads_sleep():
         pytest.skip("MONOSTIXELS_SPIN is set: spinning left on")
     for key in ("OMP_WAIT_POLICY", "OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER", "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN"):
         assert key in os.environ
+
+
+def test_an_overlapping_pipeline_gives_opencv_one_thread(restore_threads):
+    """Pipeline(overlap=True) runs its flow in a thread beside other work, which keeps a core busy:
+    OpenCV's pool gets one thread less than the budget there (at least one), the budget otherwise;
+    torch keeps the budget (the solver's columns split over it)."""
+    from monostixels.pipeline import Pipeline, load_config
+
+    set_threads(2)
+    cfg = load_config(["data=synthetic", "flow=gt", "semantic=gt", "motion=gt"])
+    Pipeline(cfg, overlap=True)
+    assert cv2.getNumThreads() == 1 and torch.get_num_threads() == 2
+    Pipeline(cfg, overlap=False)
+    assert cv2.getNumThreads() == 2 and torch.get_num_threads() == 2
+    _threads._applied = None
+    set_threads(4)
+    Pipeline(cfg, overlap=True)
+    assert cv2.getNumThreads() == 3
+    set_threads(1)
+    Pipeline(cfg, overlap=True)
+    assert cv2.getNumThreads() == 1
