@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import re
 from dataclasses import fields
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 
 __all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size", "config_params", "config_error", "config_value"]
+           "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error",
+           "config_value"]
 
 
 class InputError(ValueError):
@@ -222,6 +223,36 @@ def config_params(cls: type, cfg: Any, group: str) -> Any:
         return OmegaConf.to_object(cfg)
     except OmegaConfBaseException as e:
         raise config_error(e, group) from None
+
+
+def option_params(schemas: Mapping[str, type], cfg: Any, group: str) -> Any:
+    """The settings dataclass of a group whose options differ in their keys (``data``, ``flow``,
+    ``semantic``, ``motion``): the schema that ``schemas`` gives the node's ``name``, through
+    :func:`config_params`. ``cfg``: a config node, a dict, or already one of the schemas' dataclasses.
+
+    The name, not a composed node's type, picks the schema: a dict or a node without a type (a config
+    rebuilt from a plain dict, as ``batch`` hands its clips) reads the same as the composed one.
+    """
+    if isinstance(cfg, tuple(schemas.values())):
+        return cfg
+    if cfg is not None and not hasattr(cfg, "keys"):
+        raise InputError(f"{group}: expected a config node of settings, got {type(cfg).__name__}")
+    name = None if cfg is None else cfg.get("name")
+    if name not in schemas:
+        raise InputError(f"{group}.name: unknown option {name!r}; choose one of {', '.join(schemas)}")
+    return config_params(schemas[name], cfg, group)
+
+
+def is_unset(cfg: Any, key: str) -> bool:
+    """Whether ``cfg`` (a config node or a dict) lacks ``key`` or holds it as null or ``???`` (Hydra's
+    mandatory value), before it is read as a dataclass (which refuses ``???`` with a message of its own)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if cfg is None or key not in cfg:
+        return True
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.is_missing(cfg, key) or cfg[key] is None
+    return cfg[key] is None or cfg[key] == "???"
 
 
 def config_error(error: BaseException, group: str = "") -> InputError:
