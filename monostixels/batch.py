@@ -161,13 +161,10 @@ def discover_clips(inputs: str | Sequence[str], video_extensions: Sequence[str] 
 
 
 def _packaged_data_group(name: str) -> dict[str, Any]:
-    """The packaged ``conf/data/NAME.yaml`` as a dict."""
-    from importlib.resources import files
+    """The packaged option ``data=NAME`` (its schema's defaults and the YAML's values) as a dict."""
+    from monostixels.core.energy import load_config_group
 
-    from omegaconf import OmegaConf
-
-    text = (files("monostixels.conf") / "data" / f"{name}.yaml").read_text()
-    return OmegaConf.to_container(OmegaConf.create(text), resolve=True)
+    return load_config_group("data", name)
 
 
 def clip_data_config(data: Any, clip: Clip) -> dict[str, Any]:

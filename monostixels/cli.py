@@ -210,6 +210,8 @@ def _semantic_label(cfg: DictConfig) -> str:
 
 
 def _demo(cfg: DictConfig) -> float:
+    from monostixels._checks import InputError
+    from monostixels.data.sources import SyntheticDataConfig, data_params
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
     from monostixels.pipeline import Pipeline
@@ -218,7 +220,11 @@ def _demo(cfg: DictConfig) -> float:
                                  stixel_depth_overlay, stixel_overlay)
 
     out = Path(cfg.outputs) / "demo"
-    pair = SyntheticSource(1, seed=int(cfg.data.seed), scale=float(cfg.data.scale), density=float(cfg.data.density))[0]
+    data = data_params(cfg.data)
+    if not isinstance(data, SyntheticDataConfig):
+        raise InputError(f"demo: renders one of the built-in synthetic scenes (data=synthetic), not data={data.name}; "
+                         f"use monostixels run or eval for data={data.name}")
+    pair = SyntheticSource(1, seed=data.seed, scale=data.scale, density=data.density)[0]
     logger.info("demo: synthetic scene %s (%dx%d), flow=%s semantic=%s motion=%s", pair.name, pair.size[1],
                 pair.size[0], cfg.flow.name,
                 # fcn8s and fcn8s_synthetic share the backend name: say which model runs.
@@ -304,12 +310,12 @@ def _eval(cfg: DictConfig) -> float:
 def _eval_semantics(cfg: DictConfig) -> float:
     """`eval data=camvid`: semantic metrics on labelled single images (no flow, motion, stixels)."""
     from monostixels.data.camvid import CamVidSource
+    from monostixels.data.sources import data_params
     from monostixels.eval.evaluate import write_report
     from monostixels.eval.semantic import evaluate_semantics, format_semantic_table
 
-    frames = cfg.data.get("frames")
-    src = CamVidSource(cfg.data.root, split=str(cfg.data.split), frames=None if frames is None else int(frames),
-                       step=int(cfg.data.get("step", 1)))
+    data = data_params(cfg.data)
+    src = CamVidSource(data.root, split=data.split, frames=data.frames, step=data.step)
     report = evaluate_semantics(cfg, src)
     report["semantic_backend"] = _semantic_label(cfg)
     print(format_semantic_table(report))
@@ -362,7 +368,7 @@ def _run(cfg: DictConfig) -> None:
 
     from monostixels.output.bev import bev_image
     from monostixels.data._io import MAX_SKIPPED_FRAMES
-    from monostixels.data.sources import camera_mount
+    from monostixels.data.sources import camera_mount, data_params
     from monostixels.output.io import depth_to_points, write_depth_png16, write_image, write_ply
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
@@ -372,7 +378,8 @@ def _run(cfg: DictConfig) -> None:
     src = _source(cfg)
     live = hasattr(src, "indices")  # a camera, a URL or data.realtime: frames as they come, no length
     if not live and len(src) == 0:
-        raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
+        raise InputError(f"data source {cfg.data.name!r} (root {getattr(data_params(cfg.data), 'root', None)}) "
+                         f"has no frame pairs")
     # The SfM baseline is for eval/demo only; with a given motion the camera height the road implies is reported.
     pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, report_height=True)
     runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences

@@ -33,6 +33,7 @@ from hydra.core.config_store import ConfigStore
 from monostixels._checks import InputError, config_error
 from monostixels.core.energy import PriorConfig
 from monostixels.core.solver import SolverConfig
+from monostixels.data.sources import DATA_SCHEMAS, CameraConfig
 from monostixels.inputs.motion_track import MonoMotionConfig
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import KeyframeParams
@@ -51,6 +52,8 @@ SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("temporal", "base_temporal", TrackParams),
     ("ttc", "base_ttc", TtcParams),
     ("motion", "base_mono", MonoMotionConfig),
+    *(("data", f"base_{name}", schema) for name, schema in DATA_SCHEMAS.items()),
+    ("camera", "base_camera", CameraConfig),
 )
 
 
