@@ -34,6 +34,7 @@ from monostixels._checks import InputError, config_error
 from monostixels.core.energy import PriorConfig
 from monostixels.core.solver import SolverConfig
 from monostixels.data.sources import DATA_SCHEMAS, CameraConfig
+from monostixels.inputs.flow_config import FLOW_SCHEMAS
 from monostixels.inputs.motion_track import MonoMotionConfig
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import KeyframeParams
@@ -54,6 +55,7 @@ SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("motion", "base_mono", MonoMotionConfig),
     *(("data", f"base_{name}", schema) for name, schema in DATA_SCHEMAS.items()),
     ("camera", "base_camera", CameraConfig),
+    *(("flow", f"base_{name}", schema) for name, schema in FLOW_SCHEMAS.items()),
 )
 
 
