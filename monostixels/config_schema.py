@@ -35,6 +35,7 @@ from monostixels.core.energy import PriorConfig
 from monostixels.core.solver import SolverConfig
 from monostixels.data.sources import DATA_SCHEMAS, CameraConfig
 from monostixels.inputs.flow_config import FLOW_SCHEMAS
+from monostixels.inputs.semantic import SEMANTIC_SCHEMAS
 from monostixels.inputs.motion_track import MonoMotionConfig
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import KeyframeParams
@@ -56,6 +57,7 @@ SCHEMAS: tuple[tuple[str, str, type], ...] = (
     *(("data", f"base_{name}", schema) for name, schema in DATA_SCHEMAS.items()),
     ("camera", "base_camera", CameraConfig),
     *(("flow", f"base_{name}", schema) for name, schema in FLOW_SCHEMAS.items()),
+    *(("semantic", f"base_{name}", schema) for name, schema in SEMANTIC_SCHEMAS.items()),
 )
 
 
