@@ -22,6 +22,8 @@ keyframes     :class:`monostixels.sequence.runner.KeyframeParams`         ``keyf
 temporal      :class:`monostixels.sequence.tracking.TrackParams`          ``temporal/base_temporal``
 ttc           :class:`monostixels.sequence.tracking.TtcParams`            ``ttc/base_ttc``
 motion (mono) :class:`monostixels.inputs.motion_track.MonoMotionConfig`   ``motion/base_mono``
+motion (gt)   :class:`monostixels.inputs.motion.GtMotionConfig`          ``motion/base_gt``
+motion (file) :class:`monostixels.inputs.motion.FileMotionConfig`        ``motion/base_file``
 ============  ==========================================================  ===========================
 """
 from __future__ import annotations
@@ -36,7 +38,7 @@ from monostixels.core.solver import SolverConfig
 from monostixels.data.sources import DATA_SCHEMAS, CameraConfig
 from monostixels.inputs.flow_config import FLOW_SCHEMAS
 from monostixels.inputs.semantic import SEMANTIC_SCHEMAS
-from monostixels.inputs.motion_track import MonoMotionConfig
+from monostixels.inputs.motion_track import MOTION_SCHEMAS
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import KeyframeParams
 from monostixels.sequence.stream import StreamParams
@@ -53,7 +55,7 @@ SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("keyframes", "base_keyframes", KeyframeParams),
     ("temporal", "base_temporal", TrackParams),
     ("ttc", "base_ttc", TtcParams),
-    ("motion", "base_mono", MonoMotionConfig),
+    *(("motion", f"base_{name}", schema) for name, schema in MOTION_SCHEMAS.items()),
     *(("data", f"base_{name}", schema) for name, schema in DATA_SCHEMAS.items()),
     ("camera", "base_camera", CameraConfig),
     *(("flow", f"base_{name}", schema) for name, schema in FLOW_SCHEMAS.items()),
