@@ -13,8 +13,7 @@ import numpy as np
 import torch
 
 __all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error",
-           "config_value"]
+           "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error"]
 
 
 class InputError(ValueError):
@@ -147,8 +146,8 @@ _CONVERSION_ERRORS = ("could not convert string to float: ", "invalid literal fo
 def numeric_text_error(cfg: Any, error: BaseException) -> InputError | None:
     """The :class:`InputError` naming the option(s) of ``cfg`` behind a failed number conversion.
 
-    Options reach the code as config values and are converted where they are used
-    (``float(cfg.data.hfov_deg)``); text such as ``data.hfov_deg=wide`` then fails there with a bare
+    An option outside the config groups' schemas (monostixels.config_schema), which refuse text for a
+    number as the config is composed, is converted where it is used; text there fails with a bare
     ``ValueError`` that names no option. Given that error, this finds the config leaves holding that
     text and returns ``data.hfov_deg: expected a number, got 'wide'``; None when ``error`` is no such
     conversion error or no option holds the text (then it is not a user's option: a real bug).
@@ -184,16 +183,6 @@ def _leaves(node: Any, prefix: str) -> Iterable[tuple[str, Any]]:
             yield from _leaves(v, f"{prefix}[{i}]")
     else:
         yield prefix, node
-
-
-def config_value(cfg: Any, key: str, default: Any = None) -> Any:
-    """``cfg[key]`` of an OmegaConf node, a dict or an object with that attribute; ``default`` where
-    ``cfg`` is None or the key is absent or null (the reading of every config group without a
-    dataclass of its own)."""
-    if cfg is None:
-        return default
-    value = cfg.get(key, default) if hasattr(cfg, "get") else getattr(cfg, key, default)
-    return default if value is None else value
 
 
 def config_params(cls: type, cfg: Any, group: str) -> Any:
@@ -276,6 +265,10 @@ def config_error(error: BaseException, group: str = "") -> InputError:
             return InputError(f"{name}: expected {what}, got {value!r}")
         if "is not Optional" in msg:
             return InputError(f"{name}: expected a value, got null")
+        if "is not a ListConfig, list or tuple" in msg:
+            return InputError(f"{name}: expected a list, got {_plain(value)!r}")
+        if msg.startswith("Cannot convert") and "to string" in msg:
+            return InputError(f"{name}: expected a text, got {_plain(value)!r}")
         return InputError(f"{name}: {msg}")
     if isinstance(error, (ConfigKeyError, AttributeError)) or "not in" in msg:
         known = _known_keys(error)
@@ -298,3 +291,10 @@ def _known_keys(error: BaseException) -> list[str]:
             return [f.name for f in fields(t)]
     t = getattr(error, "object_type", None)
     return [f.name for f in fields(t)] if isinstance(t, type) and is_dataclass(t) else []
+
+
+def _plain(value: Any) -> Any:
+    """An OmegaConf list or dict as the Python one, for a message; any other value as it is."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    return OmegaConf.to_container(value) if isinstance(value, (DictConfig, ListConfig)) else value

@@ -367,8 +367,7 @@ def _raft_net(cfg: Any) -> Any:
     """The RAFT runner of ``cfg`` (``cfg.runtime`` auto | torch | onnx), loaded once per file."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
-    cfg = flow_params(cfg)
-    assert isinstance(cfg, RaftFlowConfig), cfg
+    cfg: RaftFlowConfig = flow_params(cfg)  # type: ignore[assignment]
     runtime = cfg.runtime
     if runtime == "auto":
         # On a CPU the exported graph runs faster in ONNX Runtime than the network in torch
