@@ -48,11 +48,10 @@ import torch
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
+from monostixels.core.energy import load_config_group
 from monostixels.data.synthetic import SyntheticSource
 from monostixels.inputs.confidence import flow_covariance
 from monostixels.inputs.flow import compute_flow, confidence_params, estimate_flow, flow_metrics, resolve_path
-
-CONF = Path(__file__).resolve().parents[1] / "conf" / "flow"
 
 
 def main() -> None:
@@ -73,13 +72,13 @@ def main() -> None:
     cfgs = {}
     for b in args.backends.split(","):
         if b in ("raft", "raft_onnx", "raft_int8"):  # the same weights in torch, ONNX Runtime, and its INT8 copy
-            cfg = OmegaConf.load(CONF / "raft.yaml")
+            cfg = OmegaConf.create(load_config_group("flow", "raft"))
             cfg.runtime = "torch" if b == "raft" else "onnx"
             if b == "raft_int8":
                 w = Path(cfg.weights)
                 cfg.onnx = str(w.with_name(w.stem + "_int8.onnx"))
         else:
-            cfg = OmegaConf.load(CONF / f"{b}.yaml")
+            cfg = OmegaConf.create(load_config_group("flow", b))
         if cfg.name == "raft":
             needed = cfg.onnx if cfg.runtime == "onnx" else cfg.weights
             if not resolve_path(needed).is_file():
@@ -115,7 +114,7 @@ def main() -> None:
                 estimate_flow(pair, cfg)
                 rows[b]["pipeline"].append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        flow_covariance(pair.image, confidence_params(OmegaConf.load(CONF / "deepflow.yaml")))
+        flow_covariance(pair.image, confidence_params(load_config_group("flow", "deepflow")))
         cov_seconds.append(time.perf_counter() - t0)
 
     if cache is not None:

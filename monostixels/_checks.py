@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import re
 from dataclasses import fields
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 
 __all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size", "config_params", "config_error", "config_value"]
+           "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error"]
 
 
 class InputError(ValueError):
@@ -146,8 +146,8 @@ _CONVERSION_ERRORS = ("could not convert string to float: ", "invalid literal fo
 def numeric_text_error(cfg: Any, error: BaseException) -> InputError | None:
     """The :class:`InputError` naming the option(s) of ``cfg`` behind a failed number conversion.
 
-    Options reach the code as config values and are converted where they are used
-    (``float(cfg.data.hfov_deg)``); text such as ``data.hfov_deg=wide`` then fails there with a bare
+    An option outside the config groups' schemas (monostixels.config_schema), which refuse text for a
+    number as the config is composed, is converted where it is used; text there fails with a bare
     ``ValueError`` that names no option. Given that error, this finds the config leaves holding that
     text and returns ``data.hfov_deg: expected a number, got 'wide'``; None when ``error`` is no such
     conversion error or no option holds the text (then it is not a user's option: a real bug).
@@ -185,16 +185,6 @@ def _leaves(node: Any, prefix: str) -> Iterable[tuple[str, Any]]:
         yield prefix, node
 
 
-def config_value(cfg: Any, key: str, default: Any = None) -> Any:
-    """``cfg[key]`` of an OmegaConf node, a dict or an object with that attribute; ``default`` where
-    ``cfg`` is None or the key is absent or null (the reading of every config group without a
-    dataclass of its own)."""
-    if cfg is None:
-        return default
-    value = cfg.get(key, default) if hasattr(cfg, "get") else getattr(cfg, key, default)
-    return default if value is None else value
-
-
 def config_params(cls: type, cfg: Any, group: str) -> Any:
     """The settings dataclass ``cls`` of the config group ``group`` from its config node.
 
@@ -224,6 +214,36 @@ def config_params(cls: type, cfg: Any, group: str) -> Any:
         raise config_error(e, group) from None
 
 
+def option_params(schemas: Mapping[str, type], cfg: Any, group: str) -> Any:
+    """The settings dataclass of a group whose options differ in their keys (``data``, ``flow``,
+    ``semantic``, ``motion``): the schema that ``schemas`` gives the node's ``name``, through
+    :func:`config_params`. ``cfg``: a config node, a dict, or already one of the schemas' dataclasses.
+
+    The name, not a composed node's type, picks the schema: a dict or a node without a type (a config
+    rebuilt from a plain dict, as ``batch`` hands its clips) reads the same as the composed one.
+    """
+    if isinstance(cfg, tuple(schemas.values())):
+        return cfg
+    if cfg is not None and not hasattr(cfg, "keys"):
+        raise InputError(f"{group}: expected a config node of settings, got {type(cfg).__name__}")
+    name = None if cfg is None else cfg.get("name")
+    if name not in schemas:
+        raise InputError(f"{group}.name: unknown option {name!r}; choose one of {', '.join(schemas)}")
+    return config_params(schemas[name], cfg, group)
+
+
+def is_unset(cfg: Any, key: str) -> bool:
+    """Whether ``cfg`` (a config node or a dict) lacks ``key`` or holds it as null or ``???`` (Hydra's
+    mandatory value), before it is read as a dataclass (which refuses ``???`` with a message of its own)."""
+    from omegaconf import DictConfig, OmegaConf
+
+    if cfg is None or key not in cfg:
+        return True
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.is_missing(cfg, key) or cfg[key] is None
+    return cfg[key] is None or cfg[key] == "???"
+
+
 def config_error(error: BaseException, group: str = "") -> InputError:
     """One line naming the option for OmegaConf's refusal of a value or key (``error``; ``group``: the
     config group the refused node belongs to, where the error's key is relative to it).
@@ -245,6 +265,10 @@ def config_error(error: BaseException, group: str = "") -> InputError:
             return InputError(f"{name}: expected {what}, got {value!r}")
         if "is not Optional" in msg:
             return InputError(f"{name}: expected a value, got null")
+        if "is not a ListConfig, list or tuple" in msg:
+            return InputError(f"{name}: expected a list, got {_plain(value)!r}")
+        if msg.startswith("Cannot convert") and "to string" in msg:
+            return InputError(f"{name}: expected a text, got {_plain(value)!r}")
         return InputError(f"{name}: {msg}")
     if isinstance(error, (ConfigKeyError, AttributeError)) or "not in" in msg:
         known = _known_keys(error)
@@ -267,3 +291,10 @@ def _known_keys(error: BaseException) -> list[str]:
             return [f.name for f in fields(t)]
     t = getattr(error, "object_type", None)
     return [f.name for f in fields(t)] if isinstance(t, type) and is_dataclass(t) else []
+
+
+def _plain(value: Any) -> Any:
+    """An OmegaConf list or dict as the Python one, for a message; any other value as it is."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    return OmegaConf.to_container(value) if isinstance(value, (DictConfig, ListConfig)) else value

@@ -25,20 +25,20 @@ import os
 import re
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from glob import glob
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, List, Optional, Sequence
 
 import numpy as np
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, config_params
 from monostixels._threads import set_threads
 from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.data._io import IMAGE_EXTENSIONS
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
 
-__all__ = ["Clip", "SCHEMA_FIELDS", "discover_clips", "clip_data_config", "process_clip", "read_summary",
+__all__ = ["BatchConfig", "Clip", "SCHEMA_FIELDS", "discover_clips", "clip_data_config", "process_clip", "read_summary",
            "run_batch"]
 
 logger = logging.getLogger(__name__)
@@ -78,6 +78,36 @@ SCHEMA_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("ttc_s", "float64", "time to collision, s, inf when not closing (sequence layer); null where absent"),
     ("degenerate_motion", "bool", "the frame's camera motion was degenerate: depths from the scene model"),
 )
+
+
+@dataclass
+class BatchConfig:
+    """The settings of ``monostixels batch``: the schema of the config group ``batch`` (monostixels.config_schema).
+
+    Attributes:
+        inputs: the clips: a folder (each video file and each sub-folder of images in it is a clip), a glob
+            (each match: a video file or a folder of images), or a list of them (:func:`discover_clips`).
+            Folders of images carry their own intrinsics file (as ``data=frames``); videos use
+            ``data.intrinsics`` / ``data.hfov_deg``, or a file ``<video stem>.intrinsics.{yaml,yml,json,txt}``
+            beside them. Every other ``data.*`` option applies to every clip.
+        output: output folder: ``<output>/stixels.parquet/clip=<name>/`` and ``<output>/summary.json``.
+        address: Ray: None = start a local Ray instance with ``num_cpus`` workers; an address joins a running
+            cluster (``auto`` on one of its nodes, ``ray://HEAD:10001`` with ray[client]).
+        num_cpus: CPUs of the local Ray instance (None = every core of this machine).
+        cpus_per_clip: CPUs reserved per clip (its torch / OpenCV threads).
+        retry_failed: run again the clips that failed on an earlier run into ``output`` (False: they are
+            skipped too, their error stays in summary.json).
+        video_extensions: file extensions taken as video clips (case-insensitive).
+    """
+
+    # A folder or glob, or a list of them: no one type (discover_clips checks it).
+    inputs: Any = None
+    output: str = "batch"
+    address: Optional[str] = None
+    num_cpus: Optional[int] = None
+    cpus_per_clip: int = 1
+    retry_failed: bool = False
+    video_extensions: List[str] = field(default_factory=lambda: [".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm"])
 
 
 @dataclass(frozen=True)
@@ -161,13 +191,10 @@ def discover_clips(inputs: str | Sequence[str], video_extensions: Sequence[str] 
 
 
 def _packaged_data_group(name: str) -> dict[str, Any]:
-    """The packaged ``conf/data/NAME.yaml`` as a dict."""
-    from importlib.resources import files
+    """The packaged option ``data=NAME`` (its schema's defaults and the YAML's values) as a dict."""
+    from monostixels.core.energy import load_config_group
 
-    from omegaconf import OmegaConf
-
-    text = (files("monostixels.conf") / "data" / f"{name}.yaml").read_text()
-    return OmegaConf.to_container(OmegaConf.create(text), resolve=True)
+    return load_config_group("data", name)
 
 
 def clip_data_config(data: Any, clip: Clip) -> dict[str, Any]:
@@ -394,9 +421,9 @@ def run_batch(cfg: Any) -> int:
     except ImportError as e:
         raise InputError(f'monostixels batch needs ray and pyarrow, the optional "batch" extra: '
                          f'pip install -e ".[batch]" ({e})') from e
-    b = cfg.batch
-    output = Path(str(b.output)).expanduser()
-    clips = discover_clips(b.inputs, list(b.video_extensions), exclude=output)
+    b = config_params(BatchConfig, cfg.get("batch"), "batch")
+    output = Path(b.output).expanduser()
+    clips = discover_clips(b.inputs, b.video_extensions, exclude=output)
     cfg_dict = OmegaConf.to_container(cfg, resolve=True)
     summary = read_summary(output)
     settings = _settings(cfg_dict)
@@ -404,17 +431,15 @@ def run_batch(cfg: Any) -> int:
         raise InputError(f"batch.output: {output} holds clips made with other settings (flow, semantic, motion, "
                          f"prior, solver or data options); choose another batch.output or remove {output}")
     summary["settings"] = settings
-    todo = [c for c in clips if not _done(summary["clips"].get(c.name), c, output, bool(b.retry_failed))]
+    todo = [c for c in clips if not _done(summary["clips"].get(c.name), c, output, b.retry_failed)]
     skipped = len(clips) - len(todo)
     output.mkdir(parents=True, exist_ok=True)
     logger.info("batch: %d clip(s), %d already done, %d to run -> %s", len(clips), skipped, len(todo), output)
-    threads = max(1, int(b.cpus_per_clip))
+    threads = max(1, b.cpus_per_clip)
     if todo:
         started = not ray.is_initialized()
         if started:
-            num_cpus = None if b.num_cpus is None else int(b.num_cpus)
-            ray.init(address=None if b.address is None else str(b.address),
-                     num_cpus=num_cpus if b.address is None else None,
+            ray.init(address=b.address, num_cpus=b.num_cpus if b.address is None else None,
                      include_dashboard=False, logging_level=logging.WARNING)
         try:
             task = ray.remote(num_cpus=threads, max_retries=0)(process_clip)

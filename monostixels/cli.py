@@ -170,8 +170,9 @@ def _run_command(cfg: DictConfig) -> Any:
                 return _calibrate(cfg)
             return _run(cfg)
         except ValueError as e:
-            # Options are converted where they are used (float(cfg.data.hfov_deg)): text given for a
-            # number (data.hfov_deg=wide) fails there without naming the option; name it here.
+            # The config groups' schemas refuse text for a number as Hydra composes; a value outside them
+            # (a top-level key) is converted where it is used and fails there without naming the
+            # option: name it here.
             named = None if isinstance(e, InputError) else numeric_text_error(cfg, e)
             if named is None:
                 raise
@@ -210,22 +211,29 @@ def _semantic_label(cfg: DictConfig) -> str:
 
 
 def _demo(cfg: DictConfig) -> float:
+    from monostixels._checks import InputError, config_params
+    from monostixels.data.sources import SyntheticDataConfig, data_params
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
-    from monostixels.pipeline import Pipeline
+    from monostixels.pipeline import EvalConfig, Pipeline
     from monostixels.output.bev import bev_image
     from monostixels.output.viz import (depth_colormap, flow_colormap, image_to_uint8, paper_figure, semantic_colormap,
                                  stixel_depth_overlay, stixel_overlay)
 
     out = Path(cfg.outputs) / "demo"
-    pair = SyntheticSource(1, seed=int(cfg.data.seed), scale=float(cfg.data.scale), density=float(cfg.data.density))[0]
+    data = data_params(cfg.data)
+    if not isinstance(data, SyntheticDataConfig):
+        raise InputError(f"demo: renders one of the built-in synthetic scenes (data=synthetic), not data={data.name}; "
+                         f"use monostixels run or eval for data={data.name}")
+    pair = SyntheticSource(1, seed=data.seed, scale=data.scale, density=data.density)[0]
     logger.info("demo: synthetic scene %s (%dx%d), flow=%s semantic=%s motion=%s", pair.name, pair.size[1],
                 pair.size[0], cfg.flow.name,
                 # fcn8s and fcn8s_synthetic share the backend name: say which model runs.
                 _semantic_label(cfg),
                 cfg.motion.name)
     res = Pipeline(cfg).run(pair)
-    lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
+    ev = config_params(EvalConfig, cfg.eval, "eval")
+    lo, hi = ev.colormap_min_depth, ev.colormap_max_depth
     img = pair.image
     rgb = image_to_uint8(img)
     st = res.stixels
@@ -260,9 +268,9 @@ def _demo(cfg: DictConfig) -> float:
           f"pipeline {res.total_seconds:.2f} s (solver {res.seconds['solver'] * 1000:.0f} ms)")
     if pair.gt.depth is not None:
         for name, d in (("mono-stixels", depth), ("SfM baseline", res.sfm_depth)):
-            m = depth_metrics(d, pair.gt.depth, None, min_depth=float(cfg.eval.min_depth), max_depth=float(cfg.eval.max_depth))
-            mv = depth_metrics(d, pair.gt.depth, pair.gt.moving, min_depth=float(cfg.eval.min_depth),
-                               max_depth=float(cfg.eval.max_depth)) if pair.gt.moving is not None else None
+            m = depth_metrics(d, pair.gt.depth, None, min_depth=ev.min_depth, max_depth=ev.max_depth)
+            mv = depth_metrics(d, pair.gt.depth, pair.gt.moving, min_depth=ev.min_depth,
+                               max_depth=ev.max_depth) if pair.gt.moving is not None else None
             extra = f", moving rel {mv['rel']:.3f}" if mv is not None and mv["n"] else ""
             print(f"  {name:<13} rel {m['rel']:.3f}  d1.25 {m['d1.25']:.3f}{extra}")
     if st.flags.get("degenerate_motion"):
@@ -304,12 +312,12 @@ def _eval(cfg: DictConfig) -> float:
 def _eval_semantics(cfg: DictConfig) -> float:
     """`eval data=camvid`: semantic metrics on labelled single images (no flow, motion, stixels)."""
     from monostixels.data.camvid import CamVidSource
+    from monostixels.data.sources import data_params
     from monostixels.eval.evaluate import write_report
     from monostixels.eval.semantic import evaluate_semantics, format_semantic_table
 
-    frames = cfg.data.get("frames")
-    src = CamVidSource(cfg.data.root, split=str(cfg.data.split), frames=None if frames is None else int(frames),
-                       step=int(cfg.data.get("step", 1)))
+    data = data_params(cfg.data)
+    src = CamVidSource(data.root, split=data.split, frames=data.frames, step=data.step)
     report = evaluate_semantics(cfg, src)
     report["semantic_backend"] = _semantic_label(cfg)
     print(format_semantic_table(report))
@@ -321,15 +329,12 @@ def _eval_semantics(cfg: DictConfig) -> float:
 
 def _calibrate(cfg: DictConfig) -> float:
     """`calibrate`: chessboard views -> an intrinsics file with distortion; returns the RMS error (px)."""
-    from omegaconf import OmegaConf
+    from monostixels._checks import config_params
+    from monostixels.data.calibration import CalibrateConfig, calibrate_images, write_intrinsics_file
 
-    from monostixels.data.calibration import calibrate_images, write_intrinsics_file
-
-    c = cfg.calibrate
-    board = OmegaConf.to_container(c.board) if OmegaConf.is_config(c.board) else c.board
-    size = OmegaConf.to_container(c.size) if OmegaConf.is_config(c.size) else c.size
-    cal = calibrate_images(None if c.images is None else str(c.images), board=board, size=size)
-    path = write_intrinsics_file(cal, str(c.out))
+    c = config_params(CalibrateConfig, cfg.calibrate, "calibrate")
+    cal = calibrate_images(c.images, board=c.board, size=c.size)
+    path = write_intrinsics_file(cal, c.out)
     H, W = cal.size
     k1, k2, p1, p2, k3 = cal.distortion
     print(f"calibrate: {cal.board[0]}x{cal.board[1]} board found in {len(cal.boards)} of {len(cal.images)} images "
@@ -358,13 +363,13 @@ def _run(cfg: DictConfig) -> None:
     import cv2
     from tqdm import tqdm
 
-    from monostixels._checks import InputError
+    from monostixels._checks import InputError, config_params
 
     from monostixels.output.bev import bev_image
     from monostixels.data._io import MAX_SKIPPED_FRAMES
-    from monostixels.data.sources import camera_mount
+    from monostixels.data.sources import camera_mount, data_params
     from monostixels.output.io import depth_to_points, write_depth_png16, write_image, write_ply
-    from monostixels.pipeline import Pipeline
+    from monostixels.pipeline import EvalConfig, Pipeline
     from monostixels.sequence import SequenceRunner
     from monostixels.output.viewer import open_recorder
     from monostixels.output.viz import depth_colormap, side_by_side, stixel_depth_overlay
@@ -372,12 +377,14 @@ def _run(cfg: DictConfig) -> None:
     src = _source(cfg)
     live = hasattr(src, "indices")  # a camera, a URL or data.realtime: frames as they come, no length
     if not live and len(src) == 0:
-        raise InputError(f"data source {cfg.data.name!r} (root {cfg.data.get('root')}) has no frame pairs")
+        raise InputError(f"data source {cfg.data.name!r} (root {getattr(data_params(cfg.data), 'root', None)}) "
+                         f"has no frame pairs")
     # The SfM baseline is for eval/demo only; with a given motion the camera height the road implies is reported.
     pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, report_height=True)
     runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences
     out = Path(cfg.outputs) / "run"
-    lo, hi = float(cfg.eval.colormap_min_depth), float(cfg.eval.colormap_max_depth)
+    ev = config_params(EvalConfig, cfg.eval, "eval")
+    lo, hi = ev.colormap_min_depth, ev.colormap_max_depth
     videos: dict[str, Any] = {}
     written = 0
     camera: list[dict[str, Any]] = []  # each pair's flags: its camera-motion kind, scale source, height fit

@@ -1,28 +1,44 @@
 """The schemas of the config groups, registered with Hydra's ConfigStore.
 
-Each group below has one settings dataclass, its schema: the defaults live there, and every YAML
-option of the group (conf/<group>/*.yaml) lists the schema first in its defaults list
-(``defaults: [base_<group>, _self_]``), then chooses or overrides values. Hydra then refuses an unknown
-key or a value of the wrong type when it composes the config (``movers.no_such_key=1``,
-``solver.cell_rows=abc``), and the code takes the settings as the dataclass
-(``OmegaConf.to_object(cfg.<group>)``; :func:`monostixels._checks.config_params`).
+Each group below has one settings dataclass, its schema, or (``data``, ``flow``, ``semantic``, ``motion``,
+whose options differ in their keys) one per option, chosen by the option's ``name``. The defaults live
+there, and every YAML option of the group (conf/<group>/*.yaml) lists its schema first in its defaults
+list (``defaults: [base_<group or name>, _self_]``, or another option of the group), then chooses or
+overrides values. Hydra then refuses an unknown key or a value of the wrong type when it composes the
+config (``movers.no_such_key=1``, ``solver.cell_rows=abc``, ``data.hfov_deg=wide``), and the code takes the
+settings as the dataclass (:func:`monostixels._checks.config_params`, or
+:func:`monostixels._checks.option_params` by ``name``), also from a plain dict or a config rebuilt from one.
 
 Importing this module registers the schemas; the package config (``pkg://monostixels.conf``) imports it
 when it is loaded, and so does every place that composes it (:func:`monostixels.pipeline.load_config`,
 the command line, train/).
 
-============  ==========================================================  ===========================
-group         schema                                                      registered as
-============  ==========================================================  ===========================
-movers        :class:`monostixels.post.movers.MoverCheckParams`           ``movers/base_movers``
-solver        :class:`monostixels.core.solver.SolverConfig`               ``solver/base_solver``
-prior         :class:`monostixels.core.energy.PriorConfig`                ``prior/base_prior``
-stream        :class:`monostixels.sequence.stream.StreamParams`           ``stream/base_stream``
-keyframes     :class:`monostixels.sequence.runner.KeyframeParams`         ``keyframes/base_keyframes``
-temporal      :class:`monostixels.sequence.tracking.TrackParams`          ``temporal/base_temporal``
-ttc           :class:`monostixels.sequence.tracking.TtcParams`            ``ttc/base_ttc``
-motion (mono) :class:`monostixels.inputs.motion_track.MonoMotionConfig`   ``motion/base_mono``
-============  ==========================================================  ===========================
+=============  ===================================================================  ============================
+group          schema                                                               registered as
+=============  ===================================================================  ============================
+movers         :class:`monostixels.post.movers.MoverCheckParams`                    ``movers/base_movers``
+solver         :class:`monostixels.core.solver.SolverConfig`                        ``solver/base_solver``
+prior          :class:`monostixels.core.energy.PriorConfig`                         ``prior/base_prior``
+stream         :class:`monostixels.sequence.stream.StreamParams`                    ``stream/base_stream``
+keyframes      :class:`monostixels.sequence.runner.KeyframeParams`                  ``keyframes/base_keyframes``
+temporal       :class:`monostixels.sequence.tracking.TrackParams`                   ``temporal/base_temporal``
+ttc            :class:`monostixels.sequence.tracking.TtcParams`                     ``ttc/base_ttc``
+motion (mono)  :class:`monostixels.inputs.motion_track.MonoMotionConfig`            ``motion/base_mono``
+motion (gt)    :class:`monostixels.inputs.motion.GtMotionConfig`                    ``motion/base_gt``
+motion (file)  :class:`monostixels.inputs.motion.FileMotionConfig`                  ``motion/base_file``
+data           :class:`monostixels.data.sources.SyntheticDataConfig`,               ``data/base_synthetic``,
+               ``Kitti2015DataConfig``, ``KittiRawDataConfig``, ``DdadDataConfig``,  ``data/base_kitti2015``, ...
+               ``FramesDataConfig``, ``VideoDataConfig``, ``CamVidDataConfig``      (``data/base_<name>``)
+camera         :class:`monostixels.data.sources.CameraConfig`                       ``camera/base_camera``
+flow           :class:`monostixels.inputs.flow_config.GtFlowConfig`,                ``flow/base_<name>``
+               ``DisFlowConfig``, ``DeepFlowConfig``, ``RaftFlowConfig``            (gt, dis, deepflow, raft)
+semantic       :class:`monostixels.inputs.semantic.GtSemanticConfig`,               ``semantic/base_<name>``
+               ``NoSemanticConfig``, ``Fcn8sSemanticConfig``, ``OnnxSemanticConfig``  (gt, none, fcn8s, onnx)
+eval           :class:`monostixels.pipeline.EvalConfig`                             ``eval/base_eval``
+output         :class:`monostixels.output.viewer.OutputConfig`                      ``output/base_output``
+batch          :class:`monostixels.batch.BatchConfig`                               ``batch/base_batch``
+calibrate      :class:`monostixels.data.calibration.CalibrateConfig`                ``calibrate/base_calibrate``
+=============  ===================================================================  ============================
 """
 from __future__ import annotations
 
@@ -31,9 +47,16 @@ from typing import Sequence
 from hydra.core.config_store import ConfigStore
 
 from monostixels._checks import InputError, config_error
+from monostixels.batch import BatchConfig
 from monostixels.core.energy import PriorConfig
 from monostixels.core.solver import SolverConfig
-from monostixels.inputs.motion_track import MonoMotionConfig
+from monostixels.data.calibration import CalibrateConfig
+from monostixels.data.sources import DATA_SCHEMAS, CameraConfig
+from monostixels.inputs.flow_config import FLOW_SCHEMAS
+from monostixels.inputs.motion_track import MOTION_SCHEMAS
+from monostixels.inputs.semantic import SEMANTIC_SCHEMAS
+from monostixels.output.viewer import OutputConfig
+from monostixels.pipeline import EvalConfig
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import KeyframeParams
 from monostixels.sequence.stream import StreamParams
@@ -41,7 +64,8 @@ from monostixels.sequence.tracking import TrackParams, TtcParams
 
 __all__ = ["SCHEMAS", "register", "composition_error", "check_overrides"]
 
-#: ``(group, name in the ConfigStore, schema)`` of every group with a schema.
+#: ``(group, name in the ConfigStore, schema)`` of every schema: one per group, or one per option (by its
+#: ``name``) where the options of a group differ in their keys.
 SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("movers", "base_movers", MoverCheckParams),
     ("solver", "base_solver", SolverConfig),
@@ -50,7 +74,15 @@ SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("keyframes", "base_keyframes", KeyframeParams),
     ("temporal", "base_temporal", TrackParams),
     ("ttc", "base_ttc", TtcParams),
-    ("motion", "base_mono", MonoMotionConfig),
+    *(("motion", f"base_{name}", schema) for name, schema in MOTION_SCHEMAS.items()),
+    *(("data", f"base_{name}", schema) for name, schema in DATA_SCHEMAS.items()),
+    ("camera", "base_camera", CameraConfig),
+    *(("flow", f"base_{name}", schema) for name, schema in FLOW_SCHEMAS.items()),
+    *(("semantic", f"base_{name}", schema) for name, schema in SEMANTIC_SCHEMAS.items()),
+    ("eval", "base_eval", EvalConfig),
+    ("output", "base_output", OutputConfig),
+    ("batch", "base_batch", BatchConfig),
+    ("calibrate", "base_calibrate", CalibrateConfig),
 )
 
 

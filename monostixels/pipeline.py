@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from monostixels._checks import InputError, check_frame_size, config_params
 from monostixels._pools import helper_pool
@@ -33,16 +33,17 @@ from monostixels.core.energy import PriorConfig, load_config_group
 from monostixels.post.sfm import triangulate
 from monostixels.core.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
+from monostixels.inputs.flow_config import flow_params
 from monostixels.inputs.motion import NO_METRIC_MOTION, MotionEstimate, estimate_motion, implied_height
-from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack
-from monostixels.inputs.semantic import estimate_semantics
+from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
+from monostixels.inputs.semantic import estimate_semantics, semantic_params
 from monostixels.post.movers import MoverCheckParams, check_movers, static_only
 from monostixels.core.solver import SolverConfig, solve
 from monostixels.inputs.static_regions import crop_ignored
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import Carried, StreamState, warp_scores
 
-__all__ = ["MotionEstimationError", "PipelineResult", "Pipeline", "load_config"]
+__all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Pipeline", "load_config"]
 
 logger = logging.getLogger(__name__)
 
@@ -77,6 +78,40 @@ def load_config(overrides: Sequence[str] = ()) -> DictConfig:
             if named is None:
                 raise
             raise named from None
+
+
+@dataclass
+class EvalConfig:
+    """The evaluation's settings (docs/conventions.md, section 4.5), which the product path reads too (the SfM
+    baseline's guard, the frame interval of sources without times, the depth colour maps of every command's
+    pictures): the schema of the config group ``eval`` (monostixels.config_schema).
+
+    Attributes:
+        max_depth: ground-truth cap (metres): pixels with ground truth beyond it are not evaluated, and
+            estimates are clamped to it (an invalid estimate is set to it). 80 m is the usual KITTI practice
+            (Eigen et al. 2014; Godard et al. 2017); KITTI 2015's Velodyne ground truth rarely reaches beyond.
+        min_depth: lower clamp of estimates (metres), the usual KITTI practice (Eigen/Godard evaluation code):
+            it only keeps ``y*/y`` finite. A larger value (1 m) would silently improve a method that outputs
+            absurdly close depths, and no ground-truth pixel is closer than a few metres.
+        sfm_min_parallax_rad: rays of the structure-from-motion baseline (:mod:`monostixels.post.sfm`) whose
+            parallax angle is below this (radians) carry no depth (+inf); a numerical guard far below any
+            measurable parallax (1 px at KITTI's 721 px focal length is 1.4e-3 rad).
+        colormap_min_depth, colormap_max_depth: the depth colour maps (pictures only, not metrics) span inverse
+            depth between these (metres), red (close) to dark blue (far).
+        moving_speed_mps: the report's ``stixel_motion``: a stixel counts as moving when its estimated world
+            motion over the frame interval exceeds this speed (m/s; a walking pedestrian's is ~1.4 m/s, a
+            static object's motion mis-estimated by 10 cm at 10 Hz stays below).
+        frame_interval_s: seconds between the frames of a pair for sources whose pairs carry no time
+            (``meta["dt"]``): KITTI's 10 Hz.
+    """
+
+    max_depth: float = 80.0
+    min_depth: float = 0.001
+    sfm_min_parallax_rad: float = 1.0e-6
+    colormap_min_depth: float = 3.0
+    colormap_max_depth: float = 80.0
+    moving_speed_mps: float = 1.0
+    frame_interval_s: float = 0.1
 
 
 @dataclass
@@ -115,8 +150,9 @@ class PipelineResult:
 def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
     """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
     with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
-    if str(cfg.motion.name) == "mono" and bool(cfg.motion.get("sequence_prior", False)):
-        return MotionTrack(config_params(MonoMotionConfig, cfg.motion, "motion"))
+    motion = motion_params(cfg.motion)
+    if isinstance(motion, MonoMotionConfig) and motion.sequence_prior:
+        return MotionTrack(motion)
     return None
 
 
@@ -150,13 +186,17 @@ class Pipeline:
         # Overlapped, the flow runs in its own thread beside the semantic net (and the last pair's solve),
         # which keep a core busy: OpenCV's pool gets the rest (monostixels._threads.set_opencv_threads).
         set_opencv_threads(max(1, threads() - 1) if overlap else None)
+        # The settings of the input groups, read once (the dataclasses of monostixels.config_schema).
+        self.flow_cfg = flow_params(cfg.flow)
+        self.semantic_cfg = semantic_params(cfg.semantic)
+        self.motion_cfg = motion_params(cfg.motion)
+        self.eval_cfg = config_params(EvalConfig, cfg.get("eval"), "eval")
         prior = config_params(PriorConfig, cfg.get("prior"), "prior")
         # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
         # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
-        overrides = cfg.semantic.get("prior_overrides")
+        overrides = getattr(self.semantic_cfg, "prior_overrides", None)
         if overrides:
-            prior = config_params(PriorConfig, {**dataclasses.asdict(prior), **OmegaConf.to_container(overrides, resolve=True)},
-                                  "semantic.prior_overrides")
+            prior = config_params(PriorConfig, {**dataclasses.asdict(prior), **overrides}, "semantic.prior_overrides")
         self.prior = prior.params()
         self.allow_motion_failure = allow_motion_failure
         self.solver_cfg = config_params(SolverConfig, cfg.get("solver"), "solver")
@@ -181,7 +221,7 @@ class Pipeline:
         flagged, with a warning.
         """
         warm = {} if prior is None else {"prior": prior, "interval_ratio": interval_ratio}
-        est = estimate_motion(pair, flow, self.cfg.motion, semantic, **warm)
+        est = estimate_motion(pair, flow, self.motion_cfg, semantic, **warm)
         if track is not None:
             est = track.update(pair, est)
         if est.motion is None:
@@ -207,7 +247,7 @@ class Pipeline:
         A real camera is not mounted exactly level and roads tilt by a few degrees; a level ground
         model then turns the road ahead into object fragments.
         """
-        use = bool(self.cfg.motion.get("use_ground_normal", False))
+        use = getattr(self.motion_cfg, "use_ground_normal", False)
         if not use or motion.ground_normal is None or motion.degenerate:
             return pair.camera
         n = motion.ground_normal.to(pair.camera.ground_normal.dtype)
@@ -259,25 +299,25 @@ class Pipeline:
         # Beside an image flow backend, one ONNX Runtime thread: its default pool (one spinning
         # thread per core) took the cores of DeepFlow's strips. Same scores either way; the
         # ground-truth flow is quick, and the semantics are then the longer of the two.
-        ort_threads = 1 if self.overlap and str(self.cfg.flow.get("name", "")) != "gt" else 0
+        ort_threads = 1 if self.overlap and self.flow_cfg.name != "gt" else 0
 
         def semantics() -> tuple[torch.Tensor | None, float]:
             t = time.perf_counter()
-            return estimate_semantics(pair, self.cfg.semantic, threads=ort_threads), time.perf_counter() - t
+            return estimate_semantics(pair, self.semantic_cfg, threads=ort_threads), time.perf_counter() - t
 
         fresh = carried.semantic is None
         t_in = time.perf_counter()
         future = helper_pool("semantics").submit(semantics) if self.overlap and fresh else None
         try:
             t0 = time.perf_counter()
-            if carried.chain is not None and str(self.cfg.flow.get("name", "")) != "gt":
+            if carried.chain is not None and self.flow_cfg.name != "gt":
                 # A keyframe pair reaching past the last frame: its flow chained through the frames between.
                 ch = carried.chain
-                flow = chained_flow(pair, self.cfg.flow, ch.last_image, ch.steps, last_grey=ch.last_grey,
+                flow = chained_flow(pair, self.flow_cfg, ch.last_image, ch.steps, last_grey=ch.last_grey,
                                     prev_grey=ch.prev_grey)
             else:
                 kept = {k: v for k, v in (("init", carried.flow_init), ("grey_prev", carried.grey_prev)) if v is not None}
-                flow = estimate_flow(pair, self.cfg.flow, **kept)
+                flow = estimate_flow(pair, self.flow_cfg, **kept)
             sec["flow"] = time.perf_counter() - t0
             if future is not None:
                 semantic, sec["semantic"] = future.result()
@@ -358,7 +398,7 @@ class Pipeline:
         if self.sfm:
             t0 = time.perf_counter()
             sfm = triangulate(flow.flow, pair.camera.K, motion.motion,
-                              min_parallax_rad=float(self.cfg.eval.sfm_min_parallax_rad)).depth
+                              min_parallax_rad=self.eval_cfg.sfm_min_parallax_rad).depth
             sec["sfm"] = time.perf_counter() - t0
         sec["wall"] = time.perf_counter() - start
         logger.debug("%s: %d stixels, seconds %s", pair.name, len(stixels), sec)

@@ -214,10 +214,7 @@ CITYSCAPES20_MAPPING = list(CITYSCAPES19_MAPPING) + [-1]
 
 
 def _cityscapes_cfg(**extra):
-    base = OmegaConf.load(CONF / "semantic" / "onnx.yaml")
-    cs = OmegaConf.load(CONF / "semantic" / "cityscapes19.yaml")
-    cs.pop("defaults")
-    return OmegaConf.merge(base, cs, {"model": str(CITYSCAPES_KITTI)}, extra)
+    return OmegaConf.merge(load_config(["semantic=cityscapes19"]).semantic, {"model": str(CITYSCAPES_KITTI)}, extra)
 
 
 @pytest.mark.skipif(not CITYSCAPES_KITTI.is_file(), reason=f"{CITYSCAPES_KITTI} absent (a user's model; "
@@ -248,7 +245,7 @@ def test_cityscapes_model_with_background_channel() -> None:
 @pytest.mark.skipif(not REAL_ONNX.is_file() or not REAL_PT.is_file(), reason="models/fcn8s_real.* not present "
                     "(train with `python -m train.semantic`)")
 def test_shipped_real_net_onnx_matches_torch() -> None:
-    cfg = OmegaConf.load(CONF / "semantic" / "fcn8s.yaml")
+    cfg = load_config(["semantic=fcn8s"]).semantic
     assert cfg.model == "models/fcn8s_real.onnx"
     g = torch.Generator().manual_seed(0)
     # A smooth random image of a size that is no multiple of 32 (padding and crop included).
@@ -347,6 +344,6 @@ def test_fcn8s_scale_from_focal_length() -> None:
     assert fcn8s_scale(calibrated, cfg) == pytest.approx(0.5)  # focal_px / fx, not fy
     # Single images without a calibration (CamVid) use `scale`.
     assert fcn8s_scale(image_pair(image, "camvid"), cfg) == pytest.approx(0.75)
-    assert fcn8s_scale(calibrated, OmegaConf.create({"scale": None})) is None
+    assert fcn8s_scale(calibrated, OmegaConf.create({"scale": None, "focal_px": None})) is None
     with pytest.raises(InputError, match="semantic.focal_px"):
         fcn8s_scale(calibrated, OmegaConf.merge(cfg, {"focal_px": -1.0}))

@@ -130,7 +130,8 @@ def test_deepflow_follows_large_displacements_with_matches():
     pair = render_pair(9, scale=0.5)
     epe = {}
     for name, matches in (("deepflow", "none"), ("deepflow", "dis"), ("dis", None)):
-        cfg = OmegaConf.create({"name": name, "confidence": "structure_tensor", "matches": matches})
+        raw = {"confidence": "structure_tensor", "refine": False, "fb_consistency": False}  # the backend alone
+        cfg = OmegaConf.create({"name": name, **raw, **({"matches": matches} if matches else {})})
         res = estimate_flow(pair, cfg)
         epe[(name, matches)] = flow_metrics(res.flow, pair.gt.flow, pair.gt.flow_valid)["epe"]
     assert epe[("deepflow", "none")] > 5.0
@@ -157,7 +158,7 @@ def test_refinement_passes_converge_towards_the_ground_truth():
         err[passes] = (float(e[valid].mean()), float(e[small].median()))
     assert err[3][0] < err[1][0]
     assert err[3][1] < 0.8 * err[1][1]
-    for bad in (0, -1, 1.5, True, "4"):
+    for bad in (0, -1, 1.5, True, "four"):
         with pytest.raises(InputError, match="flow.refine_passes"):
             compute_flow(pair.image, pair.image_prev, OmegaConf.create({"name": "dis", "refine": True, "refine_passes": bad}))
 
@@ -334,9 +335,10 @@ def test_raft_torch_and_onnx_agree(tmp_path, raft3):
     wpath = tmp_path / "w.pt"
     torch.save({"model": net.raft.state_dict()}, wpath)
     pair = FramePair(image=a, image_prev=b, camera=_camera(H, W), name="p")
-    res = estimate_flow(pair, OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 3}))
+    raw = {"scale": 1.0, "refine": False, "fb_consistency": False}  # the network alone
+    res = estimate_flow(pair, OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 3, **raw}))
     assert torch.allclose(res.flow, f_torch, atol=1e-4)
-    res_onnx = estimate_flow(pair, OmegaConf.create({"name": "raft", "runtime": "onnx", "onnx": str(path)}))
+    res_onnx = estimate_flow(pair, OmegaConf.create({"name": "raft", "runtime": "onnx", "onnx": str(path), **raw}))
     assert torch.allclose(res_onnx.flow, f_torch, atol=1e-3)
 
 
@@ -352,7 +354,8 @@ def test_raft_runtime_auto_takes_the_export_beside_the_weights(tmp_path, raft3):
     shutil.copy(export, tmp_path / "mine.onnx")
     assert OnnxRaft(tmp_path / "mine.onnx").num_flow_updates == 3
     torch.save(net.raft.state_dict(), tmp_path / "other.pt")
-    cfg = {"name": "raft", "runtime": "auto", "weights": str(tmp_path / "mine.pt"), "iters": 3}
+    cfg = {"name": "raft", "runtime": "auto", "weights": str(tmp_path / "mine.pt"), "iters": 3, "precision": "float32",
+           "scale": 1.0, "refine": False, "fb_consistency": False}
     assert isinstance(_raft_net(OmegaConf.create(cfg)), OnnxRaft)
     assert isinstance(_raft_net(OmegaConf.create({**cfg, "iters": 4})), TorchRaft)
     assert isinstance(_raft_net(OmegaConf.create({**cfg, "weights": str(tmp_path / "other.pt")})), TorchRaft)
@@ -528,7 +531,8 @@ def test_raft_forward_backward_refined_hands_on_its_grey_image(tmp_path):
     H, W = 128, 160
     a, b = _texture(H, W, seed=8), _texture(H, W, seed=9)
     pair = FramePair(image=a, image_prev=b, camera=_camera(H, W), name="p")
-    cfg = OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 2, "refine": True, "fb_consistency": True})
+    cfg = OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 2, "refine": True, "fb_consistency": True,
+                            "scale": 1.0, "refine_passes": 1, "precision": "float32"})
     cold = estimate_flow(pair, cfg)
     assert cold.grey is not None and np.array_equal(cold.grey, _gray_u8(a.float()))
     warm = estimate_flow(pair, cfg, grey_prev=_gray_u8(b.float()))

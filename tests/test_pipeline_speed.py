@@ -209,8 +209,8 @@ def test_scaled_flow_is_in_full_size_pixels(name, refine):
     # pixels would read 0.6 d, a swapped axis would read (dv, du).
     d = (5, 2)
     pair = _shift_pair(d)
-    res = estimate_flow(pair, OmegaConf.create({"name": name, "scale": 0.6, "refine": refine,
-                                                "confidence": "structure_tensor"}))
+    res = estimate_flow(pair, OmegaConf.create({"name": name, "scale": 0.6, "refine": refine, "refine_passes": 1,
+                                                "fb_consistency": False, "confidence": "structure_tensor"}))
     assert res.flow.shape == (2, 90, 132) and res.cov.shape == (90, 132, 2, 2)
     inner = res.flow[:, 15:-15, 15:-15]
     assert float(inner[0].median()) == pytest.approx(-d[0], abs=0.3)
@@ -261,8 +261,9 @@ def test_half_resolution_deepflow_on_a_rendered_street():
 
     pair = render_pair(9, scale=0.4)
     epe = {}
+    raw = {"name": "deepflow", "confidence": "structure_tensor", "refine": False, "refine_passes": 1, "fb_consistency": False}
     for key, extra in (("full", {}), ("half", {"scale": 0.5}), ("half_refined", {"scale": 0.5, "refine": True})):
-        res = estimate_flow(pair, OmegaConf.create({"name": "deepflow", "confidence": "structure_tensor", **extra}))
+        res = estimate_flow(pair, OmegaConf.create({**raw, **extra}))
         epe[key] = flow_metrics(res.flow, pair.gt.flow, pair.gt.flow_valid)["epe"]
     assert epe["full"] < 2.0
     assert epe["half"] < epe["full"] + 0.5
@@ -283,7 +284,7 @@ def test_flow_scale_too_small_and_bad_refine():
     with pytest.raises(InputError, match=r"flow\.scale.*16 px"):
         estimate_flow(pair, OmegaConf.create({"name": "dis", "scale": 0.1}))
     with pytest.raises(InputError, match=r"flow\.refine"):
-        estimate_flow(pair, OmegaConf.create({"name": "dis", "refine": "yes"}))
+        estimate_flow(pair, OmegaConf.create({"name": "dis", "refine": "maybe"}))
 
 
 # --- closed-form covariance -----------------------------------------------------------------------
@@ -389,9 +390,10 @@ def test_refined_flow_shares_the_grey_images_with_the_backend():
     import cv2
 
     from monostixels.inputs.flow import _deepflow, _gray_u8
+    from monostixels.inputs.flow_config import flow_params
 
     pair = _shift_pair((3, 1), h=64, w=120)
-    cfg = OmegaConf.create({"name": "deepflow", "scale": 0.5, "refine": True})
+    cfg = flow_params({"name": "deepflow", "scale": 0.5, "refine": True, "refine_passes": 1})
     got = compute_flow(pair.image, pair.image_prev, cfg)
     f = np.ascontiguousarray(_deepflow(pair.image, pair.image_prev, cfg).permute(1, 2, 0).numpy())
     cv2.VariationalRefinement_create().calc(_gray_u8(pair.image), _gray_u8(pair.image_prev), f)
@@ -441,7 +443,7 @@ def test_bands_stitch_strips_in_place():
 def test_deepflow_in_two_bands_matches_one():
     d = (4, 1)
     pair = _shift_pair(d, h=80, w=200)
-    base = {"name": "deepflow", "scale": 1.0, "confidence": "structure_tensor"}
+    base = {"name": "deepflow", "scale": 1.0, "confidence": "structure_tensor", "refine": False, "fb_consistency": False}
     one = estimate_flow(pair, OmegaConf.create({**base, "bands": 1})).flow
     two = estimate_flow(pair, OmegaConf.create({**base, "bands": 2})).flow
     inner = (slice(None), slice(12, -12), slice(12, -12))
@@ -450,7 +452,7 @@ def test_deepflow_in_two_bands_matches_one():
     assert float((two - one)[inner].abs().mean()) < 0.1
 
 
-@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "two"])
 def test_bad_flow_bands_names_the_option(bad):
     pair = _shift_pair((2, 1))
     with pytest.raises(InputError, match=r"flow\.bands"):

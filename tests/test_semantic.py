@@ -31,6 +31,7 @@ from monostixels.inputs.semantic import (
     iou_from_confusion,
     map_scores,
 )
+from monostixels.pipeline import load_config
 
 ort = pytest.importorskip("onnxruntime")
 
@@ -170,7 +171,7 @@ def test_onnx_matches_torch(tmp_path: Path) -> None:
     # The two runtimes of the `fcn8s` backend agree on a non-multiple-of-32 image.
     pt = save_fcn8s(model, tmp_path / "m.pt", arch={"width_mult": TINY, "batch_norm": True, "fc_kernel": 3})
     image = torch.rand(3, 45, 70)
-    base = {"name": "fcn8s", "model": str(path), "weights": str(pt), "scale": 1.0}
+    base = {"name": "fcn8s", "model": str(path), "weights": str(pt), "scale": 1.0, "focal_px": None}
     p_onnx = estimate_semantics(_pair(image), OmegaConf.create({**base, "runtime": "onnx"}))
     p_torch = estimate_semantics(_pair(image), OmegaConf.create({**base, "runtime": "torch"}))
     assert p_onnx.shape == (NUM_CLASSES, 45, 70)
@@ -191,7 +192,7 @@ def test_gt_scores_softened_and_sum_to_one() -> None:
     torch.testing.assert_close(s[:, 0, 2], torch.full((NUM_CLASSES,), 0.1))
     assert torch.equal(s.argmax(0)[1], torch.tensor([4, 7, 2]))
 
-    cfg = OmegaConf.load(CONF / "semantic" / "gt.yaml")
+    cfg = load_config(["semantic=gt"]).semantic
     out = estimate_semantics(_pair(torch.rand(3, 2, 3), labels), cfg)
     assert float(out[0, 0, 0]) == pytest.approx(float(cfg.confidence))
     with pytest.raises(InputError, match="unit-test source"):
@@ -228,10 +229,7 @@ def _export_const_model(path: Path, channels: int, *, out_transposed: bool = Fal
 def test_cityscapes_mapping_sums_probabilities(tmp_path: Path) -> None:
     path = tmp_path / "cityscapes_fake.onnx"
     logits = _export_const_model(path, 19)
-    base = OmegaConf.load(CONF / "semantic" / "onnx.yaml")
-    cs = OmegaConf.load(CONF / "semantic" / "cityscapes19.yaml")
-    cs.pop("defaults")
-    cfg = OmegaConf.merge(base, cs, {"model": str(path)})
+    cfg = OmegaConf.merge(load_config(["semantic=cityscapes19"]).semantic, {"model": str(path)})
     assert list(cfg.mapping) == list(CITYSCAPES19_MAPPING)
     out = estimate_semantics(_pair(torch.rand(3, 50, 70)), cfg)
     assert out.shape == (NUM_CLASSES, 50, 70)
@@ -255,7 +253,7 @@ def test_cityscapes_mapping_sums_probabilities(tmp_path: Path) -> None:
 def test_user_onnx_wrong_channels_or_shape_fails(tmp_path: Path) -> None:
     path = tmp_path / "seven.onnx"
     _export_const_model(path, 7)
-    base = OmegaConf.load(CONF / "semantic" / "onnx.yaml")
+    base = load_config(["semantic=onnx"]).semantic
     image = torch.rand(3, 40, 60)
     with pytest.raises(InputError, match=r"seven\.onnx.*7 channels.*expected 10"):
         estimate_semantics(_pair(image), OmegaConf.merge(base, {"model": str(path)}))
@@ -363,7 +361,7 @@ def test_shipped_model_segments_validation_renders() -> None:
     if not SHIPPED_ONNX.is_file():
         pytest.skip(f"{SHIPPED_ONNX} not present (train with `python -m train.semantic`)")
     synthetic = pytest.importorskip("monostixels.data.synthetic", reason="synthetic renderer not present")
-    cfg = OmegaConf.load(CONF / "semantic" / "fcn8s_synthetic.yaml")
+    cfg = load_config(["semantic=fcn8s_synthetic"]).semantic
     conf = torch.zeros(NUM_CLASSES, NUM_CLASSES, dtype=torch.int64)
     for frame in (0, 1):
         # Validation source seed 9 (never used in training), rendered at the training scale 0.5.

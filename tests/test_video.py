@@ -232,9 +232,9 @@ def test_resize_auto_is_about_half_a_megapixel_never_upscaled():
 
 
 def test_resize_auto_is_the_video_default_and_bad_values_fail(tmp_path):
-    from omegaconf import OmegaConf
+    from monostixels.pipeline import load_config
 
-    conf = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "data" / "video.yaml")
+    conf = load_config(["data=video"]).data
     assert conf.resize == "auto" and conf.mask == "auto"  # the bonnet found from the first frames
     v = write_video(tmp_path / "c.mp4", 3)
     src = make_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": "auto"})

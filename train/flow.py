@@ -162,11 +162,13 @@ def real_pool(cfg: DictConfig) -> list[Sample]:
     path = Path(cfg.run_dir) / "pool" / f"real_f{float(rc.focal_px)}_fb{float(rc.max_fb_px)}.pt"
     if path.is_file():
         return torch.load(path, weights_only=True)
+    from monostixels.core.energy import load_config_group
     from monostixels.data.sources import make_source
     from monostixels.inputs.confidence import fb_consistency_error
     from monostixels.inputs.flow import compute_flow
+    from monostixels.inputs.flow_config import flow_params
 
-    teacher = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "flow" / "deepflow.yaml")
+    teacher = flow_params(load_config_group("flow", "deepflow"))
     crop_h, crop_w = int(cfg.crop[0]), int(cfg.crop[1])
     pool: list[Sample] = []
     for src_cfg in rc.sources:

@@ -9,7 +9,8 @@ an intrinsics file in the format :func:`monostixels.data._io.read_intrinsics_fil
 
 Convention: ``board = (columns, rows)`` counts *inner* corners (where four squares meet), as OpenCV's
 ``patternSize``: the common printed board of 10 x 7 squares has 9 x 6. Pixel centres at integers
-(OpenCV), so the intrinsics are those of the images as stored.
+(OpenCV), so the intrinsics are those of the images as stored. The command's settings: the config group
+``calibrate`` (:class:`CalibrateConfig`).
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import List, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -26,9 +27,31 @@ import numpy as np
 from monostixels._checks import InputError
 from monostixels.data._io import IMAGE_EXTENSIONS
 
-__all__ = ["Calibration", "MIN_BOARDS", "calibrate_images", "find_board", "write_intrinsics_file"]
+__all__ = ["CalibrateConfig", "Calibration", "MIN_BOARDS", "calibrate_images", "find_board", "write_intrinsics_file"]
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class CalibrateConfig:
+    """The settings of ``monostixels calibrate``: the schema of the config group ``calibrate``
+    (monostixels.config_schema).
+
+    Attributes:
+        images: the chessboard views: a glob (quote it against the shell) or a folder; 10-20 views of the board
+            at varied angles covering the whole image (the corners matter most for the distortion), at least
+            :data:`MIN_BOARDS` of them showing the board.
+        board: inner corners ``[columns, rows]``, where four squares meet (a board of 10 x 7 squares has [9, 6]).
+        out: the intrinsics file written (fx, fy, cx, cy and distortion ``[k1, k2, p1, p2, k3]``), for
+            ``data.intrinsics``.
+        size: ``[W, H]``: use only the images of this size (the others are skipped and listed); None = all,
+            of one size.
+    """
+
+    images: Optional[str] = None
+    board: List[int] = field(default_factory=lambda: [9, 6])
+    out: str = "intrinsics.yaml"
+    size: Optional[List[int]] = None
 
 #: Fewest views with a board found that a calibration accepts: Zhang's method needs three views of a
 #: plane for the intrinsics; the distortion coefficients want more (10-20 views at varied angles and

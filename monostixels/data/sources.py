@@ -4,167 +4,355 @@
 ``kitti2015``, ``kitti_raw``, ``ddad``, ``frames``, ``video``. ``cfg`` is either the ``data`` group
 or the whole config (with ``data`` and ``camera`` entries); the camera group supplies the default
 mounting height and pitch.
+
+Each option of ``data`` has its settings dataclass (:data:`DATA_SCHEMAS`, by ``name``), its schema in the
+package config (monostixels.config_schema); ``camera``'s is :class:`CameraConfig`. A dict given by a library
+user is read through the same dataclasses (:func:`data_params`).
 """
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Callable, List, Mapping, Optional, Sequence, Union
 
-from monostixels._checks import InputError, config_value
+from monostixels._checks import InputError, config_params, is_unset, option_params
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.inputs.static_regions import AUTO_MASK
 
-__all__ = ["SOURCE_NAMES", "camera_mount", "make_source"]
+__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
+           "KittiRawDataConfig", "DdadDataConfig", "FramesDataConfig", "VideoDataConfig", "CamVidDataConfig",
+           "camera_mount", "data_params", "make_source"]
 
 logger = logging.getLogger(__name__)
 
 
+@dataclass
+class CameraConfig:
+    """Camera mounting: the schema of the config group ``camera`` (monostixels.config_schema). The
+    intrinsics come from the data source (calibration files or the renderer).
+
+    Attributes:
+        height: height of the camera above the road (metres); a data source's ``camera_height`` replaces
+            it. KITTI's colour cameras: 1.65 m (KITTI setup description).
+        pitch: pitch of the optical axis (radians; positive = looking down); tilts the ground normal.
+    """
+
+    height: float = KITTI_CAMERA_HEIGHT_M
+    pitch: float = 0.0
+
+
+@dataclass
+class SyntheticDataConfig:
+    """``data=synthetic``: the built-in street scenes (docs/conventions.md, section 6).
+
+    Attributes:
+        root: not read (the scenes are rendered); every data option has one.
+        frames: frame pairs, or clips where ``sequence_length > 1``.
+        seed: source seed; frame ``i`` is scene seed ``seed x 100000 + i``.
+        scale: resolution relative to KITTI's 1242x375.
+        density: multiplier of the number of objects in a scene.
+        sequence_length: frames per clip: 1 = independent frame pairs; N > 1 = ``frames`` clips of N
+            consecutive frame pairs of one scene (constant ego motion, movers at constant velocity), with
+            keyframes and tracks.
+        ego_speed_mps: ego speed of the clips (m/s; 0 = a standing camera); None = each scene's own (8-15 m/s).
+    """
+
+    name: str = "synthetic"
+    root: Optional[str] = None
+    frames: int = 1
+    seed: int = 0
+    scale: float = 1.0
+    density: float = 1.0
+    sequence_length: int = 1
+    ego_speed_mps: Optional[float] = None
+
+
+@dataclass
+class Kitti2015DataConfig:
+    """``data=kitti2015``: KITTI Scene Flow 2015 in its official layout (docs/conventions.md, section 4.8).
+
+    Attributes:
+        root: the folder holding ``training/`` (and ``testing/``).
+        split: ``training`` | ``testing``.
+        previous: partner of the reference frame ``_10`` (always the current image): ``auto`` = ``_09``
+            where present (true temporal order, no flow ground truth), else ``_11``; ``"11"`` = ``_11``
+            used time-reversed as the previous frame (KITTI's flow_occ 10->11 is then our current->previous
+            ground truth); ``"09"`` = require ``_09`` (multiview extension).
+        frames: at most this many frame pairs (None = every scene).
+        scenes: scene numbers to read (None = all).
+        fx, fy, cx, cy: intrinsics (pixels) used only where ``<split>/calib_cam_to_cam/`` is absent (a
+            warning is logged): the 2011_09_26 camera of scene 000000 (P_rect_02). ``fy`` None = ``fx``.
+        camera_height: camera height above the road (metres); None = ``camera.height``.
+    """
+
+    name: str = "kitti2015"
+    root: Optional[str] = None
+    split: str = "training"
+    previous: str = "auto"
+    frames: Optional[int] = None
+    scenes: Optional[List[int]] = None
+    fx: Optional[float] = 721.5377
+    fy: Optional[float] = None
+    cx: Optional[float] = 609.5593
+    cy: Optional[float] = 172.854
+    camera_height: Optional[float] = None
+
+
+@dataclass
+class KittiRawDataConfig:
+    """``data=kitti_raw``: KITTI raw synced+rectified drives (docs/conventions.md, section 4.8), with their
+    poses, OXTS, stixel-bottom labels and LiDAR depth where present.
+
+    Attributes:
+        root: the folder of the ``YYYY_MM_DD`` date folders.
+        date: only this date (``YYYY_MM_DD``); None = every one found.
+        drive: only this drive (its number or folder name); None = every one.
+        step: pair = (frame n, frame n - step), raw frame numbers.
+        frames: at most this many frame pairs (None = all).
+        only_labelled: only pairs whose current frame has stixel-bottom labels.
+        camera_height: camera height above the road (metres); None = ``camera.height``.
+        oxts: where the OXTS poses' positions come from: ``velocity`` (integrated vf/vl/vu; steadier frame
+            to frame) or ``position`` (GPS latitude/longitude, jitters by a few cm).
+    """
+
+    name: str = "kitti_raw"
+    root: Optional[str] = None
+    date: Optional[str] = None
+    drive: Optional[Union[int, str]] = None
+    step: int = 1
+    frames: Optional[int] = None
+    only_labelled: bool = False
+    camera_height: Optional[float] = None
+    oxts: str = "velocity"
+
+
+@dataclass
+class DdadDataConfig:
+    """``data=ddad``: DDAD / TRI dgp scenes (docs/conventions.md, section 4.8).
+
+    Attributes:
+        root: the folder of ``scene_dataset_v1.0.json``.
+        camera: camera datum (``CAMERA_01`` = the front camera).
+        lidar: the LiDAR datum of the depth ground truth.
+        scene: only this scene folder (e.g. ``scene_01``); None = every scene.
+        frames: at most this many frame pairs (None = all).
+        camera_height: camera height above the road (metres); None = estimated per pair from the LiDAR
+            ground in front of the vehicle and the camera extrinsics (``camera.height`` is not used).
+        moving_threshold: a tracked 3D box moving more than this between the two timesteps is a moving
+            object (metres).
+    """
+
+    name: str = "ddad"
+    root: Optional[str] = None
+    camera: str = "CAMERA_01"
+    lidar: str = "LIDAR"
+    scene: Optional[str] = None
+    frames: Optional[int] = None
+    camera_height: Optional[float] = None
+    moving_threshold: float = 0.2
+
+
+@dataclass
+class FramesDataConfig:
+    """``data=frames``: a folder of images of your own camera (sorted by name = temporal order) and its
+    intrinsics file.
+
+    Attributes:
+        root: the folder of images.
+        intrinsics: the intrinsics file: YAML/JSON ``{fx, fy, cx, cy}`` (pixels) or ``{K: 3x3}``, or text
+            ``fx fy cx cy`` / the 9 numbers of K; with ``distortion: [k1, k2, p1, p2, k3]`` (OpenCV's order,
+            as ``monostixels calibrate`` writes it) the images are undistorted. None =
+            ``<root>/intrinsics.yaml`` (or .yml/.json/.txt).
+        step: pair = (image i, image i - step) in name order.
+        frames: at most this many frame pairs (None = all).
+        camera_height: camera height above the road (metres); None = ``camera.height``.
+        poses: camera-to-world poses (a line per image: 12 or 16 numbers, or an image number and 12), the
+            ground-truth motion; None = no motion (estimate it with ``motion=mono``).
+        mask: pixels to ignore: ``auto`` (a still region at the bottom, a bonnet, found from the first
+            images: :mod:`monostixels.inputs.static_regions`), a mask image of the images' size (PNG;
+            non-zero = ignore), undistorted with them, or None (every pixel).
+    """
+
+    name: str = "frames"
+    root: Optional[str] = None
+    intrinsics: Optional[str] = None
+    step: int = 1
+    frames: Optional[int] = None
+    camera_height: Optional[float] = None
+    poses: Optional[str] = None
+    mask: Optional[str] = AUTO_MASK
+
+
+@dataclass
+class VideoDataConfig:
+    """``data=video``: a video file of your own camera, a camera or a stream (docs/conventions.md, section 4.8).
+
+    Attributes:
+        path: the video file (what OpenCV's FFmpeg backend decodes), a camera index (0, 1, ...) or a URL
+            (``rtsp://``, ``http://``...); a camera or URL is read as its frames come.
+        realtime: frames that arrive while one is being solved are dropped, not queued: each pair is the
+            newest frame and the frames taken before it (a file is then read at its frame rate, as a camera
+            would deliver it); ``run`` writes which frames it processed (``<outputs>/run/stream.json``,
+            ``flags.stream`` in each stixels.json). False: every (step-th) frame is processed.
+        intrinsics: intrinsics file (pixels of the stored video; formats as for ``data=frames``, its
+            ``distortion`` undistorts every frame).
+        hfov_deg: without an intrinsics file, the horizontal field of view (degrees): fx = fy =
+            (W/2) / tan(hfov/2), principal point at the image centre. Approximate: no lens distortion, no
+            off-centre principal point; depths scale with fx.
+        step: video frames between the two frames of a pair (a 30 fps dashcam: 3 gives KITTI's 10 Hz).
+        start: first video frame used (0-based).
+        end: the frame before which to stop (None = the end).
+        resize: resize of the (undistorted) frames, the intrinsics with them: ``auto`` (about 0.5
+            megapixels, e.g. 1280x720 -> 942x530; smaller frames and 960x540 stay as they are, never
+            upscaled), None (as stored), a factor (0.5) or ``[W, H]`` pixels.
+        mask: pixels to ignore: ``auto`` (a still region at the bottom, a bonnet or a dashboard reflection,
+            found from the clip's first frames), a mask image of the stored frame size (PNG; non-zero =
+            ignore), undistorted and resized with the frames, or None (every pixel).
+        frames: at most this many frame pairs (None = all).
+        camera_height: camera height above the road (metres); None = ``camera.height``.
+    """
+
+    name: str = "video"
+    path: Optional[Union[int, str]] = None
+    realtime: bool = False
+    intrinsics: Optional[str] = None
+    hfov_deg: Optional[float] = None
+    step: int = 1
+    start: int = 0
+    end: Optional[int] = None
+    # auto, a factor or [W, H]: no one type (VideoSource checks it).
+    resize: Any = "auto"
+    mask: Optional[str] = AUTO_MASK
+    frames: Optional[int] = None
+    camera_height: Optional[float] = None
+
+
+@dataclass
+class CamVidDataConfig:
+    """``data=camvid``: CamVid's labelled single images (SegNet split), for ``eval``'s semantic metrics only
+    (:mod:`monostixels.data.camvid`).
+
+    Attributes:
+        root: the CamVid folder.
+        split: ``train`` | ``val`` | ``test``.
+        frames: at most this many images (None = all), every ``step``-th image of the split's list.
+        step: see ``frames``.
+    """
+
+    name: str = "camvid"
+    root: Optional[str] = None
+    split: str = "test"
+    frames: Optional[int] = None
+    step: int = 1
+
+
+#: The schema of each option of the config group ``data`` by its ``name`` (monostixels.config_schema).
+DATA_SCHEMAS: dict[str, type] = {
+    "synthetic": SyntheticDataConfig, "kitti2015": Kitti2015DataConfig, "kitti_raw": KittiRawDataConfig,
+    "ddad": DdadDataConfig, "frames": FramesDataConfig, "video": VideoDataConfig, "camvid": CamVidDataConfig,
+}
+
+_Data = Union[SyntheticDataConfig, Kitti2015DataConfig, KittiRawDataConfig, DdadDataConfig, FramesDataConfig,
+              VideoDataConfig, CamVidDataConfig]
+
+
+def data_params(data: Any) -> _Data:
+    """The settings of a ``data`` config node (or dict) as its option's dataclass (:data:`DATA_SCHEMAS`)."""
+    return option_params(DATA_SCHEMAS, data, "data")
+
+
 def camera_mount(data: Any, camera: Any) -> tuple[float, float]:
-    """(height metres, pitch radians): data.camera_height, else camera.height, else KITTI 1.65 m."""
-    height = config_value(data, "camera_height", config_value(camera, "height", KITTI_CAMERA_HEIGHT_M))
-    pitch = config_value(camera, "pitch", 0.0)
-    return float(height), float(pitch)
+    """(height metres, pitch radians): data.camera_height, else camera.height (KITTI's 1.65 m by default)."""
+    cam = config_params(CameraConfig, camera, "camera")
+    height = getattr(data_params(data), "camera_height", None)
+    return float(cam.height if height is None else height), float(cam.pitch)
 
 
-def _frames(data: Any) -> int | None:
-    n = config_value(data, "frames")
-    return None if n is None else int(n)
-
-
-def _synthetic(data: Any, camera: Any) -> Sequence[FramePair]:
+def _synthetic(data: SyntheticDataConfig, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.synthetic import SyntheticSequenceSource, SyntheticSource  # imported lazily
 
-    length = config_value(data, "sequence_length", 1)
-    if isinstance(length, bool) or not isinstance(length, int) or length < 1:
+    length, speed = data.sequence_length, data.ego_speed_mps
+    if length < 1:
         raise InputError(f"data.sequence_length: frames per synthetic clip, an integer >= 1, got {length!r}")
-    speed = config_value(data, "ego_speed_mps")
     if length == 1:
         if speed is not None:
             raise InputError("data.ego_speed_mps: only for synthetic sequences (data.sequence_length > 1)")
-        return SyntheticSource(
-            int(config_value(data, "frames", 1)),
-            seed=int(config_value(data, "seed", 0)),
-            scale=float(config_value(data, "scale", 1.0)),
-            density=float(config_value(data, "density", 1.0)),
-        )
-    try:
-        speed = None if speed is None else float(speed)
-    except (TypeError, ValueError):
-        raise InputError(f"data.ego_speed_mps: a speed in m/s or null, got {speed!r}") from None
-    return SyntheticSequenceSource(
-        int(config_value(data, "frames", 1)), length,
-        seed=int(config_value(data, "seed", 0)),
-        scale=float(config_value(data, "scale", 1.0)),
-        density=float(config_value(data, "density", 1.0)),
-        ego_speed=speed,
-    )
+        return SyntheticSource(data.frames, seed=data.seed, scale=data.scale, density=data.density)
+    return SyntheticSequenceSource(data.frames, length, seed=data.seed, scale=data.scale, density=data.density,
+                                   ego_speed=speed)
 
 
-def _kitti2015(data: Any, camera: Any) -> Sequence[FramePair]:
+def _kitti2015(data: Kitti2015DataConfig, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.kitti2015 import Kitti2015Source
 
     height, pitch = camera_mount(data, camera)
-    scenes = config_value(data, "scenes")
     return Kitti2015Source(
-        config_value(data, "root"),
-        split=str(config_value(data, "split", "training")),
-        previous=str(config_value(data, "previous", "auto")),
-        frames=_frames(data),
-        scenes=None if scenes is None else [int(s) for s in scenes],
-        fx=config_value(data, "fx"), fy=config_value(data, "fy"), cx=config_value(data, "cx"), cy=config_value(data, "cy"),
-        camera_height=height, pitch=pitch,
+        data.root, split=data.split, previous=data.previous, frames=data.frames, scenes=data.scenes,
+        fx=data.fx, fy=data.fy, cx=data.cx, cy=data.cy, camera_height=height, pitch=pitch,
     )
 
 
-def _kitti_raw(data: Any, camera: Any) -> Sequence[FramePair]:
+def _kitti_raw(data: KittiRawDataConfig, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.kitti_raw import KittiRawSource
 
     height, pitch = camera_mount(data, camera)
-    date = config_value(data, "date")
     return KittiRawSource(
-        config_value(data, "root"),
-        date=None if date is None else str(date),
-        drive=config_value(data, "drive"),
-        step=int(config_value(data, "step", 1)),
-        frames=_frames(data),
-        only_labelled=bool(config_value(data, "only_labelled", False)),
-        camera_height=height, pitch=pitch,
-        oxts=str(config_value(data, "oxts", "velocity")),
+        data.root, date=data.date, drive=data.drive, step=data.step, frames=data.frames,
+        only_labelled=data.only_labelled, camera_height=height, pitch=pitch, oxts=data.oxts,
     )
 
 
-def _ddad(data: Any, camera: Any) -> Sequence[FramePair]:
-    from monostixels.data.ddad import MOVING_THRESHOLD_M, DDADSource
+def _ddad(data: DdadDataConfig, camera: Any) -> Sequence[FramePair]:
+    from monostixels.data.ddad import DDADSource
 
-    h = config_value(data, "camera_height")
-    scene = config_value(data, "scene")
     return DDADSource(
-        config_value(data, "root"),
-        camera=str(config_value(data, "camera", "CAMERA_01")),
-        lidar=str(config_value(data, "lidar", "LIDAR")),
-        scene=None if scene is None else str(scene),
-        frames=_frames(data),
-        camera_height=None if h is None else float(h),  # None: estimated from the LiDAR ground
-        moving_threshold=float(config_value(data, "moving_threshold", MOVING_THRESHOLD_M)),
+        data.root, camera=data.camera, lidar=data.lidar, scene=data.scene, frames=data.frames,
+        camera_height=data.camera_height,  # None: estimated from the LiDAR ground
+        moving_threshold=data.moving_threshold,
     )
 
 
-def _frames_folder(data: Any, camera: Any) -> Sequence[FramePair]:
+def _frames_folder(data: FramesDataConfig, camera: Any) -> Sequence[FramePair]:
     from monostixels.data.frames import FramesSource
 
     height, pitch = camera_mount(data, camera)
-    intr = config_value(data, "intrinsics")
-    poses = config_value(data, "poses")
-    mask = config_value(data, "mask")
     return FramesSource(
-        config_value(data, "root"),
-        intrinsics=None if intr is None else Path(str(intr)),
-        step=int(config_value(data, "step", 1)),
-        frames=_frames(data),
-        camera_height=height, pitch=pitch,
-        poses=None if poses is None else Path(str(poses)),
-        mask=_mask(mask),
+        data.root,
+        intrinsics=None if data.intrinsics is None else Path(data.intrinsics),
+        step=data.step, frames=data.frames, camera_height=height, pitch=pitch,
+        poses=None if data.poses is None else Path(data.poses),
+        mask=_mask(data.mask),
     )
 
 
-def _mask(value: Any) -> str | Path | None:
+def _mask(value: str | None) -> str | Path | None:
     """``data.mask``: None, ``auto`` (found from the frames: :mod:`monostixels.inputs.static_regions`) or an image file."""
     if value is None:
         return None
-    return AUTO_MASK if str(value).strip().lower() == AUTO_MASK else Path(str(value))
+    return AUTO_MASK if value.strip().lower() == AUTO_MASK else Path(value)
 
 
-def _video(data: Any, camera: Any, window: int = 10) -> Sequence[FramePair]:
+def _video(data: VideoDataConfig, camera: Any, window: int = 10) -> Sequence[FramePair]:
     from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
     height, pitch = camera_mount(data, camera)
-    intr, hfov, end, resize, mask = (config_value(data, k) for k in ("intrinsics", "hfov_deg", "end", "resize", "mask"))
+    resize = data.resize
     if resize is not None and not isinstance(resize, (int, float, str)):
         resize = list(resize)
-    realtime = config_value(data, "realtime", False)
-    if not isinstance(realtime, bool):
-        raise InputError(f"data.realtime: true or false, got {realtime!r}")
-    path = config_value(data, "path")
     common = dict(
-        intrinsics=None if intr is None else Path(str(intr)),
-        hfov_deg=None if hfov is None else float(hfov),
-        step=int(config_value(data, "step", 1)),
-        start=int(config_value(data, "start", 0)),
-        end=None if end is None else int(end),
-        resize=resize,
-        frames=_frames(data),
-        camera_height=height, pitch=pitch,
-        mask=_mask(mask),
+        intrinsics=None if data.intrinsics is None else Path(data.intrinsics),
+        hfov_deg=data.hfov_deg, step=data.step, start=data.start, end=data.end, resize=resize,
+        frames=data.frames, camera_height=height, pitch=pitch, mask=_mask(data.mask),
     )
-    if realtime or is_live_path(path):
+    if data.realtime or is_live_path(data.path):
         # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).
-        return LiveVideoSource(path, realtime=realtime, window=window, **common)  # type: ignore[return-value]
-    return VideoSource(path, **common)
+        return LiveVideoSource(data.path, realtime=data.realtime, window=window, **common)  # type: ignore[return-value]
+    return VideoSource(data.path, **common)
 
 
-def _camvid(data: Any, camera: Any) -> Sequence[FramePair]:
+def _camvid(data: CamVidDataConfig, camera: Any) -> Sequence[FramePair]:
     # Single labelled images: no previous frame, no camera. `monostixels eval` scores them
     # through monostixels.eval.semantic instead of this factory.
     raise InputError(
@@ -202,17 +390,23 @@ def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | 
             calibration...), with a message naming it.
     """
     data = cfg
-    if config_value(cfg, "data") is not None and config_value(cfg, "name") is None:
-        data = config_value(cfg, "data")
-        camera = camera if camera is not None else config_value(cfg, "camera")
-    name = config_value(data, "name")
+    if hasattr(cfg, "keys") and "data" in cfg and "name" not in cfg:
+        data = cfg["data"]
+        camera = camera if camera is not None else cfg.get("camera")
+    name = data.name if isinstance(data, tuple(DATA_SCHEMAS.values())) else (data or {}).get("name")
     if name not in _FACTORIES:
         raise InputError(f"data.name: unknown data source {name!r}; choose one of {', '.join(SOURCE_NAMES)}")
-    if name != "video" and config_value(data, "realtime") is not None:
+    # Before the schema's own refusal of the key: say what the setting is for.
+    if name != "video" and hasattr(data, "keys") and not is_unset(data, "realtime"):
         raise InputError(f"data.realtime: only data=video reads frames as they come (a camera, a URL, a video file "
                          f"at its frame rate); data={name} is read from disk frame by frame")
+    params = data_params(data)
     if name == "video":
         # A live source keeps as many frames as keyframe pairs may reach back.
-        window = config_value(config_value(cfg, "keyframes"), "window", 10) if data is not cfg else 10
-        return _video(data, camera, int(window))
-    return _FACTORIES[name](data, camera)
+        window = 10
+        if data is not cfg:
+            from monostixels.sequence.runner import KeyframeParams  # (it imports the pipeline)
+
+            window = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes").window
+        return _video(params, camera, window)
+    return _FACTORIES[name](params, camera)

@@ -13,6 +13,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
+from monostixels._checks import config_params
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data.base import FramePair
 from monostixels.eval.metrics import (
@@ -24,6 +25,7 @@ from monostixels.eval.metrics import (
     stixel_compactness,
 )
 from monostixels.inputs.flow import flow_metrics
+from monostixels.pipeline import EvalConfig
 from monostixels.eval.temporal import TemporalAccumulator
 from monostixels.sequence import SequenceRunner
 from monostixels.core.stixels import StixelWorld
@@ -132,7 +134,11 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         pairs are not scored) and counted under ``skipped_frames``.
     """
     runner = SequenceRunner(cfg)
-    lo, hi = float(cfg.eval.min_depth), float(cfg.eval.max_depth)
+    ev = config_params(EvalConfig, cfg.get("eval"), "eval")
+    lo, hi = ev.min_depth, ev.max_depth
+    # An input that is the ground truth itself (flow=gt, ...) is not scored against it.
+    pipe = runner.pipeline
+    flow_name, motion_name, semantic_name = pipe.flow_cfg.name, pipe.motion_cfg.name, pipe.semantic_cfg.name
     temporal = TemporalAccumulator(lo, hi)
     sequential = hasattr(source, "sequence_key") and len(source) > 0 and source.sequence_key(0) is not None
     last_frame: tuple[Any, str, torch.Tensor | None] | None = None  # sequence, name, pose of the last frame
@@ -152,8 +158,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     has_moving_gt = False
     # stixel_motion: pixels in moving stixels / all pixels, and among ground-truth static (moving) pixels.
     mv_counts = {"all": [0, 0], "static": [0, 0], "moving": [0, 0], "moving_mask": [0, 0]}
-    speed_mps = float(cfg.eval.get("moving_speed_mps", 1.0))
-    default_dt = float(cfg.eval.get("frame_interval_s", 0.1))
+    speed_mps, default_dt = ev.moving_speed_mps, ev.frame_interval_s
     failed: list[str] = []
     frames = 0
     try:
@@ -216,15 +221,15 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
                 mv_counts[k][0] += int((fast & sel).sum())
                 mv_counts[k][1] += int(sel.sum())
         seconds.append(res.total_seconds)
-        if gt.flow is not None and str(cfg.flow.name) != "gt":
+        if gt.flow is not None and flow_name != "gt":
             flow_stats.append(flow_metrics(res.flow.flow, gt.flow, gt.flow_valid))
-        if pair.motion is not None and str(cfg.motion.name) != "gt":
+        if pair.motion is not None and motion_name != "gt":
             if res.motion.degenerate:
                 degenerate += 1
             else:
                 motion_stats.append(motion_errors(res.motion.motion, pair.motion))
                 gt_motion_source = pair.meta.get("motion_source", gt_motion_source)
-        if res.semantic is not None and str(cfg.semantic.name) != "gt" and gt.labels is not None:
+        if res.semantic is not None and semantic_name != "gt" and gt.labels is not None:
             sem_used = True
             sem_acc.add(res.semantic.argmax(0), gt.labels)
         if gt.bottoms is not None and len(gt.bottoms):
@@ -250,7 +255,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
         # Unreadable frames the source skipped (monostixels.data._io.LazySource): counted, never silent.
         report["skipped_frames"] = len(skipped)
     if flow_stats:
-        report["flow"] = {str(cfg.flow.name): {k: float(np.mean([f[k] for f in flow_stats])) for k in ("epe", "fl_all")}}
+        report["flow"] = {flow_name: {k: float(np.mean([f[k] for f in flow_stats])) for k in ("epe", "fl_all")}}
     if motion_stats or degenerate:
         report["motion"] = {k: float(np.median([m[k] for m in motion_stats])) if motion_stats else float("nan")
                             for k in MOTION_KEYS}

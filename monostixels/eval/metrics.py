@@ -11,7 +11,8 @@ positive estimates are clamped into ``[min_depth, max_depth]``. Nothing is dropp
 compared on identical pixel sets.
 
 Overall numbers over a data set are computed over all pixels of all frames (the accumulators
-sum per-pixel terms), not as a mean of per-frame means.
+sum per-pixel terms), not as a mean of per-frame means. The settings of the evaluation: the config group
+``eval`` (:class:`monostixels.pipeline.EvalConfig`).
 """
 from __future__ import annotations
 

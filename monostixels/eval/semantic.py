@@ -22,7 +22,7 @@ from monostixels.data.base import FramePair
 from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidSource
 from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.core.geometry import Camera
-from monostixels.inputs.semantic import estimate_semantics
+from monostixels.inputs.semantic import estimate_semantics, semantic_params
 
 __all__ = ["evaluate_semantics", "format_semantic_table", "image_pair"]
 
@@ -57,9 +57,10 @@ def evaluate_semantics(cfg: DictConfig, source: CamVidSource, *, progress: bool 
         ``{"dataset", "split", "frames", "semantic": {"miou", "per_class_iou", "pixel_accuracy",
         "classes"}, "seconds_per_frame"}``; the mean runs over our classes present in CamVid.
     """
-    if str(cfg.semantic.name) in ("none", "gt"):
+    backend = semantic_params(cfg.semantic)
+    if backend.name in ("none", "gt"):
         raise InputError(
-            f"semantic={cfg.semantic.name}: data=camvid scores a semantic backend; choose fcn8s, "
+            f"semantic={backend.name}: data=camvid scores a semantic backend; choose fcn8s, "
             "fcn8s_synthetic, onnx or cityscapes19"
         )
     acc = SemanticAccumulator()
@@ -67,7 +68,7 @@ def evaluate_semantics(cfg: DictConfig, source: CamVidSource, *, progress: bool 
     for item in tqdm(source, total=len(source), desc=f"eval camvid {source.split}", disable=not progress, unit="image"):
         image, labels = CamVidSource.to_tensors(*item.load())
         t0 = time.perf_counter()
-        scores = estimate_semantics(image_pair(image, item.name), cfg.semantic)
+        scores = estimate_semantics(image_pair(image, item.name), backend)
         seconds.append(time.perf_counter() - t0)
         acc.add(scores.argmax(0), labels)
     if not seconds:

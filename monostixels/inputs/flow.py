@@ -12,6 +12,9 @@ Backends (``cfg.name``):
   run in torch or through ONNX Runtime (``cfg.runtime: torch|onnx``, file ``cfg.onnx``; ``auto``: ONNX
   Runtime on a CPU, the INT8 copy beside the weights where ``cfg.precision: int8``).
 
+Settings: one dataclass per backend (:mod:`monostixels.inputs.flow_config`), the schemas of the group's
+options; a config node or dict is read through them.
+
 Convention: every backend returns the flow from the *current* to the *previous* image,
 ``x_prev = x + f(x)`` (docs/conventions.md, section 2), in pixels; OpenCV backends are called as
 ``calc(current, previous)``. The covariance comes from
@@ -49,11 +52,12 @@ import torch
 import torch.nn.functional as F
 
 from monostixels._pools import helper_pool
-from monostixels._checks import (InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape,
-                                config_value)
+from monostixels._checks import InputError, check_finite, check_finite_fast, check_image_pair, check_same_size, check_shape
 from monostixels._paths import find_file
 from monostixels.data.base import FramePair
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
+from monostixels.inputs.flow_config import (DeepFlowConfig, DisFlowConfig, ImageFlowConfig, RaftFlowConfig, flow_name,
+                                            flow_params)
 
 __all__ = [
     "FLOW_BACKENDS",
@@ -112,30 +116,23 @@ class FlowResult:
 
 
 def confidence_params(cfg: Any) -> ConfidenceParams:
-    """The :class:`ConfidenceParams` of a ``flow`` config node (defaults for absent keys)."""
-    d = ConfidenceParams()
+    """The :class:`ConfidenceParams` of a ``flow`` config node, dict or settings dataclass
+    (:mod:`monostixels.inputs.flow_config`)."""
+    p = flow_params(cfg)
     return ConfidenceParams(
-        method=str(config_value(cfg, "confidence", "constant" if config_value(cfg, "name", "") == "gt" else d.method)),
-        sigma=float(config_value(cfg, "sigma", d.sigma)),
-        noise=float(config_value(cfg, "noise", d.noise)),
-        window_sigma=float(config_value(cfg, "window_sigma", d.window_sigma)),
-        sigma_min=float(config_value(cfg, "sigma_min", min(d.sigma_min, float(config_value(cfg, "sigma", d.sigma))))),
-        sigma_max=float(config_value(cfg, "sigma_max", d.sigma_max)),
-        fb_weight=float(config_value(cfg, "fb_weight", d.fb_weight)),
+        method=p.confidence, sigma=p.sigma, noise=p.noise, window_sigma=p.window_sigma,
+        sigma_min=min(ConfidenceParams.sigma_min, p.sigma) if p.sigma_min is None else p.sigma_min,
+        sigma_max=p.sigma_max, fb_weight=getattr(p, "fb_weight", ConfidenceParams.fb_weight),
     )
 
 
 def flow_scale(cfg: Any) -> float:
-    """``cfg.scale`` (default 1): the factor the images are downscaled by before an image backend runs.
+    """``cfg.scale`` (1 for ``gt``): the factor the images are downscaled by before an image backend runs.
 
     Raises:
         InputError: not a number in (0, 1].
     """
-    raw = config_value(cfg, "scale", 1.0)
-    try:
-        scale = float(raw)
-    except (TypeError, ValueError):
-        raise InputError(f"flow.scale: must be a number in (0, 1], got {raw!r}") from None
+    scale = getattr(flow_params(cfg), "scale", 1.0)
     if not (math.isfinite(scale) and 0.0 < scale <= 1.0):
         raise InputError(f"flow.scale: must be in (0, 1] (1 = full resolution), got {scale}")
     return scale
@@ -234,8 +231,8 @@ def _at_scale(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarra
 _BAND_MARGIN = 24
 
 
-def _bands(cfg: Any) -> int:
-    raw = config_value(cfg, "bands", 1)
+def _bands(cfg: DeepFlowConfig) -> int:
+    raw = cfg.bands
     if isinstance(raw, bool) or not isinstance(raw, int) or raw < 1:
         raise InputError(f"flow.bands: must be a whole number >= 1, got {raw!r}")
     return raw
@@ -273,7 +270,7 @@ def _in_bands(calc: Callable[[np.ndarray, np.ndarray], np.ndarray], a: np.ndarra
     return out / weight
 
 
-def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: DeepFlowConfig,
               grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
     """DeepFlow current -> previous.
 
@@ -299,11 +296,11 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
     def variational(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return _in_bands(lambda p, q: cv2.optflow.createOptFlow_DeepFlow().calc(p, q, None), x, y, bands)
 
-    matches = str(config_value(cfg, "matches", "dis"))
+    matches = cfg.matches
     if matches == "none":
         f = _at_scale(variational, a, b, scale)
     elif matches == "dis":
-        preset = str(config_value(cfg, "matches_preset", "medium"))
+        preset = cfg.matches_preset
         if preset not in _DIS_PRESETS:
             raise InputError(f"flow.matches_preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
         f0 = _dis_calc(_DIS_PRESETS[preset], a, b, init)
@@ -356,9 +353,9 @@ def _dis_calc(preset: int, a: np.ndarray, b: np.ndarray, init: np.ndarray | None
                          f"{str(e).strip().splitlines()[-1]}") from None
 
 
-def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: DisFlowConfig,
          grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
-    preset = str(config_value(cfg, "preset", "medium"))
+    preset = cfg.preset
     if preset not in _DIS_PRESETS:
         raise InputError(f"flow.preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
     a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
@@ -370,7 +367,8 @@ def _raft_net(cfg: Any) -> Any:
     """The RAFT runner of ``cfg`` (``cfg.runtime`` auto | torch | onnx), loaded once per file."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
 
-    runtime = str(config_value(cfg, "runtime", "auto"))
+    cfg: RaftFlowConfig = flow_params(cfg)  # type: ignore[assignment]
+    runtime = cfg.runtime
     if runtime == "auto":
         # On a CPU the exported graph runs faster in ONNX Runtime than the network in torch
         # (docs/results.md "Flow"). The export of the weights is the .onnx file beside them (as
@@ -378,40 +376,37 @@ def _raft_net(cfg: Any) -> Any:
         # flow.precision=int8 takes the INT8 copy beside them (<name>_int8.onnx) where there is one:
         # its convolutions, most of the time, run faster on a CPU at a small cost in accuracy
         # (docs/experiments.md "Flow").
-        weights = config_value(cfg, "weights", None)
-        precision = str(config_value(cfg, "precision", "float32"))
+        weights, precision = cfg.weights, cfg.precision
         if precision not in ("float32", "int8"):
             raise InputError(f"flow.precision: must be float32 or int8, got {precision!r}")
         if weights is not None and not torch.cuda.is_available():
             w = resolve_path(weights)
             names = ([w.with_name(w.stem + "_int8.onnx")] if precision == "int8" else []) + [w.with_suffix(".onnx")]
             for beside in (n for n in names if n.is_file()):
-                net = cached_onnx_raft(beside, int(config_value(cfg, "threads", 0)))
+                net = cached_onnx_raft(beside, cfg.threads)
                 # Its updates are fixed at export: another flow.iters runs in torch.
-                if net.num_flow_updates == int(config_value(cfg, "iters", 12)):
+                if net.num_flow_updates == cfg.iters:
                     return net
         runtime = "torch"
     if runtime == "torch":
-        weights = config_value(cfg, "weights", None)
-        if weights is None:
+        if cfg.weights is None:
             raise InputError("flow.weights: the raft backend needs a weights file (flow.weights=PATH)")
-        return cached_torch_raft(resolve_path(weights), str(config_value(cfg, "size", "small")), int(config_value(cfg, "iters", 12)))
+        return cached_torch_raft(resolve_path(cfg.weights), cfg.size, cfg.iters)
     if runtime == "onnx":
-        onnx = config_value(cfg, "onnx", None)
-        if onnx is None:
+        if cfg.onnx is None:
             raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
-        return cached_onnx_raft(resolve_path(onnx), int(config_value(cfg, "threads", 0)))
+        return cached_onnx_raft(resolve_path(cfg.onnx), cfg.threads)
     raise InputError(f"flow.runtime: must be auto, torch or onnx, got {runtime!r}")
 
 
-def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: Any,
+def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: RaftFlowConfig,
           grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
     """RAFT current -> previous (``cfg.runtime`` torch | onnx); it reads the RGB images, not ``grey``,
     and starts from zero (``init`` is not used)."""
     return _raft_net(cfg)(cur, prev)
 
 
-def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any, grey_prev: np.ndarray | None = None
+def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: RaftFlowConfig, grey_prev: np.ndarray | None = None
                     ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None]:
     """RAFT's flows current -> previous and previous -> current as one batch, at ``cfg.scale`` and refined
     as :func:`compute_flow` does each (the forward-backward check without twice the network's time).
@@ -428,7 +423,7 @@ def _raft_both_ways(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
         fwd, bwd = _upsample_flow(fwd, (H, W)), _upsample_flow(bwd, (H, W))
     for f in (fwd, bwd):
         check_finite_fast(f, "flow from backend raft")
-    if not _refine_enabled(cfg):
+    if not cfg.refine:
         return fwd, bwd, None
     g_cur = _gray_u8(image_cur.float())
     g_prev = grey_prev if grey_prev is not None else _gray_u8(image_prev.float())
@@ -450,7 +445,7 @@ _BACKENDS: dict[str, Callable[..., torch.Tensor]] = {
 }
 
 
-def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any,
+def _backend(name: str, image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: ImageFlowConfig,
              grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
     """The backend's flow on the images as given (no resampling); ``grey``: their :func:`_gray_u8`;
     ``init``: (H, W, 2) start of the flow at their size, or None."""
@@ -474,22 +469,30 @@ def compute_flow(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any) ->
     With ``cfg.scale < 1`` the backend runs on the downscaled images and the flow is upsampled to
     (H, W), in full-size pixels; ``cfg.refine`` then refines it at full size (module docstring).
     """
-    name = str(config_value(cfg, "name", ""))
+    name = flow_name(cfg)
     if name not in _BACKENDS:
         raise InputError(f"flow.name: image-based backend must be one of {tuple(_BACKENDS)}, got {name!r}")
+    cfg = _image_params(cfg)
     check_image_pair(image_cur, image_prev)
     return _flow_of_checked_images(image_cur, image_prev, cfg)[0]
 
 
-def _uses_grey(cfg: Any) -> bool:
+def _image_params(cfg: Any) -> ImageFlowConfig:
+    """The settings of an image backend, their values checked before any image is touched."""
+    cfg = flow_params(cfg)
+    flow_scale(cfg)
+    _refine_passes(cfg)
+    return cfg
+
+
+def _uses_grey(cfg: ImageFlowConfig) -> bool:
     """Whether the flow of ``cfg`` reads the full-size grey images (the refinement, or a grey backend at
     full size)."""
-    name = str(config_value(cfg, "name", ""))
-    full_size = flow_scale(cfg) == 1.0 or name in _OWN_SCALE
-    return _refine_enabled(cfg) or (full_size and name in _GREY_BACKENDS)
+    full_size = cfg.scale == 1.0 or cfg.name in _OWN_SCALE
+    return cfg.refine or (full_size and cfg.name in _GREY_BACKENDS)
 
 
-def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: Any, init: np.ndarray | None = None,
+def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, cfg: ImageFlowConfig, init: np.ndarray | None = None,
                             grey_prev: np.ndarray | None = None, grey_cur: np.ndarray | None = None
                             ) -> tuple[torch.Tensor, np.ndarray | None]:
     """:func:`compute_flow` on images that passed :func:`monostixels._checks.check_image_pair`, backend name known.
@@ -498,9 +501,7 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
     :func:`_gray_u8` of ``image_prev`` / ``image_cur`` where the caller has them. Returns the flow and
     the full-size grey of ``image_cur`` where one was made or given (else None).
     """
-    name = str(config_value(cfg, "name", ""))
-    scale = flow_scale(cfg)
-    refine = _refine_enabled(cfg)
+    name, scale, refine = cfg.name, cfg.scale, cfg.refine
     full_size = scale == 1.0 or name in _OWN_SCALE
     # The full-size grey images once, for the backend and the refinement alike.
     grey = None
@@ -524,26 +525,19 @@ def _flow_of_checked_images(image_cur: torch.Tensor, image_prev: torch.Tensor, c
     return flow, (grey[0] if grey is not None else None)
 
 
-def _refine_enabled(cfg: Any) -> bool:
-    val = config_value(cfg, "refine", False)
-    if not isinstance(val, bool):
-        raise InputError(f"flow.refine: must be true or false, got {val!r}")
-    return val
-
-
-def _refine_passes(cfg: Any) -> int:
-    """``cfg.refine_passes``: how many times :func:`_refine` runs where ``refine`` is on (default 1)."""
-    val = config_value(cfg, "refine_passes", 1)
+def _refine_passes(cfg: ImageFlowConfig) -> int:
+    """``cfg.refine_passes``: how many times :func:`_refine` runs where ``refine`` is on."""
+    val = cfg.refine_passes
     if isinstance(val, bool) or not isinstance(val, int) or val < 1:
         raise InputError(f"flow.refine_passes: must be an integer >= 1, got {val!r}")
     return val
 
 
-def _both_ways(pair: FramePair, cfg: Any, init: np.ndarray | None = None, grey_prev: np.ndarray | None = None
+def _both_ways(pair: FramePair, cfg: ImageFlowConfig, init: np.ndarray | None = None, grey_prev: np.ndarray | None = None
                ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None]:
     """An image backend's flows current -> previous and previous -> current (images checked), and the
     current grey image where one was made (else None)."""
-    if str(config_value(cfg, "name", "")) == "raft":
+    if cfg.name == "raft":
         flow, back, grey = _raft_both_ways(pair.image, pair.image_prev, cfg, grey_prev)  # RAFT starts from zero
     else:
         # Both greys once, for the two directions (each is the other's previous image).
@@ -561,7 +555,7 @@ def _both_ways(pair: FramePair, cfg: Any, init: np.ndarray | None = None, grey_p
     return flow, back, grey
 
 
-def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.ndarray | None = None,
+def _image_flow(pair: FramePair, cfg: ImageFlowConfig, params: ConfidenceParams, init: np.ndarray | None = None,
                 grey_prev: np.ndarray | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray | None, torch.Tensor | None]:
     """Flow, covariance, current grey image (or None) and backward flow (where the forward-backward check
@@ -572,14 +566,11 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
     in a second thread while the backend runs (the same numbers; a core DeepFlow leaves idle).
     """
     check_image_pair(pair.image, pair.image_prev)
-    _refine_enabled(cfg)
-    _refine_passes(cfg)
-    flow_scale(cfg)
     if init is not None:
         check_shape(torch.from_numpy(init), [*pair.size, 2], "flow init (H, W, 2)")
     if grey_prev is not None and grey_prev.shape != tuple(pair.size):
         raise InputError(f"flow: grey_prev of shape {grey_prev.shape} for images of size {tuple(pair.size)}")
-    if bool(config_value(cfg, "fb_consistency", False)):
+    if cfg.fb_consistency:
         flow, back, grey = _both_ways(pair, cfg, init, grey_prev)
         return flow, _covariance(pair.image, cfg, params, fb_consistency_error(flow, back)), grey, back
     cov = helper_pool("covariance").submit(_covariance, pair.image, cfg, params, None)
@@ -590,12 +581,12 @@ def _image_flow(pair: FramePair, cfg: Any, params: ConfidenceParams, init: np.nd
     return flow, cov.result(), grey, None
 
 
-def _covariance(image: torch.Tensor, cfg: Any, params: ConfidenceParams, fb_err: torch.Tensor | None) -> torch.Tensor:
+def _covariance(image: torch.Tensor, cfg: ImageFlowConfig, params: ConfidenceParams, fb_err: torch.Tensor | None) -> torch.Tensor:
     """The flow covariance (H, W, 2, 2) of :func:`_image_flow`: full-size, or on the grid of a
     downscaled backend without refinement (floor and ceiling converted from full-size to grid
     pixels; the structure tensor of the downscaled image, whose finest texture no longer pins the flow)."""
-    scale = flow_scale(cfg)
-    if scale == 1.0 or _refine_enabled(cfg):
+    scale = cfg.scale
+    if scale == 1.0 or cfg.refine:
         return flow_covariance(image, params, fb_error=fb_err)
     H, W = image.shape[-2:]
     size = _scaled_size(H, W, scale)
@@ -636,13 +627,10 @@ def estimate_flow(pair: FramePair, cfg: Any, *, init: np.ndarray | None = None,
 
     Args:
         pair: the frame pair (images (3, H, W) RGB in [0, 1]).
-        cfg: the ``flow`` config group node: ``name`` in gt|deepflow|dis|raft, confidence keys
-            (``confidence``, ``sigma``, ``noise``, ``window_sigma``, ``sigma_min``, ``sigma_max``,
-            ``fb_consistency``, ``fb_weight``), ``scale``, ``refine`` and ``refine_passes`` (image
-            backends: resolution the backend runs at, in (0, 1], and a full-resolution refinement run
-            that many times, default 1; ``gt`` ignores them)
-            and backend keys (``preset``; ``size``, ``weights``,
-            ``onnx``, ``runtime``, ``iters``).
+        cfg: the ``flow`` config group node (or a dict, or the settings dataclass): ``name`` in
+            gt|deepflow|dis|raft and that backend's settings (:mod:`monostixels.inputs.flow_config`: the
+            covariance, the resolution the backend runs at and the refinement at full size, the backend's own);
+            keys not given take the defaults of the option named after the backend (``flow=deepflow``...).
         init: (H, W, 2) float32 start of the flow (pixels, current -> previous), e.g. a stream's last
             flow (:mod:`monostixels.sequence.stream`); taken by the backends with a DIS stage (``dis``, and
             ``deepflow``'s DIS matches), ignored by ``raft`` and ``gt``. None = start from zero.
@@ -656,9 +644,10 @@ def estimate_flow(pair: FramePair, cfg: Any, *, init: np.ndarray | None = None,
         InputError: unknown backend, missing ground truth / weights, bad image shapes, NaN flow,
             ``scale`` outside (0, 1].
     """
-    name = str(config_value(cfg, "name", ""))
+    name = flow_name(cfg)
     if name not in FLOW_BACKENDS:
         raise InputError(f"flow.name: unknown flow backend {name!r}, expected one of {FLOW_BACKENDS}")
+    cfg = flow_params(cfg) if name == "gt" else _image_params(cfg)
     params = confidence_params(cfg)
     t0 = time.perf_counter()
     grey = back = None
@@ -702,14 +691,15 @@ def chained_flow(pair: FramePair, cfg: Any, last_image: torch.Tensor, steps: Seq
     Returns:
         The pair's :class:`FlowResult` (``chained`` frames, ``step`` = this frame's flows to ``L``).
     """
-    name = str(config_value(cfg, "name", ""))
+    name = flow_name(cfg)
     if name not in _BACKENDS:
         raise InputError(f"flow.name: chained keyframe flow needs an image backend {tuple(_BACKENDS)}, got {name!r}")
+    cfg = _image_params(cfg)
     if not steps:
         raise InputError("chained flow: no kept flows between the stream's last frame and the pair's earlier frame")
     t0 = time.perf_counter()
     params = confidence_params(cfg)
-    fb = bool(config_value(cfg, "fb_consistency", False))
+    fb = cfg.fb_consistency
     check_image_pair(pair.image, pair.image_prev)
     check_image_pair(pair.image, last_image)
     step_pair = dataclasses.replace(pair, image_prev=last_image)

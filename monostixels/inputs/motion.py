@@ -66,14 +66,15 @@ from concurrent.futures import wait
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, List, Optional
 
 import cv2
 import numpy as np
 import torch
+from omegaconf import MISSING
 
 from monostixels._pools import helper_pool
-from monostixels._checks import InputError, check_finite, check_shape, config_params, config_value
+from monostixels._checks import InputError, check_finite, check_shape, config_params
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
 from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
@@ -88,6 +89,8 @@ __all__ = [
     "NO_METRIC_MOTION",
     "MIN_TRANSLATION_M",
     "MonoParams",
+    "GtMotionConfig",
+    "FileMotionConfig",
     "MotionEstimate",
     "estimate_motion",
     "estimate_mono",
@@ -202,6 +205,29 @@ def _mono_params(cfg: Any) -> MonoParams:
 # gt / file
 
 
+@dataclass
+class GtMotionConfig:
+    """``motion=gt``: the data source's ground-truth camera motion (``pair.motion``); no settings."""
+
+    name: str = "gt"
+
+
+@dataclass
+class FileMotionConfig:
+    """``motion=file``: the camera motion from a KITTI-style poses file.
+
+    Attributes:
+        path: the poses file (mandatory): per line 12 numbers (3x4 row-major ``T_w_cam``) or a frame number
+            and 12 numbers; the frames are those of the data source (meta ``frame_index`` / ``frame_index_prev``).
+        offset: position (metres) of the image camera in the posed camera's frame (same orientation); KITTI's
+            camera 2 against camera-0 poses: ``[P_rect_02[0,3] / fx, 0, 0]`` ~ ``[0.06, 0, 0]``. None = none.
+    """
+
+    name: str = "file"
+    path: str = MISSING
+    offset: Optional[List[float]] = None
+
+
 def _gt_motion(pair: FramePair) -> MotionEstimate:
     if pair.motion is None:
         source = pair.meta.get("source", pair.name or "this data source")
@@ -250,10 +276,8 @@ def load_poses(path: str | Path) -> dict[int, np.ndarray]:
     return _load_poses_cached(str(p.resolve()), p.stat().st_mtime)
 
 
-def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
-    path = config_value(cfg, "path", None)
-    if path is None:
-        raise InputError("motion.path: motion=file needs a poses file (motion.path=PATH)")
+def _file_motion(pair: FramePair, cfg: FileMotionConfig) -> MotionEstimate:
+    path = cfg.path
     poses = load_poses(path)
     # Our sources put raw frame numbers in meta: "frame_index"/"frame_index_prev", or (kitti_raw)
     # "frame"/"frame_prev".
@@ -267,8 +291,8 @@ def _file_motion(pair: FramePair, cfg: Any) -> MotionEstimate:
     for f in (cur, prev):
         if f not in poses:
             raise InputError(f"motion.path: {str(path)!r} has no pose for frame {f} (frames {min(poses)}..{max(poses)})")
-    offset = config_value(cfg, "offset", None)
-    off = None if offset is None else np.asarray(list(offset), dtype=np.float64)
+    offset = cfg.offset
+    off = None if offset is None else np.asarray(offset, dtype=np.float64)
     if off is not None and off.shape != (3,):
         raise InputError(f"motion.offset: expected 3 numbers (metres), got {list(offset)}")
     motion = relative_motion(poses[cur], poses[prev], off)
@@ -693,7 +717,8 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
         pair: the frame pair (camera intrinsics, height and ground normal; ``motion`` for gt;
             ``meta["frame_index"]`` / ``["frame_index_prev"]`` for file).
         flow: the :class:`~monostixels.inputs.flow.FlowResult` of the pair (used by mono).
-        cfg: the ``motion`` config group node.
+        cfg: the ``motion`` config group node, a dict or its settings dataclass
+            (:data:`monostixels.inputs.motion_track.MOTION_SCHEMAS`).
         semantic: (10, H, W) class scores or None.
         prior: the last pair's estimate of a stream, the start of ``mono`` (see :func:`estimate_mono`);
             None = from scratch. ``gt`` and ``file`` do not read it.
@@ -702,21 +727,24 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
     Returns:
         A :class:`MotionEstimate`.
     """
-    name = str(config_value(cfg, "name", ""))
+    from monostixels.inputs.motion_track import motion_params  # (that module imports this one)
+
+    name = getattr(cfg, "name", "") if not hasattr(cfg, "keys") else str(cfg.get("name", ""))
+    if name not in MOTION_BACKENDS:
+        raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
+    params = motion_params(cfg)
     if name == "gt":
         return _gt_motion(pair)
     if name == "file":
-        return _file_motion(pair, cfg)
-    if name == "mono":
-        if flow is None:
-            raise InputError("motion=mono: needs the flow of the pair (flow is None)")
-        check_shape(flow.flow, [2, *pair.size], "flow")
-        return estimate_mono(
-            pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, _mono_params(cfg), semantic,
-            images=(pair.image, pair.image_prev), prior=prior, interval_ratio=interval_ratio,
-            ignore=pair.meta.get("ignore_pixels"),
-        )
-    raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")
+        return _file_motion(pair, params)
+    if flow is None:
+        raise InputError("motion=mono: needs the flow of the pair (flow is None)")
+    check_shape(flow.flow, [2, *pair.size], "flow")
+    return estimate_mono(
+        pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, params, semantic,
+        images=(pair.image, pair.image_prev), prior=prior, interval_ratio=interval_ratio,
+        ignore=pair.meta.get("ignore_pixels"),
+    )
 
 
 def implied_height(pair: FramePair, flow: Any, mono_cfg: Any, semantic: torch.Tensor | None,

@@ -12,15 +12,16 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Union
 
 import torch
 
+from monostixels._checks import InputError, is_unset, option_params
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion
-from monostixels.inputs.motion import MonoParams, MotionEstimate
+from monostixels.inputs.motion import FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate
 
-__all__ = ["MonoMotionConfig", "MotionTrack", "MotionTrackParams"]
+__all__ = ["MOTION_SCHEMAS", "MonoMotionConfig", "MotionTrack", "MotionTrackParams", "motion_params"]
 
 logger = logging.getLogger(__name__)
 
@@ -73,6 +74,22 @@ class MonoMotionConfig(MonoParams, MotionTrackParams):
 
     name: str = "mono"
     use_ground_normal: bool = True
+
+
+#: The schema of each option of the config group ``motion`` by its ``name`` (monostixels.config_schema).
+MOTION_SCHEMAS: dict[str, type] = {"gt": GtMotionConfig, "file": FileMotionConfig, "mono": MonoMotionConfig}
+
+#: The settings of any camera-motion backend.
+MotionConfig = Union[GtMotionConfig, FileMotionConfig, MonoMotionConfig]
+
+
+def motion_params(cfg: Any) -> MotionConfig:
+    """The settings of a ``motion`` config node (or dict) as its backend's dataclass (:data:`MOTION_SCHEMAS`);
+    a dataclass given is returned as it is."""
+    if not isinstance(cfg, FileMotionConfig) and hasattr(cfg, "get") and cfg.get("name") == "file" \
+            and is_unset(cfg, "path"):
+        raise InputError("motion.path: motion=file needs a poses file (motion.path=PATH)")
+    return option_params(MOTION_SCHEMAS, cfg, "motion")
 
 
 class MotionTrack:

@@ -21,26 +21,36 @@ turned into probabilities by a softmax over the model's channels.
 Model paths (:mod:`monostixels._paths`): an absolute path is used as it is; a relative one is
 tried against the working directory, then ``models/...`` against the shipped models (installed
 with the package, editable or not), then against the repository root.
+
+Settings: one dataclass per backend (:data:`SEMANTIC_SCHEMAS`), the schemas of the group's options
+(monostixels.config_schema); a config node or dict is read through them (:func:`semantic_params`).
 """
 from __future__ import annotations
 
 import functools
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import MISSING
 
-from monostixels._checks import InputError, check_finite_fast, check_shape
+from monostixels._checks import InputError, check_finite_fast, check_shape, config_params, is_unset, option_params
 from monostixels._paths import REPO_ROOT, find_file, path_candidates
 from monostixels._threads import onnx_session_options
 from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.base import FramePair
 
 __all__ = [
+    "SEMANTIC_SCHEMAS",
+    "GtSemanticConfig",
+    "NoSemanticConfig",
+    "Fcn8sSemanticConfig",
+    "OnnxSemanticConfig",
+    "semantic_params",
     "estimate_semantics",
     "fcn8s_scale",
     "gt_scores",
@@ -57,6 +67,112 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass
+class GtSemanticConfig:
+    """``semantic=gt``: the data source's labels as one-hot scores, softened.
+
+    Attributes:
+        confidence: the score of the true class; the other classes share the remainder.
+    """
+
+    name: str = "gt"
+    confidence: float = 0.9
+
+
+@dataclass
+class NoSemanticConfig:
+    """``semantic=none``: no semantic input (delta_L = 0; types from flow and priors alone).
+
+    Attributes:
+        prior_overrides: prior values (:class:`monostixels.core.energy.PriorConfig`) that replace those of the
+            ``prior`` group (merged by the Pipeline; the values of ``prior=nosem``). Without semantics the
+            2-DOF dynamic-object type fits any flow at least as well as the 1-DOF static types; ``alpha_dyn``
+            (cost per pixel row of a dynamic stixel) keeps it for flow the static types cannot explain.
+    """
+
+    name: str = "none"
+    prior_overrides: Dict[str, float] = field(default_factory=lambda: {"alpha_dyn": 0.25})
+
+
+@dataclass
+class Fcn8sSemanticConfig:
+    """``semantic=fcn8s``: our FCN-8s (models/MODEL_CARD.md), the real-image net by default;
+    ``semantic=fcn8s_synthetic`` is the net of our renders.
+
+    Attributes:
+        runtime: ``onnx`` (ONNX Runtime) | ``torch`` (the .pt state dict through PyTorch).
+        model: the ONNX file (relative paths: module docstring).
+        weights: the .pt file of ``runtime=torch``.
+        focal_px: with a calibrated camera (every frame-pair source) the image is resized so that its focal
+            length becomes this many pixels: objects then appear at the angular resolution of training
+            (:func:`fcn8s_scale`); None = ``scale``.
+        scale: resize factor of the image before the net where ``focal_px`` does not apply (images without a
+            calibration, CamVid's evaluation); None = full resolution.
+    """
+
+    name: str = "fcn8s"
+    runtime: str = "onnx"
+    model: Optional[str] = "models/fcn8s_real.onnx"
+    weights: Optional[str] = "models/fcn8s_real.pt"
+    focal_px: Optional[float] = 480.0
+    scale: Optional[float] = 1.0
+
+
+@dataclass
+class OnnxSemanticConfig:
+    """``semantic=onnx``: any segmentation model in ONNX, input (1, 3, h, w) float32 RGB, output (1, C, h', w')
+    scores (h'/w' may be a stride of h/w); ``semantic=cityscapes19`` sets it up for Cityscapes models.
+
+    Attributes:
+        model: the ONNX file (mandatory).
+        input_size: ``[h, w]`` the image is resized to; None = the model's static input size if it declares
+            one, else the image resized by ``scale``.
+        scale: resize factor where there is no input size; None = full resolution.
+        mean, std: normalisation of the RGB [0, 1] image fed to the model, ``(x - mean) / std`` per channel.
+        pad_to: pad the (resized) input bottom/right to a multiple of this (e.g. 32 for FCN/VGG models).
+        softmax: the model outputs logits (softmax applied here); False: probabilities.
+        mapping: one entry per model output channel: our class id (0 road, 1 sidewalk, 2 terrain, 3 building,
+            4 pole, 5 vegetation, 6 vehicle, 7 two_wheeler, 8 person, 9 sky) or -1 to drop it; the
+            probabilities of channels mapped to the same id are summed. None = the model outputs our 10
+            classes in this order.
+    """
+
+    name: str = "onnx"
+    model: str = MISSING
+    input_size: Optional[List[int]] = None
+    scale: Optional[float] = None
+    mean: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    std: List[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
+    pad_to: int = 1
+    softmax: bool = True
+    mapping: Optional[List[int]] = None
+
+
+#: The schema of each semantic backend by its ``name`` (``fcn8s_synthetic`` and ``cityscapes19`` are options
+#: of ``fcn8s`` and ``onnx`` with other values).
+SEMANTIC_SCHEMAS: dict[str, type] = {"gt": GtSemanticConfig, "none": NoSemanticConfig, "fcn8s": Fcn8sSemanticConfig,
+                                     "onnx": OnnxSemanticConfig}
+
+#: The settings of any semantic backend.
+SemanticConfig = Union[GtSemanticConfig, NoSemanticConfig, Fcn8sSemanticConfig, OnnxSemanticConfig]
+
+
+def semantic_params(cfg: Any) -> SemanticConfig:
+    """The settings of a ``semantic`` config node (or dict) as its backend's dataclass
+    (:data:`SEMANTIC_SCHEMAS`); a dataclass given is returned as it is."""
+    if not isinstance(cfg, OnnxSemanticConfig) and hasattr(cfg, "get") and cfg.get("name") == "onnx":
+        return onnx_params(cfg)  # its model first, with a message of its own
+    return option_params(SEMANTIC_SCHEMAS, cfg, "semantic")
+
+
+def onnx_params(cfg: Any) -> OnnxSemanticConfig:
+    """The settings of the ``onnx`` backend (a node, dict or the dataclass), its model required."""
+    if not isinstance(cfg, OnnxSemanticConfig) and is_unset(cfg, "model"):
+        raise InputError("semantic.model: semantic=onnx needs the path of an ONNX model "
+                         "(semantic.model=/path/to/model.onnx)")
+    return config_params(OnnxSemanticConfig, cfg, "semantic")
 
 #: Stride the shipped FCN-8s needs its input padded to (five 2x2 pools).
 FCN8S_PAD_TO = 32
@@ -84,12 +200,13 @@ CITYSCAPES19_MAPPING: tuple[int, ...] = (
 )
 
 
-def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) -> torch.Tensor | None:
+def estimate_semantics(pair: FramePair, cfg: Any, *, threads: int = 0) -> torch.Tensor | None:
     """Semantic class scores of the current image of ``pair``.
 
     Args:
         pair: the frame pair (only ``pair.image`` and, for ``gt``, ``pair.gt.labels`` are used).
-        cfg: the ``semantic`` config node; ``cfg.name`` in ``gt | fcn8s | onnx | none``.
+        cfg: the ``semantic`` config node (a dict, or the settings dataclass); ``cfg.name`` in
+            ``gt | fcn8s | onnx | none``; keys not given take the defaults of the option of that name.
         threads: ONNX Runtime intra-op threads of the network (0 = the process's, config key
             ``threads``: :func:`monostixels._threads.onnx_session_options`). The scores do not
             depend on it. The pipeline passes 1 when the semantics run beside the flow: a pool of
@@ -99,7 +216,10 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) ->
         (10, H, W) float32 scores summing to 1 per pixel, classes in ``CLASS_NAMES`` order; or
         None for ``none``.
     """
-    name = str(cfg.get("name", ""))
+    name = cfg.name if isinstance(cfg, tuple(SEMANTIC_SCHEMAS.values())) else str((cfg or {}).get("name", ""))
+    if name not in SEMANTIC_SCHEMAS:
+        raise InputError(f"semantic.name: unknown backend {name!r}; expected gt, fcn8s, onnx or none")
+    cfg = semantic_params(cfg)
     if name == "none":
         return None
     if name == "gt":
@@ -109,16 +229,14 @@ def estimate_semantics(pair: FramePair, cfg: DictConfig, *, threads: int = 0) ->
                 f"semantic=gt: frame {pair.name or '?'} from {source} has no ground-truth labels "
                 "(pair.gt.labels is None); use semantic=fcn8s, semantic=onnx or semantic=none"
             )
-        return gt_scores(pair.gt.labels, confidence=float(cfg.get("confidence", 0.9)),
+        return gt_scores(pair.gt.labels, confidence=cfg.confidence,
                          name=f"{pair.name or 'frame'}: gt.labels")
     if name == "fcn8s":
         return _fcn8s_segmenter(cfg, threads)(pair.image, scale=fcn8s_scale(pair, cfg))
-    if name == "onnx":
-        return onnx_segmenter(cfg, threads=threads)(pair.image)
-    raise InputError(f"semantic.name: unknown backend {name!r}; expected gt, fcn8s, onnx or none")
+    return onnx_segmenter(cfg, threads=threads)(pair.image)
 
 
-def fcn8s_scale(pair: FramePair, cfg: DictConfig) -> float | None:
+def fcn8s_scale(pair: FramePair, cfg: Any) -> float | None:
     """Resize factor of the image before our FCN-8s: ``focal_px / fx`` or ``scale``.
 
     With ``semantic.focal_px`` set and a calibrated camera, the image is resized so that its focal
@@ -130,14 +248,14 @@ def fcn8s_scale(pair: FramePair, cfg: DictConfig) -> float | None:
     Returns:
         the factor, or None (full resolution).
     """
-    focal = cfg.get("focal_px", None)
+    cfg = config_params(Fcn8sSemanticConfig, cfg, "semantic")
+    focal = cfg.focal_px
     if focal is not None and not pair.meta.get("nominal_camera", False):
         fx = float(pair.camera.K[0, 0])
-        if not (float(focal) > 0 and fx > 0):
+        if not (focal > 0 and fx > 0):
             raise InputError(f"semantic.focal_px: needs a positive value and camera fx, got {focal} and {fx}")
-        return float(focal) / fx
-    scale = cfg.get("scale", None)
-    return None if scale is None else float(scale)
+        return focal / fx
+    return cfg.scale
 
 
 def gt_scores(labels: torch.Tensor, *, confidence: float = 0.9, name: str = "labels") -> torch.Tensor:
@@ -424,42 +542,32 @@ class TorchSegmenter:
         return _postprocess(out, size, tuple(image.shape[-2:]), tuple(x.shape[-2:]), name)
 
 
-def _fcn8s_segmenter(cfg: DictConfig, threads: int = 0) -> OnnxSegmenter | TorchSegmenter:
-    runtime = str(cfg.get("runtime", "onnx"))
-    scale = cfg.get("scale", None)
-    scale = None if scale is None else float(scale)
+def _fcn8s_segmenter(cfg: Fcn8sSemanticConfig, threads: int = 0) -> OnnxSegmenter | TorchSegmenter:
+    runtime, scale = cfg.runtime, cfg.scale
     if runtime == "onnx":
-        path = resolve_model_path(cfg.get("model", None), "semantic.model")
+        path = resolve_model_path(cfg.model, "semantic.model")
         return _cached_onnx(str(path), path.stat().st_mtime_ns, None, scale,
                             (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), None, FCN8S_PAD_TO, True, int(threads))
     if runtime == "torch":
-        path = resolve_model_path(cfg.get("weights", None), "semantic.weights")
+        path = resolve_model_path(cfg.weights, "semantic.weights")
         return _cached_torch(str(path), path.stat().st_mtime_ns, scale)
     raise InputError(f"semantic.runtime: expected onnx or torch, got {runtime!r}")
 
 
-def onnx_segmenter(cfg: DictConfig, *, threads: int = 0) -> OnnxSegmenter:
+def onnx_segmenter(cfg: Any, *, threads: int = 0) -> OnnxSegmenter:
     """The ``onnx`` backend's segmenter for a ``semantic`` config node (``model``, ``input_size``,
     ``scale``, ``mean``, ``std``, ``mapping``, ``pad_to``, ``softmax``); one cached session per
     model file and settings (``threads``: ONNX Runtime intra-op threads, 0 = the process's). Also the
     teacher of ``train.semantic``'s distillation."""
-    if "model" not in cfg or OmegaConf.is_missing(cfg, "model"):
-        raise InputError("semantic.model: semantic=onnx needs the path of an ONNX model "
-                         "(semantic.model=/path/to/model.onnx)")
-    path = resolve_model_path(cfg.get("model", None), "semantic.model")
-    size = cfg.get("input_size", None)
-    mapping = cfg.get("mapping", None)
-    scale = cfg.get("scale", None)
+    cfg = onnx_params(cfg)
+    path = resolve_model_path(cfg.model, "semantic.model")
+    size, mapping = cfg.input_size, cfg.mapping
     return _cached_onnx(
         str(path), path.stat().st_mtime_ns,
-        None if size is None else tuple(int(v) for v in size),
-        None if scale is None else float(scale),
-        tuple(float(v) for v in cfg.get("mean", (0.0, 0.0, 0.0))),
-        tuple(float(v) for v in cfg.get("std", (1.0, 1.0, 1.0))),
-        None if mapping is None else tuple(int(v) for v in mapping),
-        int(cfg.get("pad_to", 1)),
-        bool(cfg.get("softmax", True)),
-        int(threads),
+        None if size is None else tuple(size),
+        cfg.scale, tuple(cfg.mean), tuple(cfg.std),
+        None if mapping is None else tuple(mapping),
+        cfg.pad_to, cfg.softmax, int(threads),
     )
 
 

@@ -18,23 +18,48 @@ Entities, per frame on the ``frame`` timeline (the pair's index in the run) and,
   else its motion between the pair's frames (metres).
 - ``log``: a line per frame whose camera motion was degenerate.
 
-Ground and sky stixels are not drawn as boxes: the point cloud shows the road.
+Ground and sky stixels are not drawn as boxes: the point cloud shows the road. The settings: the config
+group ``output`` (:class:`OutputConfig`).
 """
 from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, config_params
 from monostixels.core.classes import DYNAMIC_OBJECT, PALETTE
+from monostixels.pipeline import EvalConfig
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
 
-__all__ = ["RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
+__all__ = ["OutputConfig", "RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
+
+
+@dataclass
+class OutputConfig:
+    """What ``monostixels run`` writes beside its per-frame files (docs/conventions.md, section 4.3): the
+    schema of the config group ``output`` (monostixels.config_schema).
+
+    Attributes:
+        rerun: write a 3D recording for the Rerun viewer, ``<outputs>/run/recording.rrd`` (needs the optional
+            extra: ``pip install -e ".[viewer]"``).
+        rerun_colors: colour of the stixel boxes: ``class`` (Cityscapes palette) or ``depth`` (inverse depth,
+            as depth.png).
+        rerun_point_stride: the point cloud holds every k-th pixel in each direction (1 = all; about 15 bytes
+            per point per frame: a KITTI frame takes ~0.4 MB with 4, ~7 MB with 1).
+        rerun_jpeg_quality: JPEG quality of the recorded images (1-100), or None for raw RGB (3 bytes per
+            pixel per frame).
+    """
+
+    rerun: bool = False
+    rerun_colors: str = "class"
+    rerun_point_stride: int = 4
+    rerun_jpeg_quality: Optional[int] = 85
 
 logger = logging.getLogger(__name__)
 
@@ -260,12 +285,10 @@ def open_recorder(cfg: Any, out: Path, src: Any) -> RecordingHook:
     Raises:
         InputError: ``output.rerun=true`` without rerun-sdk installed (checked before any frame runs).
     """
-    output = cfg.get("output") or {}
-    if not bool(output.get("rerun", False)):
+    output = config_params(OutputConfig, cfg.get("output"), "output")
+    if not output.rerun:
         return RecordingHook()
-    quality = output.get("rerun_jpeg_quality", 85)
-    return RerunRecorder(out / RECORDING_NAME, fps=getattr(src, "fps", None),
-                         colors=str(output.get("rerun_colors", "class")),
-                         point_stride=int(output.get("rerun_point_stride", 4)),
-                         jpeg_quality=None if quality is None else int(quality),
-                         min_depth=float(cfg.eval.colormap_min_depth), max_depth=float(cfg.eval.colormap_max_depth))
+    ev = config_params(EvalConfig, cfg.get("eval"), "eval")
+    return RerunRecorder(out / RECORDING_NAME, fps=getattr(src, "fps", None), colors=output.rerun_colors,
+                         point_stride=output.rerun_point_stride, jpeg_quality=output.rerun_jpeg_quality,
+                         min_depth=ev.colormap_min_depth, max_depth=ev.colormap_max_depth)

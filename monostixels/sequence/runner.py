@@ -54,7 +54,8 @@ from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, motion_track_for
+from monostixels.inputs.motion_track import motion_params
+from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult, motion_track_for
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamState
 from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, stixel_points,
@@ -183,9 +184,9 @@ class SequenceRunner:
         self.keyframes = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes")
         self.track_params = config_params(TrackParams, cfg.get("temporal"), "temporal")
         self.ttc = config_params(TtcParams, cfg.get("ttc"), "ttc")
-        self.use_gt_distance = str(cfg.motion.get("name", "")) in ("gt", "file")
+        self.use_gt_distance = motion_params(cfg.motion).name in ("gt", "file")
         self.standing_m = float(self.pipeline.solver_cfg.min_translation)
-        self.default_dt = float(cfg.eval.get("frame_interval_s", 0.1)) if "eval" in cfg else 0.1
+        self.default_dt = config_params(EvalConfig, cfg.get("eval"), "eval").frame_interval_s
         # Work carried from frame to frame (config group stream; monostixels.sequence.stream).
         self.stream = StreamState.from_config(cfg)
         self.stream.chain_frames = self.keyframes.window if self.keyframes.chain_flow else 0
