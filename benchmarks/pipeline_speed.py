@@ -255,8 +255,8 @@ def main() -> None:
         med = medians(frames, stages)
         results[preset] = {
             "config": {"flow": str(cfg.flow.name), "flow_preset": cfg.flow.get("preset"), "flow_scale": cfg.flow.get("scale"),
-                       "semantic": str(cfg.semantic.name), "motion": str(cfg.motion.name),
-                       "stream": dict(cfg.stream), "overrides": overrides, "overlap": overlap},
+                       "semantic": str(cfg.semantic.name), "semantic_model": cfg.semantic.get("model"),
+                       "motion": str(cfg.motion.name), "stream": dict(cfg.stream), "overrides": overrides, "overlap": overlap},
             "frames": len(frames), "median_seconds": med, "per_frame": frames,
             "cpu_seconds_per_frame": med.get("cpu"), "threads": thread_counts()}
         if args.video:
@@ -296,8 +296,8 @@ def main() -> None:
                   f"{results[n]['video_seconds']['total']:.3f} s = {results[n]['video_per_kitti']:.2f} x the KITTI frames'")
     for n in names:
         c = results[n]["config"]
-        print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) semantic={c['semantic']} "
-              f"motion={c['motion']} stream={c['stream']}")
+        print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) "
+              f"semantic={c['semantic']} ({c['semantic_model']}) motion={c['motion']} stream={c['stream']}")
     out = {"presets": results, "median_seconds": results[names[0]]["median_seconds"], "preset": names[0],
            "clock": args.clock, "torch_threads": torch.get_num_threads(),
            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "spinning": spinning(), "loadavg": {"before": load0, "after": load1},

@@ -53,7 +53,8 @@ _COMMAND_DEFAULTS = {cmd: (f"preset={name}", *_COMMAND_EXTRAS.get(cmd, ())) for 
 #: Shipped model of a default semantic option (installed with the package, editable or not), and
 #: what a command falls back to where the file is missing (a checkout without its models): ground
 #: truth on the synthetic scene, no semantics on a user's frames.
-_DEFAULT_MODELS = {"fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "fcn8s": "models/fcn8s_real.onnx"}
+_DEFAULT_MODELS = {"fcn8s_synthetic": "models/fcn8s_synthetic.onnx", "fcn8s": "models/fcn8s_real.onnx",
+                   "fcn8s_int8": "models/fcn8s_real_int8.onnx"}
 _MODEL_FALLBACK = {"demo": "semantic=gt", "run": "semantic=none", "batch": "semantic=none", "eval": "semantic=none"}
 
 

@@ -59,7 +59,8 @@ def _python(code: str, target: Path, cwd: Path) -> str:
 
 def test_wheel_holds_the_default_models_and_every_config(wheel: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
-    defaults = {"models/fcn8s_real.onnx", "models/fcn8s_synthetic.onnx"}  # run's and demo's semantic nets
+    # run's (preset=fast), eval's and demo's semantic nets
+    defaults = {"models/fcn8s_real_int8.onnx", "models/fcn8s_real.onnx", "models/fcn8s_synthetic.onnx"}
     assert defaults <= _shipped_model_paths()
     for model in _shipped_model_paths():
         assert f"monostixels/{model}" in names, model
@@ -94,4 +95,4 @@ def test_installed_package_finds_its_models_and_run_uses_the_real_image_net(inst
     assert p.returncode == 0, p.stderr
     assert "not found" not in p.stderr  # no fall-back to semantic=none
     semantic = OmegaConf.create(p.stdout).semantic
-    assert semantic.name == "fcn8s" and semantic.model == "models/fcn8s_real.onnx"
+    assert semantic.name == "fcn8s" and semantic.model == "models/fcn8s_real_int8.onnx"

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 import warnings
 from collections.abc import Iterable
 from functools import lru_cache
@@ -374,11 +373,9 @@ def quantize_onnx(src: str | os.PathLike, dst: str | os.PathLike,
                   pairs: Iterable[tuple[torch.Tensor, torch.Tensor]]) -> Path:
     """An INT8 copy of an :func:`export_onnx` graph of batch two: its convolutions quantized, the rest float.
 
-    Static quantization with ONNX Runtime's tools (QDQ; weights signed, per output channel; activations
-    unsigned, per tensor, their ranges the min / max seen on ``pairs``). Only ``Conv`` is quantized:
-    the convolutions are most of RAFT's time, while the correlation lookup and the flow arithmetic
-    keep float32 (a flow is pixel coordinates, not an activation of bounded range). Float16 weights
-    (``half_weights``) are first folded back to float32 initializers, which the quantizer needs.
+    :func:`monostixels.inputs.quantize.quantize_convolutions`, activation ranges seen on ``pairs``: the
+    convolutions are most of RAFT's time, while the correlation lookup and the flow arithmetic keep
+    float32 (a flow is pixel coordinates, not an activation of bounded range).
 
     Args:
         src: a dynamic (any-size) float graph of batch two, as :func:`export_onnx` writes.
@@ -391,65 +388,22 @@ def quantize_onnx(src: str | os.PathLike, dst: str | os.PathLike,
     """
     import numpy as np
     import onnx
-    from onnx import numpy_helper
-    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
-                                          quantize_static)
+
+    from monostixels.inputs.quantize import quantize_convolutions
 
     src, dst = Path(src), Path(dst)
     proto = onnx.load(str(src))
     if proto.graph.input[0].type.tensor_type.shape.dim[0].dim_value != 2:
         raise InputError(f"quantize_onnx: {str(src)!r} is not a both-ways graph (batch 2) of export_onnx")
     meta = {p.key: p.value for p in proto.metadata_props}
-    inits = {i.name: i for i in proto.graph.initializer}
-    kept = []
-    for node in proto.graph.node:
-        if (node.op_type == "Cast" and node.input[0] in inits
-                and inits[node.input[0]].data_type == onnx.TensorProto.FLOAT16):
-            w = numpy_helper.to_array(inits[node.input[0]]).astype(np.float32)
-            proto.graph.initializer.append(numpy_helper.from_array(w, node.output[0]))
-        else:
-            kept.append(node)
-    del proto.graph.node[:]
-    proto.graph.node.extend(kept)
-    used = {name for node in proto.graph.node for name in node.input}
-    for init in [i for i in proto.graph.initializer if i.name not in used]:
-        proto.graph.initializer.remove(init)
-    for k, node in enumerate(proto.graph.node):  # the quantizer names its nodes after these
-        node.name = node.name or f"n{k}"
+    def feeds() -> Iterable[dict[str, np.ndarray]]:
+        for cur, prev in pairs:
+            (a, b), _ = pad_images(cur[None].float(), prev[None].float())
+            yield {"image_cur": torch.cat([a, b]).numpy(), "image_prev": torch.cat([b, a]).numpy()}
 
-    class _Pairs(CalibrationDataReader):
-        def __init__(self) -> None:
-            self.it = iter(pairs)
-
-        def get_next(self) -> dict[str, np.ndarray] | None:
-            nxt = next(self.it, None)
-            if nxt is None:
-                return None
-            (a, b), _ = pad_images(nxt[0][None].float(), nxt[1][None].float())
-            return {"image_cur": torch.cat([a, b]).numpy(), "image_prev": torch.cat([b, a]).numpy()}
-
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        f32 = Path(tmp) / "float32.onnx"
-        onnx.save(proto, str(f32))
-        # The quantizer logs a line per convolution and advice on the root logger: errors only meanwhile.
-        root = logging.getLogger()
-        level = root.level
-        root.setLevel(max(level, logging.ERROR))
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                quantize_static(str(f32), str(dst), _Pairs(), quant_format=QuantFormat.QDQ,
-                                op_types_to_quantize=["Conv"], per_channel=True, activation_type=QuantType.QUInt8,
-                                weight_type=QuantType.QInt8, calibrate_method=CalibrationMethod.MinMax)
-        finally:
-            root.setLevel(level)
+    quantize_convolutions(proto, dst, feeds(), meta)
     out = onnx.load(str(dst))
     compact_names(out)
-    del out.metadata_props[:]
-    for key, value in {**meta, "quantized": "int8"}.items():
-        entry = out.metadata_props.add()
-        entry.key, entry.value = key, value
     onnx.save(out, str(dst))
     logger.info("quantized %s to INT8: %s (%.1f MB)", src, dst, dst.stat().st_size / 1e6)
     return dst
