@@ -317,9 +317,10 @@ def test_training_on_camvid_layout_exports_parity_models(tmp_path: Path) -> None
         mod._real_set(cfg, "test", None)
 
 
-@pytest.mark.parametrize("command, model", [("run", "models/fcn8s_real.onnx"), ("demo", "models/fcn8s_synthetic.onnx")])
+@pytest.mark.parametrize("command, model", [("run", "models/fcn8s_real_int8.onnx"), ("demo", "models/fcn8s_synthetic.onnx")])
 def test_command_default_semantic_nets(tmp_path: Path, command: str, model: str) -> None:
-    """`run` (a user's frames) defaults to the real-image net, `demo` (our renders) to the synthetic one."""
+    """`run` (a user's frames) defaults to the real-image net (its INT8 copy, `preset=fast`'s), `demo`
+    (our renders) to the synthetic one."""
     p = subprocess.run([sys.executable, "-m", "monostixels.cli", command, "--cfg", "job"], cwd=tmp_path,
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
@@ -331,9 +332,10 @@ def test_command_default_semantic_nets(tmp_path: Path, command: str, model: str)
 
 
 def test_shipped_models_fit_the_size_budget() -> None:
-    # All shipped models together stay under 25 MB (the repository carries them).
+    # All shipped models together stay under 27 MB (the repository carries them): 25 MB until the
+    # semantic net's 2 MB INT8 copy (preset=fast's) came in beside its float file.
     total = sum(f.stat().st_size for f in (REPO / "models").iterdir() if f.suffix in (".onnx", ".pt"))
-    assert total <= 25_000_000, total
+    assert total <= 27_000_000, total
 
 
 def test_fcn8s_scale_from_focal_length() -> None:

@@ -41,16 +41,16 @@ def _choices(overrides: list[str]) -> dict[str, object]:
 
 def test_presets_compose_to_the_documented_groups():
     fast = _choices(["preset=fast"])
-    # conf/preset/fast.yaml: flow=dis_refine (DIS medium + full-size refinement), the real-image net,
-    # monocular ego-motion, the default solver, the warm stream.
+    # conf/preset/fast.yaml: flow=dis_refine (DIS medium + full-size refinement), the real-image net
+    # in INT8, monocular ego-motion, the default solver, the warm stream.
     assert fast["flow"] == ("dis", "medium", True, False)
-    assert fast["semantic"] == ("fcn8s", "models/fcn8s_real.onnx") and fast["motion"] == "mono"
+    assert fast["semantic"] == ("fcn8s", "models/fcn8s_real_int8.onnx") and fast["motion"] == "mono"
     assert fast["solver"] == (3, 5)
     assert fast["stream"] == {"flow_init": True, "semantic_every": 2, "motion_warm_start": True, "overlap": True}
     acc = _choices(["preset=accurate"])
     # DeepFlow (DIS-guided), refined at full size in 4 passes, checked forward-backward.
     assert acc["flow"] == ("deepflow", None, True, True) and load_config(["preset=accurate"]).flow.refine_passes == 4
-    assert acc["semantic"] == fast["semantic"] and acc["motion"] == "mono" and acc["solver"] == (3, 5)
+    assert acc["semantic"] == ("fcn8s", "models/fcn8s_real.onnx") and acc["motion"] == "mono" and acc["solver"] == (3, 5)
     assert acc["stream"] == {"flow_init": False, "semantic_every": 1, "motion_warm_start": False, "overlap": True}
     # Without a preset: the oracle inputs of conf/config.yaml, nothing carried that changes a result.
     none = _choices([])
