@@ -37,7 +37,7 @@ def _agreement(a: Path, b: Path, image: torch.Tensor, scale: float) -> float:
 @needs_frames
 def test_quantized_copy_has_int8_convolutions_and_labels_an_unseen_frame_as_the_float_net(tmp_path: Path) -> None:
     calib = [_rgb(p) for p in sorted(CAMVID_TRAIN.glob("*.jpg"))[:3]]
-    out = quantize_fcn8s_onnx(FLOAT, tmp_path / "q.onnx", calib, focal_scale=0.5)
+    out = quantize_fcn8s_onnx(FLOAT, tmp_path / "q.onnx", calib, scale=0.5)
     proto = onnx.load(str(out))
     inits = {i.name: i for i in proto.graph.initializer}
     producers = {o: n for n in proto.graph.node for o in n.output}
@@ -77,3 +77,19 @@ def test_fast_preset_runs_the_shipped_int8_copy_of_the_shipped_net() -> None:
     float_meta = {p.key: p.value for p in onnx.load(str(FLOAT)).metadata_props}
     assert all(meta[k] == v for k, v in float_meta.items())
     assert _agreement(FLOAT, INT8, _rgb(KITTI2015), 480 / 721.5377) >= 0.98
+
+
+@needs_frames
+def test_the_shipped_int8_file_is_what_its_command_makes_from_the_shipped_float_file(tmp_path: Path) -> None:
+    # `python -m train.quantize_semantic` (conf/quantize_semantic.yaml) is deterministic: remade after the
+    # float net changes, the copy cannot drift from it unnoticed.
+    from hydra import compose, initialize_config_dir
+
+    from train.quantize_semantic import run
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        cfg = compose("quantize_semantic", overrides=[f"src={FLOAT}", f"dst={tmp_path / 'q.onnx'}",
+                                                      f"calibration.root={SHARED / 'camvid'}"])
+    out = run(cfg)
+    assert out["calibration_images"] == 31
+    assert (tmp_path / "q.onnx").read_bytes() == INT8.read_bytes()

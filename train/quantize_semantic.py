@@ -47,7 +47,7 @@ def run(cfg: DictConfig) -> dict[str, object]:
     """Quantize ``cfg.src`` to ``cfg.dst``; returns what was written."""
     c = cfg.calibration
     images = calibration_images(str(c.root), str(c.split), c.every)
-    dst = quantize_fcn8s_onnx(str(cfg.src), str(cfg.dst), images, focal_scale=float(c.scale))
+    dst = quantize_fcn8s_onnx(str(cfg.src), str(cfg.dst), images, scale=float(c.scale))
     return {"dst": str(dst), "calibration_images": len(images), "mb": round(dst.stat().st_size / 1e6, 2)}
 
 

@@ -111,16 +111,16 @@ def quantize_convolutions(proto: Any, dst: str | os.PathLike, feeds: Iterable[di
 
 
 def quantize_fcn8s_onnx(src: str | os.PathLike, dst: str | os.PathLike, images: Iterable[torch.Tensor],
-                        focal_scale: float = 1.0) -> Path:
-    """An INT8 copy of an FCN-8s ONNX file (``export_onnx`` of :mod:`monostixels.train`'s nets: input
-    ``image`` (1, 3, h, w) RGB in [0, 1], ImageNet normalisation inside the graph).
+                        scale: float = 1.0) -> Path:
+    """An INT8 copy of an FCN-8s ONNX file (:func:`monostixels.inputs.fcn8s.export_onnx`: input ``image``
+    (1, 3, h, w) RGB in [0, 1], ImageNet normalisation inside the graph).
 
     Args:
         src: the float file (e.g. ``models/fcn8s_real.onnx``).
         dst: the INT8 file to write.
-        images: calibration images (3, H, W) RGB in [0, 1]; each is resized by ``focal_scale`` and padded
-            to a multiple of 32, as ``semantic=fcn8s`` feeds the net.
-        focal_scale: resize factor of the calibration images (the net's input scale).
+        images: calibration images (3, H, W) RGB in [0, 1]; each is resized by ``scale`` and padded to a
+            multiple of 32, as ``semantic=fcn8s`` feeds the net.
+        scale: resize factor of the calibration images.
 
     Returns:
         ``dst``, with the float file's metadata, ``quantized: int8`` and ``int8_from`` (the float file's name).
@@ -141,7 +141,7 @@ def quantize_fcn8s_onnx(src: str | os.PathLike, dst: str | os.PathLike, images: 
     def feeds() -> Iterable[dict[str, np.ndarray]]:
         for image in images:
             # The graph normalises itself: mean 0, std 1 here, as OnnxSegmenter calls it for our nets.
-            x, _ = _preprocess(image, input_size=None, scale=focal_scale, mean=(0.0, 0.0, 0.0),
+            x, _ = _preprocess(image, input_size=None, scale=scale, mean=(0.0, 0.0, 0.0),
                                std=(1.0, 1.0, 1.0), pad_to=32)
             yield {"image": x.numpy()}
 

@@ -405,7 +405,6 @@ def quantize_onnx(src: str | os.PathLike, dst: str | os.PathLike,
     out = onnx.load(str(dst))
     compact_names(out)
     onnx.save(out, str(dst))
-    logger.info("quantized %s to INT8: %s (%.1f MB)", src, dst, dst.stat().st_size / 1e6)
     return dst
 
 
