@@ -59,7 +59,7 @@ def _python(code: str, target: Path, cwd: Path) -> str:
 
 def test_wheel_holds_the_default_models_and_every_config(wheel: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
-    # run's (preset=fast), eval's and demo's semantic nets
+    # the semantic nets of run (preset=fast), preset=accurate and demo
     defaults = {"models/fcn8s_real_int8.onnx", "models/fcn8s_real.onnx", "models/fcn8s_synthetic.onnx"}
     assert defaults <= _shipped_model_paths()
     for model in _shipped_model_paths():

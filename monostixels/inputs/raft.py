@@ -396,6 +396,7 @@ def quantize_onnx(src: str | os.PathLike, dst: str | os.PathLike,
     if proto.graph.input[0].type.tensor_type.shape.dim[0].dim_value != 2:
         raise InputError(f"quantize_onnx: {str(src)!r} is not a both-ways graph (batch 2) of export_onnx")
     meta = {p.key: p.value for p in proto.metadata_props}
+
     def feeds() -> Iterable[dict[str, np.ndarray]]:
         for cur, prev in pairs:
             (a, b), _ = pad_images(cur[None].float(), prev[None].float())
