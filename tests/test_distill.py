@@ -343,7 +343,7 @@ def test_teacher_cache_and_soft_training_end_to_end(tmp_path: Path) -> None:
         cfg = compose(config_name="train_semantic_soft", overrides=[
             "model.width_mult=0.0625", "model.fc_channels=16", "model.init_from=null",
             f"data.camvid_root={tmp_path / 'camvid'}", f"data.cache={tmp_path / 'synth'}",
-            "augment.crop=[32,64]", "train.epochs=1", "train.batch_size=2", "train.time_limit_s=null",
+            "augment.crop=[32,64]", "train.epochs=2", "train.batch_size=2", "train.time_limit_s=null",
             "train.val_every=1", f"run_dir={tmp_path / 'run'}", "export.sample_size=[64,96]",
             f"data.soft.manifest={tmp_path / 'cache' / 'manifest.jsonl'}", "data.soft.per_epoch=6",
             "data.soft.default_weight=1.0", "data.soft.focal_px=100", "data.soft.weight_sample=4",
@@ -358,6 +358,16 @@ def test_teacher_cache_and_soft_training_end_to_end(tmp_path: Path) -> None:
     _, meta = mod.load_fcn8s(result["pt"])
     assert "soft labels" in meta["data"] and "'source': 'b'" in meta["data"]
     assert Path(result["onnx"]).is_file() and 0.0 <= result["val_miou_onnx"] <= 1.0
+    # export.checkpoint=final (the config's): the exported weights are those at the end of the
+    # schedule (epoch 2, the resume state's), whichever epoch had the best validation mIoU.
+    assert result["epoch"] == 2 and len(result["history"]) == 2
+    exported, _ = mod.load_fcn8s(result["pt"])
+    last = torch.load(tmp_path / "run" / "last.pt", map_location="cpu", weights_only=True)["model"]
+    for k, v in exported.state_dict().items():
+        if v.is_floating_point():
+            torch.testing.assert_close(v, last[k].half().float() if cfg.export.half_pt else last[k], rtol=0, atol=0)
+    with pytest.raises(InputError, match="export.checkpoint"):
+        mod.run(OmegaConf.merge(cfg, {"export": {"checkpoint": "latest"}, "resume": True}))
 
 
 def test_augment_at_scale_one_is_an_exact_crop_and_flip() -> None:

@@ -26,7 +26,8 @@ random crops, horizontal flips), so the net learns the classes, not a lookup of 
 Validation: ``val_frames`` frames of source seed 9 (never trained on), default appearance, mIoU
 per epoch. Evaluation seeds 0-2 are never touched.
 
-Outputs (``run_dir``): ``last.pt`` (resume state), ``best.pt`` (best validation mIoU),
+Outputs (``run_dir``): ``last.pt`` (resume state), ``best.pt`` (best validation mIoU), ``final.pt``
+(the weights at the end of the schedule; ``export.checkpoint`` picks which of the two is exported),
 ``history.json`` (loss and mIoU per epoch), ``result.json`` (final validation of the exported ONNX
 model through ``monostixels.inputs.semantic``, per-class IoU, the exact command).
 """
@@ -681,6 +682,9 @@ def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
         load_vgg16_backbone(model, mcfg["vgg16_weights"])
     if mcfg.get("init_from"):
         # Fine-tuning starts a fresh schedule from earlier weights (``resume`` continues a run).
+        if not Path(mcfg["init_from"]).is_file():
+            raise InputError(f"model.init_from {mcfg['init_from']}: not found (the training config's comment "
+                             "says where those weights come from)")
         init, _ = load_fcn8s(mcfg["init_from"])
         try:
             model.load_state_dict(init.state_dict())
@@ -902,9 +906,11 @@ def prerender(cfg: DictConfig) -> None:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Train (or resume), validate per epoch, export the best model, evaluate the export."""
+    """Train (or resume), validate per epoch, export the best or final model, evaluate the export."""
     torch.set_num_threads(int(cfg.train.threads))
     torch.manual_seed(int(cfg.train.seed))
+    if cfg.export.enabled:
+        _export_checkpoint(cfg)  # a typo fails now, not after hours of training
     if cfg.get("prerender_only", False):
         prerender(cfg)
         return {"command": _command(), "prerendered": True}
@@ -1032,6 +1038,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             torch.save(snapshot, run_dir / "best.pt")
         if epoch + 1 in set(cfg.train.get("keep_epochs") or ()):
             torch.save(snapshot, run_dir / f"epoch_{epoch + 1}.pt")
+        if schedule.done() or epoch + 1 >= epochs:
+            # The end of the schedule: on cameras never trained on it generalises better than the
+            # CamVid-val best (held-out runs, docs/results.md), so export.checkpoint can pick it.
+            torch.save(snapshot, run_dir / "final.pt")
         if complete:
             state["epoch"] = epoch + 1
         tmp = run_dir / "last.pt.tmp"
@@ -1044,7 +1054,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             break
 
     result: dict[str, Any] = {"best_val_miou_torch": state["best_miou"], "history": state["history"]}
-    if cfg.export.enabled and (run_dir / "best.pt").is_file():
+    if cfg.export.enabled and (run_dir / f"{_export_checkpoint(cfg)}.pt").is_file():
         result.update(_export_and_evaluate(cfg, run_dir, val_items))
     result["command"] = _command()
     (run_dir / "result.json").write_text(json.dumps(result, indent=1))
@@ -1066,8 +1076,17 @@ def interpolate_weights(final: dict[str, torch.Tensor], early: dict[str, torch.T
             for k, v in final.items()}
 
 
+def _export_checkpoint(cfg: DictConfig) -> str:
+    """``export.checkpoint``, checked: ``best`` or ``final``."""
+    which = str(cfg.export.get("checkpoint", "best"))
+    if which not in ("best", "final"):
+        raise InputError(f"export.checkpoint: {which!r} is neither 'best' (the best validation mIoU) nor 'final' "
+                         "(the end of the schedule)")
+    return which
+
+
 def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dict[str, Any]:
-    best = torch.load(run_dir / "best.pt", map_location="cpu", weights_only=True)
+    best = torch.load(run_dir / f"{_export_checkpoint(cfg)}.pt", map_location="cpu", weights_only=True)
     model = fcn8s_vgg16(**best["arch"])
     state = best["state_dict"]
     early_path = cfg.export.get("interpolate_from")
