@@ -9,7 +9,9 @@ No ground truth exists for a user's dashcam footage; these numbers need none:
   (nothing on a highway clip closes within 2 s: every one is false);
 - ``false_mover_share``: per frame, the share of the image covered by stixels typed moving outside the
   vehicles and persons of a referee segmentation (``--referee``, a Cityscapes model; its masks dilated by
-  15 px), the mean over frames; without ``--referee`` it is not measured;
+  15 px), the mean over frames; without ``--referee`` it is not measured; ``false_mover_rows``: the same
+  share split by tenths of the image height, top to bottom (they sum to ``false_mover_share``: where
+  the false movers lie, e.g. the near road at the bottom, whose flow fails at highway speed);
 - ``speed_mps``: the camera speed ``|t| / dt`` of each pair with a metric motion, its ``speed_mean_mps`` and
   coefficient of variation ``speed_cv`` (a highway: 15-40 m/s, steady). The shared clip's dashes give a
   yardstick: 12 frames per 12.19 m dash period at 25 fps, about 25 m/s.
@@ -42,7 +44,7 @@ from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import SequenceRunner
 
-__all__ = ["measure", "main"]
+__all__ = ["false_movers", "measure", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +69,24 @@ def _referee(model: str | None) -> Any:
     return classes
 
 
+def false_movers(moving: np.ndarray, referee: np.ndarray, kernel: np.ndarray) -> tuple[float, list[float]]:
+    """Share of the image in moving stixels away from the referee's movers, in all and per tenth of the rows.
+
+    Args:
+        moving: (H, W) bool, pixels of stixels typed moving.
+        referee: (H, W) the referee's class per pixel (our ids); vehicle, two-wheeler and person are movers.
+        kernel: the structuring element their masks are dilated with.
+
+    Returns:
+        The share of all pixels, and the same count split into 10 bands of rows (top first), each
+        divided by all pixels (so the bands sum to the share).
+    """
+    near = cv2.dilate(np.isin(referee, _MOVER_CLASSES).astype(np.uint8), kernel).astype(bool)
+    false = moving & ~near
+    rows_per_band = np.bincount(np.nonzero(false)[0] * 10 // false.shape[0], minlength=10)
+    return float(false.mean()), (rows_per_band / false.size).tolist()
+
+
 def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
     """Run the clip of ``overrides`` and score it (module docstring); returns the JSON report."""
     cfg = load_config(["data=video", "preset=fast", *overrides])
@@ -87,9 +107,7 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
         if classes is not None:
             idx = st.index_map()
             moving = (idx >= 0) & (st.type[idx.clamp(min=0)] == DYNAMIC_OBJECT)
-            movers = np.isin(classes(step.pair), _MOVER_CLASSES).astype(np.uint8)
-            near = cv2.dilate(movers, kernel).astype(bool)
-            row["false_mover_share"] = float((moving.numpy() & ~near).mean())
+            row["false_mover_share"], row["false_mover_rows"] = false_movers(moving.numpy(), classes(step.pair), kernel)
         rows.append(row)
     n = len(rows)
     no_metric = [r for r in rows if r["camera_motion"] in NO_METRIC_MOTION]
@@ -106,6 +124,7 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
     }
     if classes is not None:
         report["false_mover_share"] = float(np.mean([r["false_mover_share"] for r in rows]))
+        report["false_mover_rows"] = np.mean([r["false_mover_rows"] for r in rows], axis=0).tolist()
     return report
 
 
