@@ -376,19 +376,20 @@ def test_raft_int8_copy_quantizes_the_convolutions_and_keeps_the_flow(tmp_path):
     from monostixels.data.synthetic import render_pair
     from monostixels.inputs.raft import quantize_onnx
 
-    net = RaftFlow(load_raft_weights(REPO / "models" / "raft_small.pt"), num_flow_updates=4).eval()
-    f32 = export_onnx(net, tmp_path / "f32.onnx", 128, 160, half_weights=True)
+    # The shipped float graph itself (the export of the shipped weights; exporting them again takes 25 s).
+    f32 = REPO / "models" / "raft_small.onnx"
     calib, test = render_pair(5, scale=0.2), render_pair(6, scale=0.2)
     q8 = quantize_onnx(f32, tmp_path / "q8.onnx", [(calib.image, calib.image_prev)])
     ops = [n.op_type for n in onnx.load(str(q8)).graph.node]
     assert ops.count("DequantizeLinear") > ops.count("Conv") > 0  # every Conv reads quantized inputs
     runner = OnnxRaft(q8)
-    assert runner.quantized == "int8" and runner.num_flow_updates == 4 and OnnxRaft(f32).quantized is None
+    assert OnnxRaft(f32).quantized is None and OnnxRaft(f32).num_flow_updates >= 2
+    assert runner.quantized == "int8" and runner.num_flow_updates == OnnxRaft(f32).num_flow_updates
     want = OnnxRaft(f32)(test.image, test.image_prev)
     got = runner(test.image, test.image_prev)
     assert float(want.abs().mean()) > 1.0
     assert 0 < float((got - want).norm(dim=0).mean()) < 0.1 * float(want.norm(dim=0).mean())
-    fixed = export_onnx(RaftFlow(build_raft("small"), 2), tmp_path / "fixed.onnx", 128, 160, dynamic=False)
+    fixed = export_onnx(RaftFlow(build_raft("small"), 1), tmp_path / "fixed.onnx", 128, 160, dynamic=False)
     with pytest.raises(InputError, match="fixed.onnx"):
         quantize_onnx(fixed, tmp_path / "x.onnx", [(calib.image, calib.image_prev)])
 
