@@ -9,7 +9,7 @@ the minimum in milliseconds, and each file's median against the first file's (``
 
 Command (repository root; the net before the distillation from the repository's history)::
 
-    git show 64f5d07:models/fcn8s_real.onnx > runs/fcn8s_real_2026-11-30.onnx
+    mkdir -p runs && git show 64f5d07:models/fcn8s_real.onnx > runs/fcn8s_real_2026-11-30.onnx
     python -m benchmarks.semantic_speed runs/fcn8s_real_2026-11-30.onnx models/fcn8s_real.onnx --json s.json
 """
 from __future__ import annotations

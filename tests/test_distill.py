@@ -463,3 +463,24 @@ def test_loso_teacher_agreement_leaves_out_the_void_rows(tmp_path: Path, monkeyp
     assert top["dashcam"]["agreement"] == pytest.approx(1.0) and top["dashcam"]["entries"] == 2
     other = teacher_agreement("unused.pt", entries, focal_px=100.0, void_below={"kitti_0028": 0.5})
     assert other["dashcam"]["agreement"] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("module, override, named", [
+    ("train.semantic", "data.soft.manifest={tmp}/nowhere/manifest.jsonl", "nowhere/manifest.jsonl"),
+    ("train.teacher_labels", "sources=[{{name: x, kind: images, glob: '{tmp}/none/*.png', fx: 500.0, model: m.onnx}}]", "none/"),
+])
+def test_training_entry_points_end_a_bad_input_with_one_line_naming_it(tmp_path: Path, module: str, override: str,
+                                                                       named: str) -> None:
+    import subprocess
+    import sys
+
+    args = [sys.executable, "-m", module, override.format(tmp=tmp_path), f"hydra.run.dir={tmp_path / 'hydra'}"]
+    if module == "train.semantic":
+        args[3:3] = ["--config-name", "train_semantic_soft"]
+    else:
+        args.append(f"out={tmp_path / 'cache'}")
+    p = subprocess.run(args, cwd=CONF.parent, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 1
+    err = [line for line in p.stderr.splitlines() if line.strip() and "WARNING" not in line]
+    assert len(err) == 1 and err[0].startswith(f"{module}: error: ") and named in err[0], p.stderr[-2000:]
+    assert "Traceback" not in p.stderr

@@ -1162,7 +1162,12 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
 @hydra.main(config_path="../conf", config_name=CONFIG_NAME, version_base=None)
 def main(cfg: DictConfig) -> None:
     """Hydra entry point (``python -m train.semantic key=value ...``)."""
-    result = run(cfg)
+    try:
+        result = run(cfg)
+    except InputError as e:
+        # A bad input (a missing cache or weights file, an unknown option value): one line, no traceback.
+        print(f"train.semantic: error: {e}", file=sys.stderr)
+        sys.exit(1)
     print(json.dumps({k: v for k, v in result.items() if k != "history"}, indent=1))
 
 

@@ -34,6 +34,7 @@ import glob
 import json
 import logging
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -341,7 +342,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 @hydra.main(config_path="../conf", config_name="teacher_labels", version_base=None)
 def main(cfg: DictConfig) -> None:
     """Hydra entry point (``python -m train.teacher_labels key=value ...``)."""
-    print(json.dumps(run(cfg), indent=1))
+    try:
+        result = run(cfg)
+    except InputError as e:
+        # A bad input (a missing frame folder or teacher model): one line, no traceback.
+        print(f"train.teacher_labels: error: {e}", file=sys.stderr)
+        sys.exit(1)
+    print(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":
