@@ -374,3 +374,10 @@ def test_shipped_model_segments_validation_renders() -> None:
             assert float((torch_scores.argmax(0) == scores.argmax(0)).float().mean()) > 0.999
     miou, per_class = iou_from_confusion(conf)
     assert miou >= 0.6, per_class
+
+
+def test_init_from_a_missing_file_names_the_option_and_the_file(tmp_path) -> None:
+    mod = _load_train_module()
+    cfg = {"width_mult": TINY, "batch_norm": True, "fc_kernel": 3, "fc_channels": 16, "dropout": 0.0}
+    with pytest.raises(InputError, match=r"model.init_from: .*nowhere\.pt: not found"):
+        mod.build_model({**cfg, "init_from": str(tmp_path / "nowhere.pt")})

@@ -682,10 +682,11 @@ def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
         load_vgg16_backbone(model, mcfg["vgg16_weights"])
     if mcfg.get("init_from"):
         # Fine-tuning starts a fresh schedule from earlier weights (``resume`` continues a run).
-        if not Path(mcfg["init_from"]).is_file():
-            raise InputError(f"model.init_from {mcfg['init_from']}: not found (the training config's comment "
-                             "says where those weights come from)")
-        init, _ = load_fcn8s(mcfg["init_from"])
+        try:
+            init, _ = load_fcn8s(mcfg["init_from"])
+        except InputError as exc:
+            raise InputError(f"model.init_from: {exc} (the training config's comment says where those weights "
+                             "come from)") from None
         try:
             model.load_state_dict(init.state_dict())
         except RuntimeError as exc:
