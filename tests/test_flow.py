@@ -163,6 +163,32 @@ def test_refinement_passes_converge_towards_the_ground_truth():
             compute_flow(pair.image, pair.image_prev, OmegaConf.create({"name": "dis", "refine": True, "refine_passes": bad}))
 
 
+def test_the_kept_refinement_gives_what_a_new_one_gives():
+    # The variational refinement is kept per thread (its buffers reused). Calls on other images and
+    # flows, at another size and in another thread must return exactly what a new object returns.
+    import cv2
+    from concurrent.futures import ThreadPoolExecutor
+
+    from monostixels.inputs.flow import _DIS_PRESETS, _dis_calc, _gray_u8, _refine
+
+    pairs = [(_gray_u8(_texture(96, 160, s)), _gray_u8(torch.roll(_texture(96, 160, s), (1, 3 + s), (1, 2))))
+             for s in (0, 1)]
+    pairs.append((pairs[0][0][:64, :128].copy(), pairs[0][1][:64, :128].copy()))
+
+    def kept(a, b, f):
+        return _refine((a, b), torch.from_numpy(f.transpose(2, 0, 1).copy())).permute(1, 2, 0).numpy()
+
+    with ThreadPoolExecutor(1) as other:
+        for i in (0, 1, 2, 0, 1):
+            a, b = pairs[i]
+            f = _dis_calc(_DIS_PRESETS["medium"], a, b, None if i != 1 else np.full((*a.shape, 2), 2.0, np.float32))
+            want = f.copy()
+            cv2.VariationalRefinement_create().calc(a, b, want)
+            assert not np.array_equal(want, f)
+            for got in (kept(a, b, f), other.submit(kept, a, b, f).result()):
+                assert np.array_equal(got, want)
+
+
 def test_fb_consistency_marks_pixels_that_leave_the_image():
     H, W = 96, 128
     big = _texture(H + 20, W + 20, seed=4)
