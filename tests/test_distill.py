@@ -468,6 +468,9 @@ def test_loso_teacher_agreement_leaves_out_the_void_rows(tmp_path: Path, monkeyp
 @pytest.mark.parametrize("module, override, named", [
     ("train.semantic", "data.soft.manifest={tmp}/nowhere/manifest.jsonl", "nowhere/manifest.jsonl"),
     ("train.teacher_labels", "sources=[{{name: x, kind: images, glob: '{tmp}/none/*.png', fx: 500.0, model: m.onnx}}]", "none/"),
+    ("train.quantize_semantic", "calibration.root={tmp}/no_camvid", "no_camvid/train"),
+    ("train.flow", "crop=[100,200]", "crop: both sides must be multiples"),
+    ("train.priors", "data.frames=many", "data.frames: expected an integer, got 'many'"),
 ])
 def test_training_entry_points_end_a_bad_input_with_one_line_naming_it(tmp_path: Path, module: str, override: str,
                                                                        named: str) -> None:
@@ -477,8 +480,9 @@ def test_training_entry_points_end_a_bad_input_with_one_line_naming_it(tmp_path:
     args = [sys.executable, "-m", module, override.format(tmp=tmp_path), f"hydra.run.dir={tmp_path / 'hydra'}"]
     if module == "train.semantic":
         args[3:3] = ["--config-name", "train_semantic_soft"]
-    else:
-        args.append(f"out={tmp_path / 'cache'}")
+    else:  # where each would write, were the input good
+        args.append({"train.teacher_labels": f"out={tmp_path / 'cache'}", "train.quantize_semantic": f"dst={tmp_path / 'q.onnx'}",
+                     "train.flow": f"run_dir={tmp_path / 'flow'}", "train.priors": f"out={tmp_path / 'priors.yaml'}"}[module])
     p = subprocess.run(args, cwd=CONF.parent, capture_output=True, text=True, timeout=300)
     assert p.returncode == 1
     err = [line for line in p.stderr.splitlines() if line.strip() and "WARNING" not in line]

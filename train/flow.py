@@ -67,8 +67,10 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from monostixels._checks import InputError
 from monostixels.data.synthetic import SOURCE_SEED_STRIDE, render_pair
 from monostixels.inputs.raft import RAFT_MIN_SIZE, RAFT_MULTIPLE, RaftFlow, build_raft, export_onnx, load_raft_weights, mask_hidden_of, quantize_onnx
+from train._entry import one_line_errors
 
 logger = logging.getLogger("train.flow")
 
@@ -174,7 +176,7 @@ def real_pool(cfg: DictConfig) -> list[Sample]:
     for src_cfg in rc.sources:
         d = OmegaConf.to_container(src_cfg, resolve=True)
         if "0023" in str(d.get("root", "")) or "lidar" in str(d.get("root", "")):
-            raise ValueError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never train on it")
+            raise InputError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never train on it")
         src = make_source(d)
         for pair in tqdm(src, desc=f"teacher flow {d['name']}", leave=False):
             H, W = pair.size
@@ -335,7 +337,7 @@ def calibration_pairs(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor]
     for src_cfg in cfg.real.sources:
         d = OmegaConf.to_container(src_cfg, resolve=True)
         if "0023" in str(d.get("root", "")) or "lidar" in str(d.get("root", "")):
-            raise ValueError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never calibrate on it")
+            raise InputError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never calibrate on it")
         for k, pair in enumerate(make_source(d)):
             if k >= per:
                 break
@@ -351,7 +353,7 @@ def export(cfg: DictConfig) -> None:
     ``export.onnx: null`` only the weights are kept (a run to be exported later with ``export_only``)."""
     if not cfg.export.onnx:
         if cfg.export_only:
-            raise ValueError("export_only=true needs export.onnx: the ONNX file to write")
+            raise InputError("export_only=true needs export.onnx: the ONNX file to write")
         logger.info("no ONNX export (export.onnx is null): the weights are %s", cfg.out_weights)
         return
     model = load_raft_weights(cfg.out_weights, cfg.size)
@@ -375,12 +377,12 @@ def _device(cfg: DictConfig) -> tuple[torch.device, bool]:
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     if name not in ("cpu", "cuda"):
-        raise ValueError(f"device: cpu, cuda or auto, got {name!r}")
+        raise InputError(f"device: cpu, cuda or auto, got {name!r}")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device=cuda: torch sees no CUDA device here (device=cpu or device=auto)")
+        raise InputError("device=cuda: torch sees no CUDA device here (device=cpu or device=auto)")
     amp = str(cfg.get("amp", "none"))
     if amp not in ("none", "bf16"):
-        raise ValueError(f"amp: none or bf16, got {amp!r}")
+        raise InputError(f"amp: none or bf16, got {amp!r}")
     return torch.device(name), amp == "bf16"
 
 
@@ -401,6 +403,7 @@ def write_weights(model: torch.nn.Module, out: Path) -> None:
 
 
 @hydra.main(config_path="../conf", config_name="train_flow", version_base=None)
+@one_line_errors("train.flow")
 def main(cfg: DictConfig) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     run_dir = Path(cfg.run_dir)
@@ -417,7 +420,7 @@ def main(cfg: DictConfig) -> None:
     torch.manual_seed(int(cfg.seed))
     crop = (int(cfg.crop[0]), int(cfg.crop[1]))
     if any(c % RAFT_MULTIPLE or c < RAFT_MIN_SIZE for c in crop):
-        raise ValueError(f"crop: both sides must be multiples of {RAFT_MULTIPLE} and >= {RAFT_MIN_SIZE}, got {crop}")
+        raise InputError(f"crop: both sides must be multiples of {RAFT_MULTIPLE} and >= {RAFT_MIN_SIZE}, got {crop}")
     stages = [dict(s) for s in OmegaConf.to_container(cfg.stages, resolve=True)]
     total = sum(int(s["steps"]) for s in stages)
 
@@ -430,11 +433,11 @@ def main(cfg: DictConfig) -> None:
         # The convex upsampler alone, on a trained body: the 1/8-resolution flow stays what it was, and a
         # step costs about a quarter (no backward pass through the body).
         if getattr(model, "mask_predictor", None) is None:
-            raise ValueError("trainable=mask_predictor: the model has no convex upsampler (set mask_hidden > 0)")
+            raise InputError("trainable=mask_predictor: the model has no convex upsampler (set mask_hidden > 0)")
         for name, prm in model.named_parameters():
             prm.requires_grad_(name.startswith("mask_predictor."))
     elif trainable != "all":
-        raise ValueError(f"trainable: all or mask_predictor, got {trainable!r}")
+        raise InputError(f"trainable: all or mask_predictor, got {trainable!r}")
     params = [q for q in model.parameters() if q.requires_grad]
     opt = torch.optim.AdamW(params, lr=float(stages[0]["lr"]), weight_decay=float(cfg.weight_decay), eps=1e-8)
     step, history, val_history = 0, [], []
@@ -451,7 +454,7 @@ def main(cfg: DictConfig) -> None:
         # Only a head the initial weights lack may start from scratch (a convex upsampler added to a
         # bilinear RAFT-small); anything else is the wrong architecture.
         if unexpected or any(not k.startswith("mask_predictor.") for k in missing):
-            raise ValueError(f"init_weights: {cfg.init_weights!r} does not fit the configured RAFT-{cfg.size} "
+            raise InputError(f"init_weights: {cfg.init_weights!r} does not fit the configured RAFT-{cfg.size} "
                              f"(missing {missing[:3]}, unexpected {unexpected[:3]})")
         logger.info("initialised from %s%s", cfg.init_weights,
                     f" (convex upsampler from scratch: {len(missing)} tensors)" if missing else "")

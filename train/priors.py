@@ -51,6 +51,7 @@ from monostixels.core.energy import PriorParams, gravity, ordering_from_depths
 from monostixels.core.geometry import ground_basis, pixel_rays
 from monostixels.core.columns import ColumnProblem, _row_costs, beyond_horizon, prepare_columns
 from monostixels.core.solver import ColumnSolution, SolverConfig, solve_columns
+from train._entry import one_line_errors
 
 __all__ = ["labelling_energy", "perceptron_loss", "build_problems", "learn_priors", "write_prior_yaml",
            "priors_from_sweep", "subsample_columns", "main"]
@@ -276,6 +277,7 @@ def priors_from_sweep(results: str | Path, base: str = "default") -> PriorParams
 
 
 @hydra.main(config_path="../conf", config_name=CONFIG_NAME, version_base="1.3")
+@one_line_errors("train.priors")
 def main(cfg: DictConfig) -> None:
     """Build the training problems, learn the priors, write ``cfg.out``.
 

@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 
 from monostixels._checks import InputError
 from monostixels.inputs.quantize import quantize_fcn8s_onnx
+from train._entry import one_line_errors
 
 logger = logging.getLogger(__name__)
 
@@ -52,6 +53,7 @@ def run(cfg: DictConfig) -> dict[str, object]:
 
 
 @hydra.main(config_path="../conf", config_name="quantize_semantic", version_base=None)
+@one_line_errors("train.quantize_semantic")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point (``python -m train.quantize_semantic key=value ...``)."""
     print(json.dumps(run(cfg), indent=1))

@@ -60,6 +60,7 @@ from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
 from monostixels.inputs.semantic import estimate_semantics, onnx_segmenter
+from train._entry import one_line_errors
 
 __all__ = [
     "SEED_STRIDE",
@@ -845,7 +846,7 @@ def _items(cfg: DictConfig) -> tuple[list[tuple[int, int | None]], list[tuple[in
     train: list[tuple[int, int | None]] = []
     for s in d.train_source_seeds:
         if int(s) == int(d.val_source_seed) or int(s) < 10:
-            raise ValueError(f"data.train_source_seeds: {s} is reserved (validation {d.val_source_seed}, evaluation < 10)")
+            raise InputError(f"data.train_source_seeds: {s} is reserved (validation {d.val_source_seed}, evaluation < 10)")
         for i in range(int(d.frames_per_seed)):
             seed = scene_seed(int(s), i)
             # Every other frame with a randomised appearance (textures, colours, lighting).
@@ -861,7 +862,7 @@ def _real_set(cfg: DictConfig, split: str, transform: Callable | None) -> RealSe
     if root is None:
         return None
     if split == "test":
-        raise ValueError("CamVid test is for the final report only; training never reads it")
+        raise InputError("CamVid test is for the final report only; training never reads it")
     return RealSegmentation(read_camvid_split(root, split), scale=float(cfg.data.get("real_scale", 1.0)),
                             transform=transform)
 
@@ -1161,14 +1162,10 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
 
 
 @hydra.main(config_path="../conf", config_name=CONFIG_NAME, version_base=None)
+@one_line_errors("train.semantic")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point (``python -m train.semantic key=value ...``)."""
-    try:
-        result = run(cfg)
-    except InputError as e:
-        # A bad input (a missing cache or weights file, an unknown option value): one line, no traceback.
-        print(f"train.semantic: error: {e}", file=sys.stderr)
-        sys.exit(1)
+    result = run(cfg)
     print(json.dumps({k: v for k, v in result.items() if k != "history"}, indent=1))
 
 

@@ -34,7 +34,6 @@ import glob
 import json
 import logging
 import os
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +49,7 @@ from tqdm import tqdm
 
 from monostixels._checks import InputError
 from monostixels.core.classes import NUM_CLASSES
+from train._entry import one_line_errors
 
 __all__ = [
     "SoftEntry",
@@ -340,15 +340,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(config_path="../conf", config_name="teacher_labels", version_base=None)
+@one_line_errors("train.teacher_labels")
 def main(cfg: DictConfig) -> None:
     """Hydra entry point (``python -m train.teacher_labels key=value ...``)."""
-    try:
-        result = run(cfg)
-    except InputError as e:
-        # A bad input (a missing frame folder or teacher model): one line, no traceback.
-        print(f"train.teacher_labels: error: {e}", file=sys.stderr)
-        sys.exit(1)
-    print(json.dumps(result, indent=1))
+    print(json.dumps(run(cfg), indent=1))
 
 
 if __name__ == "__main__":
