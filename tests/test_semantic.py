@@ -342,6 +342,79 @@ def test_fine_tuning_starts_from_saved_weights(tmp_path: Path) -> None:
         mod.build_model({**cfg, "fc_channels": 16, "init_from": str(path)})
 
 
+def test_the_stride4_skip_runs_exports_and_starts_from_an_fcn8s(tmp_path: Path) -> None:
+    mod = _load_train_module()
+    from monostixels.inputs.fcn8s import SKIP_POOL2_KEYS, _bilinear_kernel, load_fcn8s
+
+    cfg = {"width_mult": TINY, "batch_norm": True, "fc_kernel": 3, "fc_channels": 32, "dropout": 0.0}
+    torch.manual_seed(1)
+    src, arch = mod.build_model(cfg)
+    _randomise(src)
+    with torch.no_grad():  # the upsamplers back to bilinear: the comparison below is of the skip alone
+        for up, f in ((src.upscore2, 2), (src.upscore_pool4, 2), (src.upscore8, 8)):
+            up.weight.copy_(_bilinear_kernel(NUM_CLASSES, 2 * f))
+    path = save_fcn8s(src, tmp_path / "fcn8s.pt", arch=arch)
+    model, arch4 = mod.build_model({**cfg, "skip_pool2": True, "init_from": str(path)})
+    assert arch4 == {**arch, "skip_pool2": True}
+    own = model.state_dict()
+    for k, v in src.state_dict().items():
+        if k != "upscore8.weight":
+            assert torch.equal(own[k], v), k
+    assert set(own) - set(src.state_dict()) == set(SKIP_POOL2_KEYS)
+    # Started from the FCN-8s (pool2's scores zero): the same scores but for a 2x-then-4x bilinear
+    # upsampling in place of one 8x; the classes agree nearly everywhere.
+    x = torch.rand(1, 3, 96, 128)
+    with torch.no_grad():
+        a, b = src.eval()(x), model.eval()(x)
+    assert (a.argmax(1) == b.argmax(1)).float().mean() > 0.95
+    assert float(model.score_pool2.weight.abs().max()) == 0.0
+    # A file of the stride-4 net loads as one, and exports with the torch and ONNX graphs agreeing.
+    _randomise(model, seed=3)
+    pt = save_fcn8s(model, tmp_path / "s4.pt", arch=arch4)
+    back, _ = load_fcn8s(pt)
+    assert back.skip_pool2 and all(torch.equal(back.state_dict()[k], v) for k, v in model.state_dict().items())
+    onnx_path = export_onnx(model.eval(), tmp_path / "s4.onnx", sample_size=(64, 96))
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        ref = model.forward_aligned(x).numpy()
+    out = sess.run(None, {"image": x.numpy()})[0]
+    assert np.abs(ref).max() > 1e-2
+    np.testing.assert_allclose(out, ref, atol=1e-4, rtol=1e-4)
+    # Another FCN-8s architecture does not fit.
+    with pytest.raises(InputError, match="model.init_from"):
+        mod.build_model({**cfg, "fc_channels": 16, "skip_pool2": True, "init_from": str(path)})
+
+
+def test_the_stride4_skip_draws_thin_poles_the_stride8_net_cannot() -> None:
+    # Vertical 3 px lines on a plain background, 4 px apart at their nearest: a stride-8 score map
+    # blurs them into their background, the stride-4 skip separates them. The same steps for both.
+    mod = _load_train_module()
+    rng = np.random.default_rng(0)
+    images, labels = [], []
+    for _ in range(6):
+        img = torch.full((3, 64, 64), 0.3)
+        lab = torch.zeros(64, 64, dtype=torch.long)
+        for u in rng.choice(np.arange(2, 60, 7), size=4, replace=False):
+            img[:, :, u:u + 3] = 0.9
+            lab[:, u:u + 3] = 1
+        images.append(img)
+        labels.append(lab)
+    batch = (torch.stack(images), torch.stack(labels))
+    iou = {}
+    for skip in (False, True):
+        torch.manual_seed(0)
+        model, _ = mod.build_model({"width_mult": TINY, "batch_norm": True, "fc_kernel": 3, "fc_channels": 32,
+                                    "dropout": 0.0, "skip_pool2": skip})
+        opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-2)
+        mod.train_steps(model, [batch] * 60, opt)
+        with torch.no_grad():
+            pred = model.eval()(batch[0]).argmax(1)
+        inter = ((pred == 1) & (batch[1] == 1)).sum().item()
+        union = ((pred == 1) | (batch[1] == 1)).sum().item()
+        iou[skip] = inter / max(union, 1)
+    assert iou[True] > 0.4 and iou[True] > 2 * iou[False], iou
+
+
 def test_augment_keeps_labels_valid_and_crops() -> None:
     mod = _load_train_module()
     aug = OmegaConf.load(CONF / "train_semantic_synthetic.yaml").augment

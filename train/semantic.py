@@ -58,7 +58,8 @@ from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSource, read_camvid_split
 from monostixels.eval.metrics import SemanticAccumulator
 from monostixels.eval.semantic import image_pair
-from monostixels.inputs.fcn8s import FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_vgg16_backbone, save_fcn8s
+from monostixels.inputs.fcn8s import (FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_fcn8s_state, load_vgg16_backbone,
+                                      save_fcn8s)
 from monostixels.inputs.semantic import estimate_semantics, onnx_segmenter
 from train._entry import one_line_errors
 
@@ -678,6 +679,8 @@ def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
         "fc_channels": None if mcfg.get("fc_channels") is None else int(mcfg["fc_channels"]),
         "dropout": float(mcfg["dropout"]),
     }
+    if mcfg.get("skip_pool2"):  # only where set: the arch of the FCN-8s files stays as it was
+        arch["skip_pool2"] = True
     model = fcn8s_vgg16(**arch)
     if mcfg.get("vgg16_weights"):
         load_vgg16_backbone(model, mcfg["vgg16_weights"])
@@ -689,7 +692,10 @@ def build_model(mcfg: DictConfig | dict) -> tuple[FCN8s, dict]:
             raise InputError(f"model.init_from: {exc} (the training config's comment says where those weights "
                              "come from)") from None
         try:
-            model.load_state_dict(init.state_dict())
+            fresh = load_fcn8s_state(model, init.state_dict())
+            if fresh:
+                logger.info("model.init_from: an FCN-8s; the stride-4 skip starts at its initial values (%s)",
+                            ", ".join(fresh))
         except RuntimeError as exc:
             raise InputError(f"model.init_from {mcfg['init_from']}: does not fit the model config {arch}: {exc}") from None
     return model, arch
@@ -1094,7 +1100,14 @@ def _export_and_evaluate(cfg: DictConfig, run_dir: Path, val_items: list) -> dic
     early_path = cfg.export.get("interpolate_from")
     if early_path:
         early = torch.load(early_path, map_location="cpu", weights_only=True)
-        state = interpolate_weights(state, early["state_dict"], float(cfg.export.interpolate_alpha))
+        # The early net as the run started from it (an FCN-8s into the stride-4 net: its new layers
+        # at their initial values), tensor for tensor beside the trained one.
+        start = fcn8s_vgg16(**best["arch"])
+        try:
+            load_fcn8s_state(start, early["state_dict"])
+        except RuntimeError:
+            raise InputError("export.interpolate_from: the checkpoint's tensors differ from the trained model's") from None
+        state = interpolate_weights(state, start.state_dict(), float(cfg.export.interpolate_alpha))
         best = {**best, "epoch": f"{best['epoch']} (x{float(cfg.export.interpolate_alpha):g}) + epoch "
                                  f"{early.get('epoch', Path(early_path).name)} (x{1 - float(cfg.export.interpolate_alpha):g})"}
     model.load_state_dict(state)

@@ -41,7 +41,7 @@ from torch import nn
 from monostixels._checks import InputError, check_shape
 from monostixels.core.classes import NUM_CLASSES
 
-__all__ = ["FCN8s", "fcn8s_vgg16", "vgg16_features", "load_vgg16_backbone", "VGG16_CFG", "OUTPUT_STRIDE",
+__all__ = ["FCN8s", "fcn8s_vgg16", "SKIP_POOL2_KEYS", "load_fcn8s_state", "vgg16_features", "load_vgg16_backbone", "VGG16_CFG", "OUTPUT_STRIDE",
            "export_onnx", "save_fcn8s", "load_fcn8s", "ONNX_INPUT", "ONNX_OUTPUT"]
 
 logger = logging.getLogger(__name__)
@@ -66,6 +66,8 @@ ONNX_OUTPUT = "scores"
 ONNX_OPSET = 17
 #: Smallest channel count of a width-reduced layer (keeps tiny test networks well defined).
 MIN_CHANNELS = 4
+#: The tensors ``skip_pool2`` adds to an FCN-8s (and the one it drops: its 8x upsampler).
+SKIP_POOL2_KEYS = ("score_pool2.weight", "score_pool2.bias", "upscore_pool3.weight", "upscore4.weight")
 
 
 def _scaled(channels: int, width_mult: float) -> int:
@@ -132,6 +134,10 @@ class FCN8s(nn.Module):
         dropout: dropout probability after fc6 and fc7 (training only).
         learned_upsampling: train the 2x upsamplers (bilinear init); the final 8x is fixed bilinear
             as in the original.
+        skip_pool2: a fourth skip, from pool2 (stride 4): the fused stride-8 scores are upsampled 2x
+            (learned as the others), pool2's scores added, and the final upsampling is 4x. A thin
+            pole spans a few pixels, under one stride-8 cell; its scores zero-initialised, the net
+            starts as the FCN-8s it extends (:data:`SKIP_POOL2_KEYS`).
         mean: RGB mean subtracted from the [0, 1] input.
         std: RGB std the input is divided by.
 
@@ -148,6 +154,7 @@ class FCN8s(nn.Module):
         fc_kernel: int = VGG16_FC6_KERNEL,
         dropout: float = 0.5,
         learned_upsampling: bool = True,
+        skip_pool2: bool = False,
         mean: Sequence[float] = IMAGENET_MEAN,
         std: Sequence[float] = IMAGENET_STD,
     ) -> None:
@@ -157,8 +164,10 @@ class FCN8s(nn.Module):
         pools = [i for i, m in enumerate(backbone) if isinstance(m, nn.MaxPool2d)]
         if len(pools) != 5:
             raise InputError(f"backbone: expected 5 MaxPool2d layers (VGG), found {len(pools)}")
-        # Outputs of pool3 (stride 8) and pool4 (stride 16) feed the skip score layers.
+        # Outputs of pool3 (stride 8) and pool4 (stride 16) feed the skip score layers (and pool2,
+        # stride 4, with skip_pool2).
         self._taps = (pools[2], pools[3])
+        self._pool2 = pools[1] if skip_pool2 else None
         convs = [m for m in backbone if isinstance(m, nn.Conv2d)]
         ch_pool3 = _out_channels_before(backbone, pools[2])
         ch_pool4 = _out_channels_before(backbone, pools[3])
@@ -175,7 +184,13 @@ class FCN8s(nn.Module):
         self.score_pool3 = nn.Conv2d(ch_pool3, num_classes, kernel_size=1)
         self.upscore2 = _upsampler(num_classes, 2, learned=learned_upsampling)
         self.upscore_pool4 = _upsampler(num_classes, 2, learned=learned_upsampling)
-        self.upscore8 = _upsampler(num_classes, 8, learned=False)
+        self.skip_pool2 = bool(skip_pool2)
+        if self.skip_pool2:
+            self.score_pool2 = nn.Conv2d(_out_channels_before(backbone, pools[1]), num_classes, kernel_size=1)
+            self.upscore_pool3 = _upsampler(num_classes, 2, learned=learned_upsampling)
+            self.upscore4 = _upsampler(num_classes, 4, learned=False)
+        else:
+            self.upscore8 = _upsampler(num_classes, 8, learned=False)
         self._init_head()
 
     def _init_head(self) -> None:
@@ -183,7 +198,7 @@ class FCN8s(nn.Module):
             nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
             nn.init.zeros_(m.bias)
         # Score layers start at zero, as in the FCN paper (section 4.3, "zero-initialised").
-        for m in (self.score_fr, self.score_pool4, self.score_pool3):
+        for m in (self.score_fr, self.score_pool4, self.score_pool3) + ((self.score_pool2,) if self.skip_pool2 else ()):
             nn.init.zeros_(m.weight)
             nn.init.zeros_(m.bias)
 
@@ -197,17 +212,22 @@ class FCN8s(nn.Module):
             (B, num_classes, H, W) logits.
         """
         h = (x - self.mean) / self.std
-        pool3 = pool4 = h
+        pool2 = pool3 = pool4 = h
         for i, layer in enumerate(self.backbone):
             h = layer(h)
             if i == self._taps[0]:
                 pool3 = h
             elif i == self._taps[1]:
                 pool4 = h
+            elif i == self._pool2:
+                pool2 = h
         h = self.drop(F.relu(self.fc6(h), inplace=True))
         h = self.drop(F.relu(self.fc7(h), inplace=True))
         s = self.upscore2(self.score_fr(h))                       # B x C x H/16 x W/16
         s = self.upscore_pool4(s + self.score_pool4(pool4))      # B x C x H/8 x W/8
+        if self.skip_pool2:
+            s = self.upscore_pool3(s + self.score_pool3(pool3))  # B x C x H/4 x W/4
+            return self.upscore4(s + self.score_pool2(pool2))    # B x C x H x W
         return self.upscore8(s + self.score_pool3(pool3))        # B x C x H x W
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -243,6 +263,7 @@ def fcn8s_vgg16(
     fc_channels: int | None = None,
     dropout: float = 0.5,
     learned_upsampling: bool = True,
+    skip_pool2: bool = False,
 ) -> FCN8s:
     """FCN-8s on VGG-16 (``width_mult=1.0``: the paper's network, fc6 7 x 7 with 4096 channels).
 
@@ -254,6 +275,7 @@ def fcn8s_vgg16(
         fc_channels: channels of fc6/fc7; None = 4096 x ``width_mult``.
         dropout: dropout after fc6/fc7.
         learned_upsampling: learn the two 2x upsamplers.
+        skip_pool2: add the stride-4 skip from pool2 (see :class:`FCN8s`).
 
     Returns:
         An :class:`FCN8s` mapping (B, 3, H, W) RGB [0, 1] to (B, num_classes, H, W) logits.
@@ -268,6 +290,7 @@ def fcn8s_vgg16(
         fc_kernel=fc_kernel,
         dropout=dropout,
         learned_upsampling=learned_upsampling,
+        skip_pool2=skip_pool2,
     )
 
 
@@ -443,6 +466,29 @@ def save_fcn8s(model: FCN8s, path: str | Path, *, arch: dict, meta: dict | None 
     state = {k: (v.half() if half and v.is_floating_point() else v) for k, v in model.state_dict().items()}
     torch.save({"arch": dict(arch), "state_dict": state, "meta": dict(meta or {})}, path)
     return path
+
+
+def load_fcn8s_state(model: FCN8s, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load ``state`` into ``model``; an FCN-8s's state into a ``skip_pool2`` model is allowed.
+
+    That one start keeps the new layers as initialised (pool2's scores zero, the 2x upsampler bilinear)
+    and drops the FCN-8s's fixed 8x upsampler: the fine-tuning of an FCN-8s into the stride-4 net.
+
+    Returns:
+        The names of ``model``'s tensors left at their initial values (empty for a full match).
+
+    Raises:
+        RuntimeError: any other mismatch (as ``load_state_dict``).
+    """
+    state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+    own = model.state_dict()
+    if model.skip_pool2 and not any(k in state for k in SKIP_POOL2_KEYS) and "upscore8.weight" in state:
+        state = {k: v for k, v in state.items() if k != "upscore8.weight"}
+        kept = [k for k in SKIP_POOL2_KEYS if k in own]
+        model.load_state_dict({**state, **{k: own[k] for k in kept}})
+        return kept
+    model.load_state_dict(state)
+    return []
 
 
 def load_fcn8s(path: str | Path) -> tuple[FCN8s, dict]:
