@@ -41,8 +41,9 @@ from torch import nn
 from monostixels._checks import InputError, check_shape
 from monostixels.core.classes import NUM_CLASSES
 
-__all__ = ["FCN8s", "fcn8s_vgg16", "SKIP_POOL2_KEYS", "load_fcn8s_state", "vgg16_features", "load_vgg16_backbone", "VGG16_CFG", "OUTPUT_STRIDE",
-           "export_onnx", "save_fcn8s", "load_fcn8s", "ONNX_INPUT", "ONNX_OUTPUT"]
+__all__ = ["FCN8s", "fcn8s_vgg16", "vgg16_features", "load_vgg16_backbone", "VGG16_CFG", "OUTPUT_STRIDE",
+           "export_onnx", "save_fcn8s", "load_fcn8s", "load_fcn8s_state", "SKIP_POOL2_KEYS", "ONNX_INPUT",
+           "ONNX_OUTPUT"]
 
 logger = logging.getLogger(__name__)
 
