@@ -5,14 +5,16 @@ fails with a message that names it (docs/conventions.md, section 7).
 """
 from __future__ import annotations
 
+import functools
 import re
+import sys
 from dataclasses import fields
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
+__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "one_line_errors", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
            "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error"]
 
 
@@ -164,6 +166,29 @@ def numeric_text_error(cfg: Any, error: BaseException) -> InputError | None:
         return None
     what = "an integer" if "int()" in prefix else "a number"
     return InputError(f"{', '.join(names)}: expected {what}, got {text}")
+
+
+def one_line_errors(prog: str) -> Callable[[Callable[[Any], Any]], Callable[[Any], Any]]:
+    """Decorate a command's ``main(cfg)`` so that a bad input ends it in one line: ``<prog>: error: <message>``
+    on stderr, exit status 1, no traceback (the ``monostixels`` commands and every training script).
+
+    A bad input is an :class:`InputError`, or text given for a number where an option outside the
+    config groups' schemas is converted where it is used (:func:`numeric_text_error` names the option).
+    Any other exception is a bug and keeps its traceback.
+    """
+    def wrap(main: Callable[[Any], Any]) -> Callable[[Any], Any]:
+        @functools.wraps(main)
+        def entry(cfg: Any) -> Any:
+            try:
+                return main(cfg)
+            except ValueError as e:
+                error = e if isinstance(e, InputError) else numeric_text_error(cfg, e)
+                if error is None:
+                    raise
+                print(f"{prog}: error: {error}", file=sys.stderr)
+                sys.exit(1)
+        return entry
+    return wrap
 
 
 def _leaves(node: Any, prefix: str) -> Iterable[tuple[str, Any]]:

@@ -151,37 +151,29 @@ def _refuse_bad_settings(cmd: str, flags: list[str], overrides: list[str]) -> No
 
 
 def _run_command(cfg: DictConfig) -> Any:
-    from monostixels._checks import InputError, numeric_text_error
+    from monostixels._checks import one_line_errors
     from monostixels._threads import set_threads
 
     logging.getLogger("monostixels").setLevel(str(cfg.log_level))
-    try:
-        try:
-            # One thread budget for torch, OpenCV and ONNX Runtime before any of them starts its pool.
-            set_threads(cfg.get("threads", "auto"))
-            if cfg.command == "demo":
-                return _demo(cfg)
-            if cfg.command == "eval":
-                return _eval(cfg)
-            if cfg.command == "batch":
-                from monostixels.batch import run_batch
 
-                return run_batch(cfg)
-            if cfg.command == "calibrate":
-                return _calibrate(cfg)
-            return _run(cfg)
-        except ValueError as e:
-            # The config groups' schemas refuse text for a number as Hydra composes; a value outside them
-            # (a top-level key) is converted where it is used and fails there without naming the
-            # option: name it here.
-            named = None if isinstance(e, InputError) else numeric_text_error(cfg, e)
-            if named is None:
-                raise
-            raise named from None
-    except InputError as e:
-        # A user's bad input: one clear line, no traceback.
-        print(f"monostixels {cfg.command}: error: {e}", file=sys.stderr)
-        sys.exit(1)
+    # A user's bad input: one clear line, no traceback.
+    @one_line_errors(f"monostixels {cfg.command}")
+    def dispatch(cfg: DictConfig) -> Any:
+        # One thread budget for torch, OpenCV and ONNX Runtime before any of them starts its pool.
+        set_threads(cfg.get("threads", "auto"))
+        if cfg.command == "demo":
+            return _demo(cfg)
+        if cfg.command == "eval":
+            return _eval(cfg)
+        if cfg.command == "batch":
+            from monostixels.batch import run_batch
+
+            return run_batch(cfg)
+        if cfg.command == "calibrate":
+            return _calibrate(cfg)
+        return _run(cfg)
+
+    return dispatch(cfg)
 
 
 def _hydra_main() -> None:

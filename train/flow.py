@@ -67,10 +67,9 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, one_line_errors
 from monostixels.data.synthetic import SOURCE_SEED_STRIDE, render_pair
 from monostixels.inputs.raft import RAFT_MIN_SIZE, RAFT_MULTIPLE, RaftFlow, build_raft, export_onnx, load_raft_weights, mask_hidden_of, quantize_onnx
-from train._entry import one_line_errors
 
 logger = logging.getLogger("train.flow")
 

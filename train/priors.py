@@ -51,7 +51,7 @@ from monostixels.core.energy import PriorParams, gravity, ordering_from_depths
 from monostixels.core.geometry import ground_basis, pixel_rays
 from monostixels.core.columns import ColumnProblem, _row_costs, beyond_horizon, prepare_columns
 from monostixels.core.solver import ColumnSolution, SolverConfig, solve_columns
-from train._entry import one_line_errors
+from monostixels._checks import one_line_errors
 
 __all__ = ["labelling_energy", "perceptron_loss", "build_problems", "learn_priors", "write_prior_yaml",
            "priors_from_sweep", "subsample_columns", "main"]

@@ -20,9 +20,8 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, one_line_errors
 from monostixels.inputs.quantize import quantize_fcn8s_onnx
-from train._entry import one_line_errors
 
 logger = logging.getLogger(__name__)
 

@@ -53,7 +53,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, SubsetRandomSampler
 from tqdm import tqdm
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, one_line_errors
 from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
 from monostixels.data.camvid import CAMVID_CLASSES_PRESENT, CamVidItem, CamVidSource, read_camvid_split
 from monostixels.eval.metrics import SemanticAccumulator
@@ -61,7 +61,6 @@ from monostixels.eval.semantic import image_pair
 from monostixels.inputs.fcn8s import (FCN8s, export_onnx, fcn8s_vgg16, load_fcn8s, load_fcn8s_state, load_vgg16_backbone,
                                       save_fcn8s)
 from monostixels.inputs.semantic import estimate_semantics, onnx_segmenter
-from train._entry import one_line_errors
 
 __all__ = [
     "SEED_STRIDE",

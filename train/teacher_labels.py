@@ -47,9 +47,8 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, one_line_errors
 from monostixels.core.classes import NUM_CLASSES
-from train._entry import one_line_errors
 
 __all__ = [
     "SoftEntry",

@@ -508,5 +508,5 @@ def load_fcn8s(path: str | Path) -> tuple[FCN8s, dict]:
     if not isinstance(blob, dict) or "arch" not in blob or "state_dict" not in blob:
         raise InputError(f"FCN-8s weights file {path}: expected a dict with 'arch' and 'state_dict'")
     model = fcn8s_vgg16(**blob["arch"])
-    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()})
+    load_fcn8s_state(model, blob["state_dict"])
     return model.eval(), dict(blob.get("meta", {}))

@@ -322,7 +322,7 @@ def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor, passes: int
     again by the refined flow, as the levels of a pyramid would (docs/experiments.md "Flow").
     """
     f = np.ascontiguousarray(flow.permute(1, 2, 0).numpy(), dtype=np.float32)
-    refinement = _kept(("refine",), cv2.VariationalRefinement_create)
+    refinement = _refinement()
     for _ in range(passes):
         refinement.calc(grey[0], grey[1], f)
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1)))
@@ -331,21 +331,18 @@ def _refine(grey: tuple[np.ndarray, np.ndarray], flow: torch.Tensor, passes: int
 _KEPT = threading.local()
 
 
-def _kept(key: tuple, make: Callable[[], Any]) -> Any:
-    """The OpenCV flow object ``make()`` of this thread and ``key`` (its settings), made once and kept.
+def _refinement() -> Any:
+    """This thread's OpenCV ``VariationalRefinement``, made once and kept.
 
-    A new ``VariationalRefinement`` allocates its full-size buffers at its first call (~25 ms of a
-    ~85 ms refinement of a KITTI frame on one core); a kept one reuses them. The results are
-    bit-identical (each call starts from the flow and images it is given; tests/test_flow.py). One
-    object per thread: the two directions and the strips refine in threads of their own. Not for DIS:
-    a DIS object given a start keeps some of it for its later calls (their flow then differs).
+    A new one allocates its full-size buffers at its first call (~25 ms of a ~85 ms refinement of a
+    KITTI frame on one core); a kept one reuses them. The results are bit-identical (each call starts
+    from the flow and images it is given; tests/test_flow.py). One per thread: the two directions and
+    the strips refine in threads of their own. DIS objects are not kept: one given a start keeps some
+    of it for its later calls (their flow then differs).
     """
-    kept = getattr(_KEPT, "objects", None)
-    if kept is None:
-        kept = _KEPT.objects = {}
-    obj = kept.get(key)
+    obj = getattr(_KEPT, "refinement", None)
     if obj is None:
-        obj = kept[key] = make()
+        obj = _KEPT.refinement = cv2.VariationalRefinement_create()
     return obj
 
 
