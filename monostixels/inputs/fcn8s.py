@@ -67,7 +67,7 @@ ONNX_OUTPUT = "scores"
 ONNX_OPSET = 17
 #: Smallest channel count of a width-reduced layer (keeps tiny test networks well defined).
 MIN_CHANNELS = 4
-#: The tensors ``skip_pool2`` adds to an FCN-8s (and the one it drops: its 8x upsampler).
+#: The tensors ``skip_pool2`` adds to an FCN-8s (it drops one: ``upscore8.weight``, the 8x upsampler).
 SKIP_POOL2_KEYS = ("score_pool2.weight", "score_pool2.bias", "upscore_pool3.weight", "upscore4.weight")
 
 
@@ -485,9 +485,8 @@ def load_fcn8s_state(model: FCN8s, state: dict[str, torch.Tensor]) -> list[str]:
     own = model.state_dict()
     if model.skip_pool2 and not any(k in state for k in SKIP_POOL2_KEYS) and "upscore8.weight" in state:
         state = {k: v for k, v in state.items() if k != "upscore8.weight"}
-        kept = [k for k in SKIP_POOL2_KEYS if k in own]
-        model.load_state_dict({**state, **{k: own[k] for k in kept}})
-        return kept
+        model.load_state_dict({**state, **{k: own[k] for k in SKIP_POOL2_KEYS}})
+        return list(SKIP_POOL2_KEYS)
     model.load_state_dict(state)
     return []
 
