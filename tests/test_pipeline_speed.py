@@ -307,6 +307,46 @@ def test_clip_eigenvalues_closed_form_matches_eigh():
     assert torch.equal(got[:, 0, 1], got[:, 1, 0])
 
 
+def test_flow_covariance_computed_in_place_equals_the_written_formulas():
+    # flow_covariance reuses its arrays step by step; the formulas written out with a fresh array for
+    # each step must give the same bits (an aliasing slip would not).
+    from monostixels.inputs.confidence import ConfidenceParams, _structure_tensor_parts, flow_covariance, to_gray
+
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(3, 48, 64, generator=g)
+    img[:, 20:30] = 0.5  # a textureless band: the prior and the ceiling
+    fb = torch.rand(48, 64, generator=g) * 4
+    fb[::5, ::3] = float("inf")
+    fb[7, 9] = float("nan")
+    for p in (ConfidenceParams(), ConfidenceParams(sigma_min=1.0, fb_weight=0.5), ConfidenceParams(method="constant")):
+        for err in (None, fb):
+            got = flow_covariance(img, p, fb_error=err).double()
+            if p.method == "constant":
+                a = np.full((48, 64), p.sigma**2)
+                b = np.zeros((48, 64))
+                c = a.copy()
+            else:
+                jxx, jxy, jyy = (x.astype(np.float64) for x in _structure_tensor_parts(to_gray(img).numpy(), p.window_sigma))
+                k = 4.0 * math.pi * p.window_sigma**2 / p.noise**2
+                prior = 1.0 / p.sigma_max**2
+                ia, ib, ic = jxx * k + prior, jxy * k, jyy * k + prior
+                det = ia * ic - ib * ib
+                a, b, c = ic / det, -ib / det, ia / det
+            if err is not None:
+                e = np.minimum(p.fb_weight * np.nan_to_num(err.numpy(), nan=np.inf), p.sigma_max).astype(np.float64)
+                a, c = a + e * e, c + e * e
+            lo, hi = p.sigma_min**2, p.sigma_max**2
+            m, h = 0.5 * (a + c), 0.5 * (a - c)
+            r = np.sqrt(h * h + b * b)
+            l1, l2 = np.clip(m + r, lo, hi), np.clip(m - r, lo, hi)
+            m2, r2 = 0.5 * (l1 + l2), 0.5 * (l1 - l2)
+            ratio = np.divide(r2, r, out=np.zeros_like(r), where=r > 0)
+            want = np.stack([np.stack([m2 + ratio * h, ratio * b], -1), np.stack([ratio * b, m2 - ratio * h], -1)], -2)
+            if p.method == "constant" and err is None:
+                want = np.broadcast_to(np.diag([p.sigma**2] * 2), (48, 64, 2, 2))
+            assert torch.equal(got, torch.from_numpy(want.astype(np.float32)).double()), (p, err is None)
+
+
 def test_structure_tensor_of_a_diagonal_ramp():
     # I = gu u + gv v (gu != gv, opposite signs): J = [[gu^2, gu gv], [gu gv, gv^2]] away from the border.
     from monostixels.inputs.confidence import structure_tensor

@@ -120,7 +120,7 @@ def structure_tensor(gray: torch.Tensor, window_sigma: float) -> torch.Tensor:
 
 def _structure_tensor_parts(gray: np.ndarray, window_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(J_xx, J_xy, J_yy)`` (H, W) float32 of :func:`structure_tensor` (OpenCV filters: single-threaded
-    and much faster than the same filters as torch ops)."""
+    and much faster than the same filters as torch ops), strided views of one (H, W, 3) array."""
     g = np.ascontiguousarray(gray, dtype=np.float32)
     k = _odd_kernel_size(window_sigma)
     if g.ndim != 2 or min(g.shape) < k:
@@ -130,9 +130,14 @@ def _structure_tensor_parts(gray: np.ndarray, window_sigma: float) -> tuple[np.n
                          f"(window_sigma {window_sigma} px); need a 2-D image of at least {k}x{k} px")
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0, borderType=cv2.BORDER_REPLICATE)
-    prods = np.dstack([gx * gx, gx * gy, gy * gy])  # H x W x 3
-    prods = cv2.GaussianBlur(prods, (k, k), window_sigma, sigmaY=window_sigma, borderType=cv2.BORDER_REPLICATE)
-    return prods[..., 0].copy(), prods[..., 1].copy(), prods[..., 2].copy()
+    # The products written into one H x W x 3 array and blurred in place: every fresh full-size
+    # temporary costs its page faults, several times the arithmetic on a frame (same values).
+    prods = np.empty(g.shape + (3,), dtype=np.float32)
+    np.multiply(gx, gx, out=prods[..., 0])
+    np.multiply(gx, gy, out=prods[..., 1])
+    np.multiply(gy, gy, out=prods[..., 2])
+    cv2.GaussianBlur(prods, (k, k), window_sigma, dst=prods, sigmaY=window_sigma, borderType=cv2.BORDER_REPLICATE)
+    return prods[..., 0], prods[..., 1], prods[..., 2]
 
 
 def _odd_kernel_size(sigma: float) -> int:
@@ -195,25 +200,39 @@ def flow_covariance(
         b = np.zeros((H, W))
         c = a.copy()
     else:
-        jxx, jxy, jyy = (x.astype(np.float64) for x in _structure_tensor_parts(gray.numpy(), params.window_sigma))
+        # Each step into arrays made here (in place where an input is not read again): the same
+        # operations in the same order as the written formulas, without a fresh full-size
+        # temporary for each (their page faults cost more than the arithmetic).
+        ia, ib, ic = (x.astype(np.float64) for x in _structure_tensor_parts(gray.numpy(), params.window_sigma))
         # Effective number of pixels of a normalised Gaussian window: 1 / sum(w^2) = 4 pi sigma^2.
         n_eff = 4.0 * math.pi * params.window_sigma**2
         # Information matrix N J / noise^2 plus a prior of sigma_max^2: a textureless window gets sigma_max^2.
         k = n_eff / params.noise**2
         prior = 1.0 / params.sigma_max**2
-        ia, ib, ic = jxx * k + prior, jxy * k, jyy * k + prior
-        det = ia * ic - ib * ib  # > 0: J is positive semi-definite, the prior positive definite
-        a, b, c = ic / det, -ib / det, ia / det
+        ia *= k
+        ia += prior
+        ib *= k
+        ic *= k
+        ic += prior
+        det = ia * ic  # det = ia ic - ib^2 > 0: J is positive semi-definite, the prior positive definite
+        det -= np.multiply(ib, ib, out=np.empty_like(det))
+        # (a, b, c) = (ic, -ib, ia) / det
+        a = np.divide(ic, det, out=ic)
+        b = np.divide(np.negative(ib, out=ib), det, out=ib)
+        c = np.divide(ia, det, out=ia)
     if fb_error is not None:
         check_shape(fb_error, [H, W], "fb_error")
         e = torch.nan_to_num(fb_error.float(), nan=float("inf"), posinf=float("inf"))
         # An unchecked / occluded pixel gets the ceiling: inf -> sigma_max before squaring.
         e = torch.clamp(params.fb_weight * e, max=params.sigma_max).double().numpy()
-        a, c = a + e * e, c + e * e
-    return _clip_eigenvalues(a, b, c, params.sigma_min**2, params.sigma_max**2)
+        e2 = e * e
+        a += e2
+        c += e2
+    return _clip_eigenvalues(a, b, c, params.sigma_min**2, params.sigma_max**2, scratch=True)
 
 
-def _clip_eigenvalues(a: np.ndarray, b: np.ndarray, c: np.ndarray, lo: float, hi: float) -> torch.Tensor:
+def _clip_eigenvalues(a: np.ndarray, b: np.ndarray, c: np.ndarray, lo: float, hi: float, *,
+                      scratch: bool = False) -> torch.Tensor:
     """Symmetric 2x2 matrices ``(a, b; b, c)`` (each (H, W)) with eigenvalues clipped to ``[lo, hi]``,
     as (H, W, 2, 2) float32.
 
@@ -221,15 +240,33 @@ def _clip_eigenvalues(a: np.ndarray, b: np.ndarray, c: np.ndarray, lo: float, hi
     the eigenvalue gap), clipping keeps the eigenvectors: ``C' = m' I + (r' / r) D`` with ``m'``, ``r'``
     from the clipped eigenvalues; ``r' <= r`` (clipping is 1-Lipschitz), and ``r = 0`` (isotropic)
     gives ``D = 0``.
+
+    ``scratch``: ``a``, ``b``, ``c`` are float64 arrays the caller no longer needs, and are overwritten
+    (no full-size temporaries: see :func:`flow_covariance`); else they are copied first.
     """
-    m = 0.5 * (a + c)
-    h = 0.5 * (a - c)
-    r = np.sqrt(h * h + b * b)
-    l1, l2 = np.clip(m + r, lo, hi), np.clip(m - r, lo, hi)
-    m2, r2 = 0.5 * (l1 + l2), 0.5 * (l1 - l2)
-    ratio = np.divide(r2, r, out=np.zeros_like(r), where=r > 0)
+    if not scratch:
+        a, b, c = (np.array(x, dtype=np.float64) for x in (a, b, c))
+    m = np.add(a, c, out=np.empty_like(a))
+    m *= 0.5
+    h = np.subtract(a, c, out=a)
+    h *= 0.5
+    l1 = np.multiply(b, b, out=np.empty_like(b))
+    r = np.multiply(h, h, out=c)
+    r += l1
+    np.sqrt(r, out=r)
+    np.clip(np.add(m, r, out=l1), lo, hi, out=l1)
+    l2 = np.clip(np.subtract(m, r, out=m), lo, hi, out=m)
+    m2 = np.add(l1, l2, out=np.empty_like(l1))
+    m2 *= 0.5
+    r2 = np.subtract(l1, l2, out=l1)
+    r2 *= 0.5
+    l2.fill(0.0)
+    ratio = np.divide(r2, r, out=l2, where=r > 0)
     out = np.empty(a.shape + (2, 2), dtype=np.float32)
-    out[..., 0, 0] = m2 + ratio * h
-    out[..., 1, 1] = m2 - ratio * h
-    out[..., 0, 1] = out[..., 1, 0] = ratio * b
+    h *= ratio
+    b *= ratio
+    np.add(m2, h, out=out[..., 0, 0], casting="same_kind")
+    np.subtract(m2, h, out=out[..., 1, 1], casting="same_kind")
+    out[..., 0, 1] = b
+    out[..., 1, 0] = b
     return torch.from_numpy(out)
