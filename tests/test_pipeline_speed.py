@@ -509,13 +509,27 @@ def test_too_many_bands_for_the_image():
 
 
 def test_one_partition_median_equals_numpy():
+    # Long arrays are bracketed from a subsample first; the kinds put the middles among ties, between
+    # two clusters with no value between them ("split": the bracket misses), on zeros and -0.0, across
+    # 60 orders of magnitude, and below zero.
     from monostixels.inputs.ground import _median
 
     rng = np.random.default_rng(3)
-    for n in (1, 2, 3, 4, 7, 100, 101, 40000, 40001):
-        for kind in ("float32", "ties", "float64"):
+    kinds = ("float32", "ties", "float64", "split", "zeros", "wide", "signed")
+    for n in (1, 2, 3, 4, 7, 100, 101, 4095, 4096, 4097, 40000, 40001):
+        for kind in kinds:
             x = rng.random(n)
-            x = np.round(x * 5) / 5 if kind == "ties" else x
+            if kind == "ties":
+                x = np.round(x * 5) / 5
+            elif kind == "split":  # half near 0.1, half near 0.9: no value between the middles
+                x = np.where(np.arange(n) % 2 == 0, 0.1 + 1e-3 * x, 0.9 + 1e-3 * x)
+            elif kind == "zeros":
+                x = np.where(x < 0.6, 0.0, x)
+                x[: n // 4] = -0.0
+            elif kind == "wide":
+                x = 10.0 ** rng.uniform(-30, 30, n)
+            elif kind == "signed":
+                x = x - 0.5
             x = x.astype(np.float64 if kind == "float64" else np.float32)
             assert _median(x) == float(np.median(x)), (n, kind)
     assert math.isnan(_median(np.array([1.0, np.nan, 2.0], dtype=np.float32)))
