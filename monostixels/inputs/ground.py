@@ -193,10 +193,12 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     n = len(u)
     cols = 1024
     rows = -(-n // cols)
-    mu = np.zeros(rows * cols, dtype=np.float32)
-    mv = np.zeros(rows * cols, dtype=np.float32)
+    mu = np.empty(rows * cols, dtype=np.float32)
+    mv = np.empty(rows * cols, dtype=np.float32)
     mu[:n] = u
     mv[:n] = v
+    mu[n:] = 0.0
+    mv[n:] = 0.0
     return cv2.remap(img, mu.reshape(rows, cols), mv.reshape(rows, cols), cv2.INTER_LINEAR).reshape(-1)[:n]
 
 
@@ -261,17 +263,28 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
             if len(yn_cache) >= 8:  # the normals of one pattern-search step; bounded memory
                 yn_cache.clear()
             yn_cache[nkey] = yn
-        k = math.exp(x[0]) * yn / height
-        q2 = a2 + k * c2
-        u, v = (a0 + k * c0) / q2, (a1 + k * c1) / q2
-        inside = (q2 > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-        n_in = int(np.count_nonzero(inside))
-        if 2 * n_in < len(inside):  # fewer than half of the pixels land in the previous image
-            out = math.inf
-        elif n_in == len(inside):  # the usual case: no selection needed
+        # k = exp(x0) y.n / h; (u, v) = (a0 + k c0, a1 + k c1) / (a2 + k c2): each product and sum of
+        # the formula as written, into four arrays (fresh temporaries cost more than the arithmetic).
+        k = np.multiply(yn, math.exp(x[0]))
+        k /= height
+        q2 = np.multiply(k, c2)
+        q2 += a2
+        u = np.multiply(k, c0)
+        u += a0
+        u /= q2
+        v = np.multiply(k, c1, out=k)
+        v += a1
+        v /= q2
+        # The usual case, every pixel in the previous image, from five reductions (a NaN fails them too).
+        if q2.min() > 0 and u.min() >= 0 and u.max() <= W - 1 and v.min() >= 0 and v.max() <= H - 1:
             out = _median(np.abs(_sample(prev, u, v) - ref))
         else:
-            out = _median(np.abs(_sample(prev, u[inside], v[inside]) - ref[inside]))
+            inside = (q2 > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+            n_in = int(np.count_nonzero(inside))
+            if 2 * n_in < len(inside):  # fewer than half of the pixels land in the previous image
+                out = math.inf
+            else:
+                out = _median(np.abs(_sample(prev, u[inside], v[inside]) - ref[inside]))
         cost_cache[key] = out
         return out
 
