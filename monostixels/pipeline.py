@@ -346,15 +346,19 @@ class Pipeline:
             # Computed ahead, while the last pair was solved: counted in this pair's wall time all the same.
             sec["inputs_ahead"] = sec["inputs"]
             start -= sec["inputs"]
+        if state is not None:
+            # What the next pair's inputs start from is known now (this frame's grey image, flow and
+            # scores); with stream.overlap its flow and semantics start in the background while this
+            # pair's camera motion is estimated and the pair is solved. The motion, which only the
+            # next pair's own motion estimate reads, is kept once it is known.
+            state.update(pair, grey=flow.grey, flow=flow.flow, semantic=semantic, semantic_fresh=carried.semantic is None,
+                         motion=None, carried=carried, flow_result=flow)
+            state.start_next(self.inputs)
         t0 = time.perf_counter()
         motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio, motion_track)
         sec["motion"] = time.perf_counter() - t0
         if state is not None:
-            # What the next pair starts from is known now; with stream.overlap its flow and semantics
-            # start in the background while this pair is solved.
-            state.update(pair, grey=flow.grey, flow=flow.flow, semantic=semantic, semantic_fresh=carried.semantic is None,
-                         motion=None if motion.degenerate else motion, carried=carried, flow_result=flow)
-            state.start_next(self.inputs)
+            state.keep_motion(pair, None if motion.degenerate else motion)
         t0 = time.perf_counter()
         with torch.inference_mode():
             stixels = solve(flow.flow, flow.cov, semantic, self.camera_for(pair, motion), motion.motion, self.prior,

@@ -210,6 +210,18 @@ def test_overlapped_pairs_and_reused_grey_images_change_nothing(sequence):
     assert all(_same(a, b) for a, b in zip(warm, warm_ahead))
 
 
+def test_the_next_pairs_inputs_start_before_the_motion_and_its_motion_start_is_kept(sequence):
+    """With stream.overlap the next pair's inputs start once this pair's inputs are known, before its
+    camera motion: the motion, kept after it is estimated (StreamState.keep_motion), still starts the
+    next pair's estimate (the essential matrix's warm start), and every pair after the first takes
+    inputs computed ahead."""
+    cfg = load_config(["flow=dis_refine", "semantic=gt", "motion=mono", "stream=warm", "stream.overlap=true"])
+    runner = SequenceRunner(cfg, Pipeline(cfg, sfm=False))
+    reasons = [s.result.motion.reason for s in runner.run(sequence)]
+    assert runner.stream.ahead == len(sequence) - 1
+    assert "warm start" not in reasons[0] and all("warm start" in r for r in reasons[1:]), reasons
+
+
 def test_composed_flows_follow_a_point_through_both_flows():
     """compose_flows(a, b) at x is a(x) + b(x + a(x)): exact for a linear b (bilinear sampling), away from the border."""
     H, W = 40, 60

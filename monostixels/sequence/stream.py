@@ -26,11 +26,13 @@ frames back are continued too. Any other pair (independent pairs, the first pair
 after a failed one) starts cold, exactly as :meth:`Pipeline.run` without a state.
 
 With ``stream.overlap`` the state also overlaps consecutive pairs: the sequence layer reads its source
-through :meth:`StreamState.lookahead`, and once a pair's camera motion is known (all the next pair
-starts from), :meth:`StreamState.start_next` reads the next pair (the next frame, paired as far back as
-this one) and computes its flow and semantics in a second thread while this pair is solved; the
-pipeline takes them (:meth:`StreamState.take_inputs`) if that is the pair asked for next and the state
-has not changed since, else computes them itself. The results are the same either way.
+through :meth:`StreamState.lookahead`, and once a pair's flow and semantics are known (all the next
+pair's start from), :meth:`StreamState.start_next` reads the next pair (the next frame, paired as far
+back as this one) and computes its flow and semantics in a second thread while this pair's camera
+motion is estimated and the pair is solved (the motion, kept by :meth:`StreamState.keep_motion`, is read
+by the next pair's own motion estimate only); the pipeline takes them
+(:meth:`StreamState.take_inputs`) if that is the pair asked for next and the state has not changed
+since, else computes them itself. The results are the same either way.
 
 Convention (docs/conventions.md, section 2): flow ``x_prev = x + f(x)`` from the current to the
 previous image, pixels; camera motion ``X_prev = R X_cur + t`` (metres).
@@ -318,7 +320,8 @@ class StreamState:
             grey: (H, W) uint8 grey of its current image, or None.
             flow: (2, H, W) its flow. semantic: (10, H, W) its scores, or None.
             semantic_fresh: the net ran on this pair (else its scores were carried).
-            motion: its camera-motion estimate, None where it is degenerate.
+            motion: its camera-motion estimate, None where it is degenerate or not known yet (then
+                :meth:`keep_motion` keeps it once it is).
             carried: what :meth:`carried` gave it.
             flow_result: its :class:`~monostixels.inputs.flow.FlowResult` (with :attr:`chain_frames`: the
                 flows between its current frame and the one before, kept for later chains).
@@ -333,6 +336,16 @@ class StreamState:
             self._key = key
         with self._lock:  # a pair read ahead in vain may still be reading the state
             self._update(pair, grey, flow, semantic, semantic_fresh, motion, carried, flow_result)
+
+    def keep_motion(self, pair: FramePair, motion: Any) -> None:
+        """Keep ``pair``'s camera motion (None where it is degenerate), known after :meth:`update` kept its
+        inputs: the start of the next pair's motion estimate (``stream.motion_warm_start``). Nothing
+        where ``pair`` is not the last pair kept (an independent pair, a reset)."""
+        with self._lock:
+            last = self._last
+            if (self.params.motion_warm_start and last is not None and self._key is not None
+                    and self._key[0] == pair.meta.get("sequence") and last.frame == pair.meta.get("frame")):
+                last.motion = motion
 
     def _update(self, pair: FramePair, grey: np.ndarray | None, flow: torch.Tensor | None,
                 semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried,
