@@ -23,10 +23,12 @@ from __future__ import annotations
 import logging
 import math
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
-__all__ = ["available_cores", "resolve_threads", "set_threads", "set_opencv_threads", "threads", "onnx_session_options",
+__all__ = ["available_cores", "resolve_threads", "set_threads", "set_opencv_threads", "torch_threads", "threads",
+           "onnx_session_options",
            "thread_counts", "auto_threads", "ensure_threads", "cgroup_cpu_limit", "quiet_spinning", "spinning"]
 
 logger = logging.getLogger(__name__)
@@ -156,6 +158,26 @@ def set_opencv_threads(n: int | None) -> int:
     count = threads() if n is None else max(1, int(n))
     cv2.setNumThreads(count)
     return count
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[int]:
+    """Torch's intra-op pool at ``n`` threads (at least one) inside the block, its count before restored after.
+
+    The sequence layer's overlapped stream (``stream.overlap``) keeps every core busy with its own threads:
+    the sequence layer's, which estimates the motion and solves a pair, and the next pair's flow beside it.
+    An intra-op pool in the first then only hands work back and forth on cores that are taken (and the
+    photometric search's workers, as many as torch's threads, do the same): it gets one thread less than
+    the budget there, as OpenCV's pool does beside the flow (:func:`set_opencv_threads`).
+    """
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(n)))
+    try:
+        yield torch.get_num_threads()
+    finally:
+        torch.set_num_threads(before)
 
 
 def threads() -> int:

@@ -109,6 +109,25 @@ def test_config_has_one_threads_key():
     assert load_config(["threads=1"]).threads == 1
 
 
+def test_an_overlapped_stream_gives_torch_one_thread_less_while_it_runs(restore_threads):
+    """stream.overlap: the sequence layer's thread and the next pair's flow keep the cores busy, so torch
+    (and with it the photometric search's workers) gets one thread less than the budget while the
+    sequence runs, at least one, and the budget back after; without overlap it keeps the budget."""
+    from monostixels.data.synthetic import SyntheticSequenceSource
+    from monostixels.pipeline import Pipeline, load_config
+    from monostixels.sequence import SequenceRunner
+
+    source = SyntheticSequenceSource(1, 2, seed=4, scale=0.25)
+    for budget, overlap, inside in ((2, "true", 1), (3, "true", 2), (1, "true", 1), (2, "false", 2)):
+        _threads._applied = None
+        set_threads(budget)
+        cfg = load_config(["flow=dis", "semantic=gt", "motion=gt", f"stream.overlap={overlap}"])
+        runner = SequenceRunner(cfg, Pipeline(cfg, sfm=False))
+        seen = [torch.get_num_threads() for _ in runner.run(source)]
+        assert seen == [inside] * len(source) and torch.get_num_threads() == budget, (budget, overlap, seen)
+        assert (runner.stream.ahead > 0) == (overlap == "true")
+
+
 def test_import_makes_idle_pool_threads_sleep():
     # Set on `import monostixels` (before torch and OpenCV load) unless the user chose otherwise.
     if os.environ.get("MONOSTIXELS_SPIN"):

@@ -49,6 +49,7 @@ import torch
 from omegaconf import DictConfig
 
 from monostixels._checks import InputError, config_params
+from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
@@ -208,7 +209,15 @@ class SequenceRunner:
     def run(self, source: Sequence[FramePair], progress: Any = None) -> Iterator[SequenceStep]:
         """Process every pair of ``source`` in order; yields one :class:`SequenceStep` per pair."""
         sequential = hasattr(source, "sequence_key") and hasattr(source, "pair_back")
-        source = self.stream.lookahead(source)  # stream.overlap: the next pair read (and its inputs started) ahead
+        read = self.stream.lookahead(source)  # stream.overlap: the next pair read (and its inputs started) ahead
+        if read is source:
+            yield from self._run(source, sequential, progress)
+            return
+        # Overlapped, this thread and the next pair's flow keep the cores busy: torch one thread less.
+        with torch_threads(threads() - 1):
+            yield from self._run(read, sequential, progress)
+
+    def _run(self, source: Any, sequential: bool, progress: Any) -> Iterator[SequenceStep]:
         # A live source (a camera: monostixels.data.video.LiveVideoSource) has no length: it yields its
         # pairs' indices as frames arrive.
         for i in (source.indices() if hasattr(source, "indices") else range(len(source))):
