@@ -8,7 +8,7 @@ each drive in order, frame by frame: keyframes, the stream state carried from fr
 kernel loading, and the stream has nothing to carry yet); the table gives the median over the others.
 
 Stages: each stage's own time within ``Pipeline.run`` (flow and semantics may run side by side, and
-with ``stream.overlap`` they run for the next pair while this one is solved), the dense depth map
+with ``stream.overlap`` they run for the next pair while this one's motion is estimated and it is solved), the dense depth map
 ``run`` turns into its outputs, ``waiting`` (for the next pair's inputs computed ahead: where the flow
 is the longer of the two chains) and ``sequence`` (reading the images, keyframes, tracks, time to
 collision: the rest of a step of the sequence layer). ``total`` is the step's own clock from one frame

@@ -74,8 +74,8 @@ class StreamParams:
         semantic_every: run the semantic net on every k-th frame of a stream (1 = every frame); the
             frames between take the scores of their pair's earlier frame carried through the flow.
         motion_warm_start: start the monocular ego-motion from the last pair's motion (constant velocity).
-        overlap: compute the next pair's flow and semantics in a second thread while this pair is solved
-            (sources read from disk; the same results either way).
+        overlap: compute the next pair's flow and semantics in a second thread while this pair's motion is
+            estimated and it is solved (sources read from disk; the same results either way).
     """
 
     flow_init: bool = False
