@@ -167,12 +167,13 @@ def medians(frames: list[dict[str, float]], stages: list[str]) -> dict[str, floa
 
 
 def time_preset(preset: str, sources: list[tuple[str, list[str]]], sets: list[str], warmup: int, overlap: bool,
-                clock: Any) -> tuple[list[dict[str, float]], Any, list[str], list[int]]:
+                clock: Any) -> tuple[list[dict[str, float]], Any, list[str], list[int], dict[str, int]]:
     """Per-frame stage times of one preset over the sources (``(name, data overrides)``: :func:`kitti_sources`,
-    :func:`video_source`), in order (warm-up frames left out)."""
+    :func:`video_source`), in order (warm-up frames left out), and torch's and OpenCV's thread counts while
+    the frames ran (an overlapped stream gives torch one thread less while it runs: ``torch_threads``)."""
     overrides = run_overrides(preset, sets)
     out: list[dict[str, float]] = []
-    cfg, size = None, []
+    cfg, size, running = None, [], {}
     for root, data in sources:
         cfg = load_config([*data, *overrides])
         src = cli._source(cfg)
@@ -199,11 +200,12 @@ def time_preset(preset: str, sources: list[tuple[str, list[str]]], sets: list[st
             sec["cpu"], sec["main_thread_cpu"] = cpu - cpu_last, main - main_last
             last, cpu_last, main_last = now, cpu, main
             size = list(step.pair.size)
+            running = {"torch": torch.get_num_threads(), "opencv": cv2.getNumThreads()}
             print(f"{preset} {Path(root).name}/{step.pair.name}: " + " ".join(f"{k2} {v:.3f}" for k2, v in sec.items())
                   + ("  (warm-up)" if k < warmup else ""), flush=True)
             if k >= warmup:
                 out.append(sec)
-    return out, cfg, overrides, size
+    return out, cfg, overrides, size, running
 
 
 def main() -> None:
@@ -247,8 +249,8 @@ def main() -> None:
     for preset in args.presets:
         # The CPU clock counts every thread: stages must then run one after the other (no pair ahead).
         sets = list(args.sets) + (["stream.overlap=false"] if args.clock == "cpu" else [])
-        frames, cfg, overrides, size = time_preset(preset, kitti_sources(args.roots, args.frames), sets, args.warmup,
-                                                   overlap, clock)
+        frames, cfg, overrides, size, running = time_preset(preset, kitti_sources(args.roots, args.frames), sets,
+                                                            args.warmup, overlap, clock)
         if not frames:
             raise SystemExit("no frames timed: raise --frames above --warmup")
         stages = list(dict.fromkeys(k for f in frames for k in f))
@@ -258,9 +260,9 @@ def main() -> None:
                        "semantic": str(cfg.semantic.name), "semantic_model": cfg.semantic.get("model"),
                        "motion": str(cfg.motion.name), "stream": dict(cfg.stream), "overrides": overrides, "overlap": overlap},
             "frames": len(frames), "median_seconds": med, "per_frame": frames,
-            "cpu_seconds_per_frame": med.get("cpu"), "threads": thread_counts()}
+            "cpu_seconds_per_frame": med.get("cpu"), "threads": {**thread_counts(), **running}}
         if args.video:
-            vframes, _, _, vsize = time_preset(preset, video_source(args.video, args.frames, args.video_sets), sets,
+            vframes, _, _, vsize, _ = time_preset(preset, video_source(args.video, args.frames, args.video_sets), sets,
                                                args.warmup, overlap, clock)
             if not vframes:
                 raise SystemExit("no video frames timed: raise --frames above --warmup")
@@ -270,8 +272,9 @@ def main() -> None:
     dis_times.append(time_dis(args.roots, args.dis_repeats))
     dis_s = statistics.median([t for t, _ in dis_times])
     load1 = os.getloadavg()
+    torch_counts = ", ".join(f"{n} {r['threads']['torch']}" for n, r in results.items())
     print(f"\nmonostixels run, {args.clock} clock, medians over the frames after {args.warmup} warm-up frame(s) of each "
-          f"drive, torch threads {torch.get_num_threads()}, load average {load0[0]:.2f} -> {load1[0]:.2f}")
+          f"drive, torch threads while they ran: {torch_counts}, load average {load0[0]:.2f} -> {load1[0]:.2f}")
     names = list(results)
     stages = list(dict.fromkeys(k for r in results.values() for k in r["median_seconds"]))
     print("| stage | " + " | ".join(f"`preset={n}` ({results[n]['frames']} frames)" for n in names) + " |")
@@ -299,7 +302,7 @@ def main() -> None:
         print(f"{n}: flow={c['flow']} (preset {c['flow_preset']}, scale {c['flow_scale']}) "
               f"semantic={c['semantic']} ({c['semantic_model']}) motion={c['motion']} stream={c['stream']}")
     out = {"presets": results, "median_seconds": results[names[0]]["median_seconds"], "preset": names[0],
-           "clock": args.clock, "torch_threads": torch.get_num_threads(),
+           "clock": args.clock, "torch_threads": results[names[0]]["threads"]["torch"],
            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "spinning": spinning(), "loadavg": {"before": load0, "after": load1},
            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, "roots": args.roots}
     out["image_size"] = size

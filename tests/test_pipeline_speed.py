@@ -632,9 +632,10 @@ def test_the_speed_benchmark_times_a_video_clip_at_its_working_size(tmp_path):
 
     clip = tmp_path / "clip.mp4"
     intr = write_video_clip(clip)
-    frames, cfg, overrides, size = time_preset(
+    frames, cfg, overrides, size, running = time_preset(
         "fast", video_source(str(clip), 3, [f"data.intrinsics={intr}", "data.resize=null"]), FAST, 1, False,
         time.perf_counter)
+    assert set(running) == {"torch", "opencv"} and min(running.values()) >= 1
     assert str(cfg.data.name) == "video" and "preset=fast" in overrides
     assert len(frames) == 2  # 3 pairs, 1 of them the warm-up
     assert size == [94, 310]
