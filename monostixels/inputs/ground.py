@@ -86,14 +86,15 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
     """
     N = len(A) // 2
     best, best_count = None, -1
+    # The u and v halves as arrays of their own (the same products as on slices of A and b).
+    A_u, A_v, b_u, b_v = (np.ascontiguousarray(x) for x in (A[:N], A[N:], b[:N], b[N:]))
     for _ in range(hypotheses):
         idx = rng.choice(N, size=2, replace=False)
-        rows = np.r_[idx, idx + N]
+        rows = np.concatenate([idx, idx + N])
         m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
         if n_g is not None and _tilt_deg(m, n_g) > max_tilt:
             continue
-        res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
-        count = int((res < thr).sum())
+        count = int(np.count_nonzero(np.hypot(A_u @ m - b_u, A_v @ m - b_v) < thr))
         if count > best_count:
             best, best_count = m, count
     if best is None:  # no hypothesis within the tilt: the unconstrained fit, rejected by the caller
