@@ -535,6 +535,50 @@ def test_one_partition_median_equals_numpy():
     assert math.isnan(_median(np.array([1.0, np.nan, 2.0], dtype=np.float32)))
 
 
+def test_ground_ransac_at_once_equals_the_loop_it_replaced():
+    # _fit_ground fits and scores its 300 hypotheses at once; the loop below is the algorithm as it was
+    # (one lstsq and one score a hypothesis). Same draws, same winner, same fit and inliers, and the
+    # generator left where the loop left it, on planes with outliers, a tilt limit and a few pixels.
+    from monostixels.inputs.ground import _fit_ground, _tilt_deg
+
+    def loop(A, b, thr, rng, n_g, max_tilt, hypotheses=300):
+        N = len(A) // 2
+        best, best_count = None, -1
+        for _ in range(hypotheses):
+            idx = rng.choice(N, size=2, replace=False)
+            rows = np.r_[idx, idx + N]
+            m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
+            if _tilt_deg(m, n_g) > max_tilt:
+                continue
+            count = int((np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:]) < thr).sum())
+            if count > best_count:
+                best, best_count = m, count
+        if best is None:
+            best, *_ = np.linalg.lstsq(A, b, rcond=None)
+        m = best
+        for _ in range(3):
+            inl = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:]) < thr
+            if inl.sum() < 3:
+                break
+            rows = np.r_[np.nonzero(inl)[0], np.nonzero(inl)[0] + N]
+            m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
+        return m, np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:]) < thr
+
+    g = np.random.default_rng(11)
+    n_g = np.array([0.0, 1.0, 0.0])
+    for N, outliers, max_tilt in ((60, 0.3, 10.0), (3000, 0.5, 10.0), (400, 0.9, 2.0), (50, 0.0, 180.0)):
+        m_true = np.array([0.02, 0.6, -0.01])
+        A = g.normal(size=(2 * N, 3))
+        b = A @ m_true + g.normal(scale=0.2, size=2 * N)
+        bad = g.random(N) < outliers
+        b[np.r_[bad, bad]] += g.normal(scale=20.0, size=2 * int(bad.sum()))
+        r1, r2 = np.random.default_rng(5), np.random.default_rng(5)
+        m1, inl1 = _fit_ground(A, b, 0.5, r1, n_g=n_g, max_tilt=max_tilt)
+        m2, inl2 = loop(A, b, 0.5, r2, n_g, max_tilt)
+        assert np.array_equal(m1, m2) and np.array_equal(inl1, inl2), (N, outliers, max_tilt)
+        assert r1.integers(1 << 30) == r2.integers(1 << 30)
+
+
 def test_max_eigenvalue_test_matches_eigvalsh():
     from monostixels.inputs.motion import _max_eigenvalue_at_most
 
