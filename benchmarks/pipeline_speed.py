@@ -35,7 +35,9 @@ docs/results.md ("Speed", "Threads and the DIS yardstick") and docs/benchmarks.m
 machine shared with other jobs (load average 9-15, DIS itself 93-139 ms), ``preset=fast`` took 7.3-10.1x DIS
 after the thread budget (``python benchmarks/pipeline_speed.py --presets fast --json p.json``) and 9.8-10.5x
 before it, 0.67 against 0.66-0.73 CPU seconds a frame; with every pool left spinning (``MONOSTIXELS_SPIN=1``)
-14.7-17.6x and 0.79-0.80 CPU seconds.
+14.7-17.6x and 0.79-0.80 CPU seconds. On 2026-12-07, the development machine idle (DIS 36-42 ms), five runs
+of ``--presets fast --json p.json`` interleaved with the tree of the day before: 5.4-7.3x DIS (median 6.2x),
+0.220-0.306 s a frame (median 0.232), against 6.7-8.2x and 0.277-0.324 s.
 """
 from __future__ import annotations
 
