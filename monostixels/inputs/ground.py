@@ -96,8 +96,9 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
     # cost ~11 ms however few the pixels.
     pairs = np.array([rng.choice(N, size=2, replace=False) for _ in range(hypotheses)]).reshape(-1, 2)
     rows = np.concatenate([pairs, pairs + N], axis=1)  # (hypotheses, 4)
-    # Each 4 x 3 system's least-squares solution (the pseudo-inverse with lstsq's cut-off, rcond=None).
-    ms = (np.linalg.pinv(A[rows], rtol=4 * np.finfo(np.float64).eps) @ b[rows][..., None])[..., 0]
+    # Each 4 x 3 system's least-squares solution (the pseudo-inverse with lstsq's cut-off, rcond=None;
+    # given by position: numpy 1.x calls it rcond, 2.x rtol).
+    ms = (np.linalg.pinv(A[rows], 4 * np.finfo(np.float64).eps) @ b[rows][..., None])[..., 0]
     keep = np.ones(len(ms), dtype=bool)
     if n_g is not None:
         q = np.maximum(np.linalg.norm(ms, axis=1), 1e-30)
@@ -173,8 +174,8 @@ def _median(x: np.ndarray) -> float:
     """``float(np.median(x))`` of a non-empty 1-D array.
 
     The same value as numpy (the middle order statistic, or the mean of the two middle ones
-    taken in ``x``'s dtype as ``np.mean`` takes it), several times faster on the costs of one
-    photometric candidate (the search's largest part). A long array is first bracketed: the
+    taken in ``x``'s dtype as ``np.mean`` takes it), faster on the costs of one photometric
+    candidate (the search's largest part). A long array is first bracketed: the
     middle of every :data:`_MEDIAN_STRIDE`-th value, widened by three standard deviations of a
     sample median's rank and 4 more values on each side, gives ``[lo, hi]``; where the values below
     ``lo`` are fewer than the middle's rank and those up to ``hi`` more, only the eighth or so within
