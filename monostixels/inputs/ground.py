@@ -89,8 +89,11 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
     candidate pixels must not win.
     """
     N = len(A) // 2
-    # The u and v halves as arrays of their own (the same products as on slices of A and b).
-    A_u, A_v, b_u, b_v = (np.ascontiguousarray(x) for x in (A[:N], A[N:], b[:N], b[N:]))
+    A_u, A_v, b_u, b_v = A[:N], A[N:], b[:N], b[N:]  # the u and v equations of each pixel
+
+    def residual(m: np.ndarray) -> np.ndarray:
+        return np.hypot(A_u @ m - b_u, A_v @ m - b_v)
+
     # The hypotheses' pixel pairs drawn one hypothesis after the other, as they always were (the
     # generator's stream is the same), then fitted and scored all at once: a loop of 300 small fits
     # cost ~11 ms however few the pixels.
@@ -119,14 +122,12 @@ def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generat
         best, *_ = np.linalg.lstsq(A, b, rcond=None)
     m = best
     for _ in range(3):
-        res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
-        inl = res < thr
-        if inl.sum() < 3:
+        inl = np.nonzero(residual(m) < thr)[0]
+        if len(inl) < 3:
             break
-        rows = np.r_[np.nonzero(inl)[0], np.nonzero(inl)[0] + N]
-        m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
-    res = np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:])
-    return m, res < thr
+        sel = np.concatenate([inl, inl + N])
+        m, *_ = np.linalg.lstsq(A[sel], b[sel], rcond=None)
+    return m, residual(m) < thr
 
 
 #: Candidate metric translations (metres per frame) of the photometric scale search.
