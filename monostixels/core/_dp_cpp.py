@@ -19,6 +19,7 @@ import hashlib
 import logging
 import os
 import platform
+import re
 import sys
 import threading
 from collections.abc import Iterator
@@ -26,16 +27,21 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry",
+__all__ = ["available", "build_flags", "march", "MARCH_ENV", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry",
            "semantic_prefix", "build_error", "CHECK_FINITE",
            "CHECK_NONNEGATIVE", "CHECK_POSITIVE_DEFINITE"]
 
 logger = logging.getLogger(__name__)
 
 _SOURCE = Path(__file__).with_name("csrc") / "column_dp.cpp"
+#: The environment variable that chooses the instruction set the kernel is built for (gcc's
+#: ``-march``): e.g. ``x86-64-v3`` (AVX2) for a build to run on any recent x86-64, ``native`` (the
+#: default) for this CPU's. The cached build's name carries it.
+MARCH_ENV = "MONOSTIXELS_MARCH"
+_DEFAULT_MARCH = "native"
 #: No fast-math and no FMA contraction: the kernel must round exactly like the eager torch ops.
 #: -fno-trapping-math (FP exceptions are never inspected) lets gcc vectorise the branch-free loops.
-_CFLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math", "-fopenmp"]
+_CFLAGS = ["-O3", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math", "-fopenmp"]
 #: at::parallel_for is an OpenMP pragma in the headers: without -fopenmp it runs on one thread. The
 #: extension then uses the libgomp.so.1 that torch has already loaded (same soname): one runtime.
 _LDFLAGS = ["-fopenmp"]
@@ -61,6 +67,19 @@ def _cpu_tag() -> str:
     except OSError:
         flags = model = ""
     return hashlib.sha1(f"{platform.machine()}|{model}|{flags}".encode()).hexdigest()[:8]
+
+
+def march() -> str:
+    """The ``-march`` of the kernel's build: ``$MONOSTIXELS_MARCH``, else ``native``."""
+    value = os.environ.get(MARCH_ENV, "").strip() or _DEFAULT_MARCH
+    if not re.fullmatch(r"[A-Za-z0-9_.+-]+", value):
+        raise ValueError(f"{MARCH_ENV}: a gcc -march value such as native or x86-64-v3, got {value!r}")
+    return value
+
+
+def build_flags() -> list[str]:
+    """The compiler flags of the kernel's build (the benchmarks record them)."""
+    return [_CFLAGS[0], f"-march={march()}", *_CFLAGS[1:]]
 
 
 def _extensions_root() -> Path:
@@ -94,16 +113,18 @@ def build_lock(build_dir: Path) -> Iterator[None]:
 def _build() -> None:
     from torch.utils import cpp_extension
 
-    # The name carries the source's hash and the CPU tag, so an edited kernel or another CPU
-    # gets its own cached build instead of a stale or illegal-instruction one.
-    src_hash = hashlib.sha1(_SOURCE.read_bytes() + " ".join(_CFLAGS + _LDFLAGS).encode()).hexdigest()[:8]
+    # The name carries the hash of the source and the flags (the -march among them) and the CPU tag,
+    # so an edited kernel, another instruction set or another CPU gets its own cached build instead
+    # of a stale or illegal-instruction one.
+    cflags = build_flags()
+    src_hash = hashlib.sha1(_SOURCE.read_bytes() + " ".join(cflags + _LDFLAGS).encode()).hexdigest()[:8]
     name = f"monostixels_column_dp_{src_hash}_{_cpu_tag()}"
     build_dir = _extensions_root() / name
     with build_lock(build_dir):
         cpp_extension.load(
             name=name,
             sources=[str(_SOURCE)],
-            extra_cflags=_CFLAGS,
+            extra_cflags=cflags,
             extra_ldflags=_LDFLAGS,
             build_directory=str(build_dir),
             is_python_module=False,

@@ -55,10 +55,20 @@ constexpr int64_t kCovEntries = 4;  // a 2 x 2 flow covariance per pixel
 constexpr int kGround = 0, kStatic = 1, kDynamic = 2, kSky = 3;
 inline bool is_object(int j) { return j == kStatic || j == kDynamic; }
 
-// Vectors of 64 bytes (GCC/Clang vector extension; one AVX-512 register, two AVX2 registers):
-// 16 floats or 8 doubles, with integers of the same width (hypothesis / bottom indices) so that
-// comparison masks of values and indices have one type.
+// Vectors of one register of the target (GCC/Clang vector extension): 64 bytes with AVX-512 (16
+// floats or 8 doubles), 32 with AVX (AVX2, x86-64-v3), else 16, with integers of the same width
+// (hypothesis / bottom indices) so that comparison masks of values and indices have one type.
+// Never wider than the target's registers: gcc expands an operation on a wider vector piecewise,
+// through the stack, and a 64-byte build for AVX2 ran 7x slower (docs/experiments.md, "Every x86
+// CPU"). The lane count changes no value: padding lanes hold +inf and ties go to the lowest
+// flat index whatever the width.
+#if defined(__AVX512F__)
 constexpr int kVecBytes = 64;
+#elif defined(__AVX__)
+constexpr int kVecBytes = 32;
+#else
+constexpr int kVecBytes = 16;
+#endif
 template <typename T>
 struct Simd;
 template <>
