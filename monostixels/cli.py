@@ -20,8 +20,9 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -173,7 +174,25 @@ def _run_command(cfg: DictConfig) -> Any:
             return _calibrate(cfg)
         return _run(cfg)
 
-    return dispatch(cfg)
+    with _logs_above_progress_bars():
+        return dispatch(cfg)
+
+
+@contextmanager
+def _logs_above_progress_bars() -> Iterator[None]:
+    """The root logger's console lines (Hydra's handler) written through ``tqdm.write``: a line clears the
+    progress bars, is printed to the handler's stream, and the bars are drawn again below it, so that no log
+    line breaks a bar. Other handlers (Hydra's log file) are left as they are; a root logger without a console
+    handler is left alone."""
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    console = any(isinstance(h, logging.StreamHandler) and h.stream in (sys.stdout, sys.stderr)
+                  for h in logging.root.handlers)
+    if not console:
+        yield
+        return
+    with logging_redirect_tqdm([logging.root]):
+        yield
 
 
 def _hydra_main() -> None:
@@ -412,9 +431,10 @@ def _run(cfg: DictConfig) -> None:
                     if not videos[name].isOpened():
                         raise InputError(f"run: OpenCV cannot write the video {out / name} (no mp4v encoder)")
                 videos[name].write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        if st.flags.get("degenerate_motion"):
-            logger.warning("%s: %s", pair.name, st.flags.get("reason"))
-        camera.append(st.flags)
+        info = st.pair_info or {}
+        speed = (info["driven_m"] / info["dt_s"] if info.get("driven_m") is not None and info.get("dt_s")
+                 and st.flags.get("camera_motion") == "metric" else None)
+        camera.append({**st.flags, "speed_mps": speed})
         written += 1
     bar.close()
     for v in videos.values():
@@ -461,7 +481,9 @@ def camera_report(flags: list[dict[str, Any]], height: float) -> dict[str, Any]:
     """What a run's pairs say about its camera (``run/summary.json`` ``camera``): the pairs, those with a
     metric motion (``metric``, standing ones included) and without (``no_metric_motion``), where the metric
     scales came from (``scale_from``: counts), the height assumed (``height_m``) and, where a given motion
-    let the road say, the median height it implies (``height_fit_m``, else None) over ``height_fits`` pairs."""
+    let the road say, the median height it implies (``height_fit_m``, else None) over ``height_fits`` pairs; the
+    camera speed of the moving metric pairs (``speed_mps``: ``median``, ``min``, ``max`` m/s and ``pairs``, else
+    None) and the pairs whose scale was too uncertain to tell movers (``scale_uncertain``)."""
     from monostixels.inputs.motion import NO_METRIC_MOTION
 
     kinds = [f.get("camera_motion", "metric") for f in flags]
@@ -471,9 +493,14 @@ def camera_report(flags: list[dict[str, Any]], height: float) -> dict[str, Any]:
         if f.get("scale_from"):
             sources[f["scale_from"]] = sources.get(f["scale_from"], 0) + 1
     fits = [float(f["camera_height_fit_m"]) for f in flags if f.get("camera_height_fit_m") is not None]
+    speeds = [float(f["speed_mps"]) for f in flags if f.get("speed_mps") is not None]
+    uncertain = sum(bool(f.get("scale_uncertain")) for f in flags)
     return {"pairs": len(flags), "metric": metric, "no_metric_motion": len(flags) - metric,
             "scale_from": dict(sorted(sources.items())), "height_m": height,
-            "height_fit_m": float(np.median(fits)) if fits else None, "height_fits": len(fits)}
+            "height_fit_m": float(np.median(fits)) if fits else None, "height_fits": len(fits),
+            "speed_mps": ({"median": float(np.median(speeds)), "min": min(speeds), "max": max(speeds),
+                           "pairs": len(speeds)} if speeds else None),
+            "scale_uncertain": uncertain}
 
 
 def camera_summary(report: dict[str, Any]) -> list[str]:
@@ -487,6 +514,12 @@ def camera_summary(report: dict[str, Any]) -> list[str]:
     unknown = report["no_metric_motion"]
     lines = [f"camera motion metric on {report['metric']} of {report['pairs']} pair(s)" + (f" (scale: {by})" if by else "")
              + (f"; {unknown} without a metric motion (no movers, no collision warnings there)" if unknown else "")]
+    sp, unsure = report.get("speed_mps"), report.get("scale_uncertain", 0)
+    if sp is not None:
+        lines.append(f"camera speed median {sp['median']:.1f} m/s, range {sp['min']:.1f}-{sp['max']:.1f} m/s over "
+                     f"{sp['pairs']} moving pair(s)"
+                     + (f"; {unsure} with an uncertain scale (no movers along the epipolar lines, no collision "
+                        f"warnings there)" if unsure else ""))
     height, med = report["height_m"], report["height_fit_m"]
     line = f"camera height {height:.2f} m (camera.height; depths and speeds scale with it)"
     if med is not None:

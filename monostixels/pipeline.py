@@ -227,10 +227,8 @@ class Pipeline:
         if est.motion is None:
             if not est.degenerate and not self.allow_motion_failure:
                 raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
-            if not est.degenerate:
-                # `monostixels run`: still produce output, flagged, from the scene model only.
-                logger.warning("%s: camera motion could not be estimated (%s); depths from the scene model only",
-                               pair.name, est.reason)
+            # `monostixels run`: still produce output, flagged, from the scene model only; the frame's one
+            # warning (its flags' reason, which holds est.reason) is logged where it is solved.
             # Solved like a standing camera (depths from the scene model), but its kind stays what it is:
             # without a metric motion no flow vector may be called object motion.
             est = MotionEstimate(

@@ -305,3 +305,55 @@ def test_number_checks_name_the_option():
     assert str(err) == "data.hfov_deg: expected a number, got 'wide'"
     assert numeric_text_error(cfg, ValueError("could not convert string to float: 'other'")) is None
     assert numeric_text_error(cfg, ValueError("something else")) is None
+
+
+def test_run_logs_each_frame_warning_once(tmp_path):
+    """`run data=frames` with a field of view and a frame rate: a standing pair's warning is logged once (not
+    again by the command), and so is the field-of-view warning."""
+    from monostixels.data.synthetic import render_pair
+
+    pair = render_pair(3, scale=0.25)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, im in enumerate([pair.image_prev, pair.image, pair.image]):  # the last pair stands still
+        rgb = (im.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        cv2.imwrite(str(frames / f"{k:04d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    p = _cli(["run", "data=frames", f"data.root={frames}", "data.hfov_deg=60", "data.fps=20", "flow=dis",
+              "semantic=none", "keyframes.min_distance_m=0"], tmp_path)
+    out = p.stdout + p.stderr
+    warnings = [ln.split("] - ", 1)[1] for ln in out.splitlines() if "[WARNING] - " in ln]
+    standing = [w for w in warnings if w.startswith("0002: ")]
+    assert len(standing) == 1 and "flow carries no depth" in standing[0], out
+    assert len(warnings) == len(set(warnings)), out
+    assert sum("horizontal field of view of 60 deg" in w for w in warnings) == 1
+    st = json.loads((tmp_path / "outputs" / "run" / "0002" / "stixels.json").read_text())
+    assert st["flags"].get("degenerate_motion")
+
+
+def test_log_lines_are_written_above_the_progress_bar(capsys):
+    """A console log line during a bar clears the bar and stands on its own line (tqdm.write), instead of being
+    glued to the end of the bar."""
+    import logging
+
+    from tqdm import tqdm
+
+    from monostixels.cli import _logs_above_progress_bars
+
+    handler = logging.StreamHandler(sys.stdout)
+    handler.setFormatter(logging.Formatter("[%(levelname)s] - %(message)s"))
+    root, before = logging.getLogger(), list(logging.getLogger().handlers)
+    root.handlers = [handler]
+    try:
+        with _logs_above_progress_bars():
+            bar = tqdm(total=3, desc="run", file=sys.stdout, mininterval=0)
+            bar.update(1)
+            logging.getLogger("monostixels.test").warning("a frame's warning")
+            bar.update(2)
+            bar.close()
+        assert root.handlers == [handler]  # given back after the command
+    finally:
+        root.handlers = before
+    out = capsys.readouterr().out
+    at = out.index("[WARNING] - a frame's warning")
+    assert out[at - 1] in "\r\n", repr(out[max(0, at - 40): at + 10])
+    assert out.count("a frame's warning") == 1

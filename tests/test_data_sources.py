@@ -375,6 +375,76 @@ def test_frames_folder_pairs_intrinsics_and_poses(tmp_path):
     assert torch.allclose(src[0].motion.t, torch.tensor([0.0, 0.0, 1.0], dtype=src[0].motion.t.dtype))
 
 
+def _grey_folder(root: Path, n: int, h: int, w: int) -> None:
+    """``n`` images ``h x w`` with a horizontal ramp (so that a resize has something to average)."""
+    root.mkdir(parents=True, exist_ok=True)
+    ramp = np.tile(np.linspace(0, 250, w, dtype=np.float64)[None, :], (h, 1))
+    for i in range(n):
+        img = np.clip(ramp + 3 * i, 0, 255).astype(np.uint8)
+        assert cv2.imwrite(str(root / f"{i:03d}.png"), np.dstack([img, img // 2, 255 - img]))
+
+
+def test_frames_folder_field_of_view_frame_rate_and_resize(tmp_path):
+    """data=frames without an intrinsics file: fx = fy = (W/2) / tan(hfov/2) at the image centre; dt = step / fps;
+    a resize scales the images and the intrinsics (pixel centres at integers)."""
+    root = tmp_path / "f"
+    _grey_folder(root, 5, 40, 64)  # W != H
+    src = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0, "fps": 20.0, "step": 2, "resize": None})
+    K = src[0].camera.K.numpy()
+    # tan(45 deg) = 1: fx = W / 2 = 32, principal point ((W-1)/2, (H-1)/2).
+    assert np.allclose(K, [[32.0, 0, 31.5], [0, 32.0, 19.5], [0, 0, 1]])
+    assert src[0].image.shape == (3, 40, 64) and src[0].meta["intrinsics"] == "hfov 90 deg (approximate)"
+    assert src[0].meta["dt"] == pytest.approx(2 / 20.0)
+    # Keyframe pairs reach back whole steps: 2 steps = 4 images = 0.2 s at 20 fps.
+    assert [f.dt for f in src.previous_frames(len(src) - 1, 2)] == pytest.approx([0.1, 0.2])
+    # A factor: the image as cv2's area resize makes it, the intrinsics with it.
+    half = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0, "resize": 0.5})
+    want = cv2.cvtColor(cv2.resize(cv2.imread(str(root / "001.png")), (32, 20), interpolation=cv2.INTER_AREA),
+                        cv2.COLOR_BGR2RGB)
+    got = (half[0].image.permute(1, 2, 0).numpy() * 255).round()
+    assert half[0].image.shape == (3, 20, 32) and np.abs(got - want).max() <= 1
+    assert np.allclose(half[0].camera.K.numpy(), [[16.0, 0, 15.5], [0, 16.0, 9.5], [0, 0, 1]])
+    # The default frame rate is 10 fps; the default resize (auto) keeps a small folder as it is.
+    plain = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0})
+    assert plain[0].meta["dt"] == pytest.approx(0.1) and plain[0].image.shape == (3, 40, 64)
+
+
+def test_frames_folder_auto_resize_of_a_720p_folder(tmp_path):
+    root = tmp_path / "f"
+    _grey_folder(root, 2, 720, 1280)
+    src = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0})
+    assert src[0].image.shape == (3, 530, 942)  # about 0.5 MP, as data=video's auto
+    fx = 640.0 * 942 / 1280  # (W/2)/tan(45 deg) at the stored size, scaled with the width
+    assert float(src[0].camera.K[0, 0]) == pytest.approx(fx)
+    assert float(src[0].camera.K[0, 2]) == pytest.approx(639.5 * 942 / 1280 + 0.5 * 942 / 1280 - 0.5)
+
+
+def test_frames_folder_intrinsics_file_wins_over_the_field_of_view(tmp_path, caplog):
+    root = tmp_path / "f"
+    _grey_folder(root, 2, 40, 64)
+    (root / "intrinsics.yaml").write_text("fx: 50\nfy: 52\ncx: 30\ncy: 18\n")
+    with caplog.at_level("WARNING"):
+        src = FramesSource(root, hfov_deg=90.0)
+    assert np.allclose(src[0].camera.K.numpy(), [[50.0, 0, 30], [0, 52.0, 18], [0, 0, 1]])
+    assert src[0].meta["intrinsics"].endswith("intrinsics.yaml")
+    said = [r.getMessage() for r in caplog.records if "hfov_deg" in r.getMessage()]
+    assert len(said) == 1 and "not used" in said[0] and "intrinsics.yaml" in said[0]
+
+
+@pytest.mark.parametrize("kwargs,want", [
+    ({}, r"no intrinsics: set data\.intrinsics=FILE .* or data\.hfov_deg=DEGREES"),
+    ({"hfov_deg": 180.0}, r"data\.hfov_deg: .*\(0, 180\)"),
+    ({"hfov_deg": 90.0, "fps": 0.0}, r"data\.fps: .*positive"),
+    ({"hfov_deg": 90.0, "resize": "big"}, r"data\.resize: expected auto"),
+])
+def test_frames_folder_bad_lens_settings_fail_in_one_line(tmp_path, kwargs, want):
+    root = tmp_path / "f"
+    _grey_folder(root, 2, 40, 64)
+    with pytest.raises(InputError, match=want) as err:
+        FramesSource(root, **kwargs)
+    assert "\n" not in str(err.value)
+
+
 def test_ddad_helpers_pose_and_zbuffer():
     # 90 degrees about z: x -> y.
     q = {"rotation": {"qw": math.cos(math.pi / 4), "qx": 0.0, "qy": 0.0, "qz": math.sin(math.pi / 4)},

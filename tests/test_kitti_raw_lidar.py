@@ -182,3 +182,154 @@ def test_shared_lidar_drive_depth_and_oxts_motion():
         assert 0.85 < np.linalg.norm(t) < 0.95 and t[2] > 0.85
         assert p.meta["motion_source"] == "oxts (velocity)"
         assert 0.1 < p.meta["dt"] < 0.11
+
+
+# ------------------------------------------------------------------------------------------------
+# Raw Velodyne scans, the depth benchmark's PNGs, drives named by a label
+def test_project_velodyne_rounds_as_the_devkit_and_keeps_the_nearest_return():
+    from monostixels.data.kitti_raw import project_velodyne
+
+    # Velodyne = camera axes here; P with fx != fy, cx != cy.
+    P = np.array([[128.0, 0, 20, 0], [0, 80.0, 10, 0], [0, 0, 1, 0]])  # fx a power of 2: u = 20.5 exactly
+    pts = np.array([
+        [0.0, 0.0, 5.0, 0.3],      # u = 20, v = 10 -> pixel (row 9, col 19)
+        [0.0, 0.0, 2.0, 0.3],      # the same pixel, nearer: kept
+        [0.0, 0.0, 8.0, 0.3],      # the same pixel, farther: dropped
+        [0.5 * 4 / 128, 0, 4, 0],  # u = 20.5 -> rounds up to 21 -> col 20 (MATLAB's round: half away from 0)
+        [-0.6 * 4 / 128, 0, 4, 0],  # u = 19.4 -> 19 -> col 18
+        [0.0, 0.0, -3.0, 0.0],     # behind the camera (would land at u = 20): dropped
+        [5.0, 0.0, 1.0, 0.0],      # u = 520: outside
+    ], np.float32)
+    d = project_velodyne(pts, P, (16, 24))
+    assert d.shape == (16, 24) and d.dtype == np.float32
+    want = np.zeros((16, 24), np.float32)
+    want[9, 19], want[9, 20], want[9, 18] = 2.0, 4.0, 4.0
+    assert np.array_equal(d, want)
+
+
+def _velo_drive(tmp: Path, R_rect: np.ndarray, label: str = "0003") -> Path:
+    """The tiny OXTS drive with a rotated R_rect_00 and a Velodyne folder."""
+    drive = _write_drive(tmp, {1: _record(LAT0, LON0, 0, 10), 2: _record(LAT0, LON0, 0, 10),
+                               3: _record(LAT0, LON0, 0, 10)})
+    (drive.parent / "calib_cam_to_cam.txt").write_text(
+        "R_rect_00: " + " ".join(f"{v:.12e}" for v in R_rect.ravel()) + "\nP_rect_02: "
+        + " ".join(f"{v:.6e}" for v in P02.ravel()) + "\n")
+    if label != "0003":
+        drive = drive.rename(drive.parent / f"2011_01_02_drive_{label}_sync")
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    return drive
+
+
+def test_source_projects_raw_velodyne_scans_with_the_drive_calibration(tmp_path):
+    c, s = math.cos(0.02), math.sin(0.02)
+    R_rect = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    drive = _velo_drive(tmp_path, R_rect)
+    rng = np.random.default_rng(3)
+    # Points ahead of the car (Velodyne x forward, y left, z up), some behind it.
+    pts = np.column_stack([rng.uniform(-5, 40, 300), rng.uniform(-0.3, 0.3, 300), rng.uniform(-0.2, 0.2, 300),
+                           rng.uniform(0, 1, 300)]).astype(np.float32)
+    pts.tofile(drive / "velodyne_points" / "data" / "0000000002.bin")
+    # Expected, point by point: X_cam0 = R_rect (R X + T); x = P02 [X_cam0; 1]; pixel round(x/z) - 1; nearest.
+    T = np.array([0.0, -0.08, -0.27])
+    want = np.zeros((H, W), np.float32)
+    for X in pts[:, :3].astype(np.float64):
+        x = P02 @ np.r_[R_rect @ (R_CAM_IMU @ X + T), 1.0]
+        if x[2] <= 0:
+            continue
+        col, row = math.floor(x[0] / x[2] + 0.5) - 1, math.floor(x[1] / x[2] + 0.5) - 1
+        if 0 <= col < W and 0 <= row < H and (want[row, col] == 0 or x[2] < want[row, col]):
+            want[row, col] = x[2]
+    assert (want > 0).sum() >= 5
+    p = KittiRawSource(tmp_path)[0]
+    assert p.meta["depth_from"] == "velodyne_points/data"
+    assert np.allclose(p.gt.depth.numpy(), want, atol=1e-4) and np.array_equal(p.gt.depth.numpy() > 0, want > 0)
+    # A scan of a size that is not whole returns: one line naming the file.
+    (drive / "velodyne_points" / "data" / "0000000002.bin").write_bytes(b"\0" * 10)
+    with pytest.raises(InputError, match=r"0000000002\.bin holds .* not a multiple of 4"):
+        KittiRawSource(tmp_path)[0]
+    # Without the Velodyne calibration the scans cannot be projected: said when the drive is opened.
+    (drive.parent / "calib_velo_to_cam.txt").unlink()
+    (drive / "oxts").rename(drive / "oxts_off")
+    with pytest.raises(InputError, match=r"calib_velo_to_cam\.txt does not exist"):
+        KittiRawSource(tmp_path)
+
+
+def test_depth_sources_in_their_order_of_preference(tmp_path):
+    """npz > the benchmark's groundtruth PNG > its velodyne_raw PNG > the raw scan, frame by frame."""
+    drive = _velo_drive(tmp_path, np.eye(3))
+    dirs = {k: drive / "proj_depth" / k / "image_02" for k in ("velodyne", "groundtruth", "velodyne_raw")}
+    for d in dirs.values():
+        d.mkdir(parents=True)
+    depth = {k: np.zeros((H, W), np.float32) for k in dirs}
+    for i, k in enumerate(dirs):
+        depth[k][1 + i, 2] = 5.0 + i
+    np.savez(dirs["velodyne"] / "0000000002.npz", velodyne_depth=depth["velodyne"])
+    for k in ("groundtruth", "velodyne_raw"):
+        for n in (2, 3):
+            cv2.imwrite(str(dirs[k] / f"{n:010d}.png"), np.round(depth[k] * 256).astype(np.uint16))
+    cv2.imwrite(str(dirs["velodyne_raw"] / "0000000001.png"), np.round(depth["velodyne_raw"] * 256).astype(np.uint16))
+    np.zeros((0, 4), np.float32).tofile(drive / "velodyne_points" / "data" / "0000000003.bin")
+    src = KittiRawSource(tmp_path)  # pairs: frames 2 and 3
+    p2, p3 = src[0], src[1]
+    assert p2.meta["depth_from"] == "proj_depth/velodyne/image_02" and torch.equal(p2.gt.depth, torch.from_numpy(depth["velodyne"]))
+    assert p3.meta["depth_from"] == "proj_depth/groundtruth/image_02" and torch.equal(p3.gt.depth, torch.from_numpy(depth["groundtruth"]))
+    for n in (2, 3):
+        (dirs["groundtruth"] / f"{n:010d}.png").unlink()
+    (dirs["velodyne"] / "0000000002.npz").unlink()
+    p2, p3 = KittiRawSource(tmp_path)
+    assert p2.meta["depth_from"] == p3.meta["depth_from"] == "proj_depth/velodyne_raw/image_02"
+    assert torch.equal(p3.gt.depth, torch.from_numpy(depth["velodyne_raw"]))
+
+
+def test_a_drive_named_by_a_label_loads_and_numbered_drives_keep_their_names(tmp_path):
+    numbered = KittiRawSource(_write_drive(tmp_path / "a", {1: _record(LAT0, LON0, 0, 10),
+                                                            2: _record(LAT0, LON0, 0, 10)}).parents[1])
+    assert numbered[0].name == "2011_01_02_drive_0003_0000000002" and numbered[0].meta["drive"] == 3
+    assert numbered.sequence_key(0) == "kitti_raw/2011_01_02_drive_0003"
+    _velo_drive(tmp_path / "b", np.eye(3), label="traffic")
+    for drive in (None, "traffic", "2011_01_02_drive_traffic_sync"):
+        src = KittiRawSource(tmp_path / "b", drive=drive)
+        assert len(src) == 2 and src[0].name == "2011_01_02_drive_traffic_0000000002"
+        assert src[0].meta["name_prev"] == "2011_01_02_drive_traffic_0000000001"
+        assert src.sequence_key(0) == "kitti_raw/2011_01_02_drive_traffic" and src[0].meta["drive"] == "traffic"
+    with pytest.raises(InputError, match="matching drive 3"):
+        KittiRawSource(tmp_path / "b", drive=3)
+    # Stixel-bottom labels name drives by number: a labelled drive cannot have them.
+    (tmp_path / "b" / "2011_01_02" / "2011_01_02_drive_traffic_sync" / "stixel_bottoms_bmvc15.txt").write_text("")
+    with pytest.raises(InputError, match="names drives by number"):
+        KittiRawSource(tmp_path / "b")
+
+
+TRAFFIC = SHARED / "kitti_raw_traffic" / "2011_09_26"
+
+
+@pytest.mark.skipif(not TRAFFIC.is_dir(), reason=f"shared KITTI raw traffic drive not found at {TRAFFIC}")
+def test_raw_scan_projection_reproduces_the_shared_velodyne_raw_png(tmp_path):
+    """The shared drive's velodyne_raw PNG of frame 1, lifted back to Velodyne points (each return at its pixel's
+    devkit coordinate, its depth) and written as a scan: projected with the drive's calibration it gives the PNG."""
+    from monostixels.data._io import read_kitti_calib
+    from monostixels.data.kitti_raw import velo_to_cam0_rect
+
+    src_drive = TRAFFIC / "2011_09_26_drive_traffic_sync"
+    date = tmp_path / "2011_09_26"
+    drive = date / "2011_09_26_drive_traffic_sync"
+    (drive / "image_02" / "data").mkdir(parents=True)
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    for f in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
+        (date / f).write_bytes((TRAFFIC / f).read_bytes())
+    for n in (0, 1):
+        name = f"{n:010d}.png"
+        (drive / "image_02" / "data" / name).symlink_to(src_drive / "image_02" / "data" / name)
+    png = read_depth_png(src_drive / "proj_depth" / "velodyne_raw" / "image_02" / "0000000001.png")
+    rows, cols = np.nonzero(png)
+    z = png[rows, cols].astype(np.float64)
+    P = read_kitti_calib(date / "calib_cam_to_cam.txt")["P_rect_02"].reshape(3, 4)
+    # P [X_rect; 1] = z [col + 1, row + 1, 1]  ->  X_rect = P[:, :3]^-1 (z [u, v, 1] - P[:, 3]).
+    uv1 = np.vstack([(cols + 1) * z, (rows + 1) * z, z])
+    X_rect = np.linalg.solve(P[:, :3], uv1 - P[:, 3:4])
+    X_velo = np.linalg.inv(velo_to_cam0_rect(date, "the test")) @ np.vstack([X_rect, np.ones(len(z))])
+    np.column_stack([X_velo[:3].T, np.zeros(len(z))]).astype(np.float32).tofile(
+        drive / "velodyne_points" / "data" / "0000000001.bin")
+    depth = KittiRawSource(tmp_path)[0].gt.depth.numpy()
+    assert np.array_equal(depth > 0, png > 0) and len(z) > 10000
+    assert np.abs(depth - png).max() < 2e-3  # float32 coordinates of points up to ~80 m

@@ -11,6 +11,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.sources import make_source
+from monostixels.data._lens import working_size
 from monostixels.data.video import VideoSource, intrinsics_from_hfov
 
 H, W = 48, 80
@@ -217,18 +218,18 @@ def test_pincushion_pixels_without_a_source_are_ignored(tmp_path):
 
 @pytest.mark.parametrize("size,want", [((540, 960), (540, 960)), ((720, 1280), (530, 942)), ((48, 80), (48, 80))])
 def test_resize_auto_sizes(size, want):
-    assert VideoSource._out_size("auto", size[1], size[0]) == want
+    assert working_size("auto", size[1], size[0]) == want
 
 
 def test_resize_auto_is_about_half_a_megapixel_never_upscaled():
     from monostixels.data.video import AUTO_PIXELS
 
     for W_, H_ in ((1920, 1080), (1280, 720), (1280, 960), (2560, 1440), (1000, 1000)):
-        h, w = VideoSource._out_size("auto", W_, H_)
+        h, w = working_size("auto", W_, H_)
         assert h % 2 == 0 and w % 2 == 0
         assert abs(h * w / AUTO_PIXELS - 1) < 0.01 and abs(w / h - W_ / H_) < 0.01
     for W_, H_ in ((640, 480), (960, 540), (10, 10)):
-        assert VideoSource._out_size("auto", W_, H_) == (H_, W_)
+        assert working_size("auto", W_, H_) == (H_, W_)
 
 
 def test_resize_auto_is_the_video_default_and_bad_values_fail(tmp_path):

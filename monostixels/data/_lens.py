@@ -14,23 +14,136 @@ focal lengths (unequally in x and y) and still leaves a few pixels without a sou
 Order: undistort at the stored size (the remap tables are computed once), then resize (area
 interpolation); the intrinsics are scaled with the resize (pixel centres at integers:
 ``u' + 0.5 = s (u + 0.5)``).
+
+The camera of a ``video`` or ``frames`` source (:func:`lens_camera`): its intrinsics from a file, or,
+approximate, from a horizontal field of view (:func:`intrinsics_from_hfov`); an intrinsics file wins
+over ``data.hfov_deg`` (a warning says the field of view is not used). The working size
+(:func:`working_size`): ``resize`` = ``"auto"`` (about :data:`AUTO_PIXELS`, never upscaled), None,
+a factor or ``[W, H]`` pixels.
 """
 from __future__ import annotations
 
 import logging
-from typing import Sequence
+import math
+from pathlib import Path
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
 import torch
 
-__all__ = ["FrameWarp"]
+from monostixels._checks import InputError
+from monostixels.core.geometry import Camera
+from monostixels.data._io import (check_intrinsics_size, make_camera, read_distortion, read_intrinsics_file,
+                                  read_mask_file)
+
+__all__ = ["FrameWarp", "AUTO_PIXELS", "intrinsics_from_hfov", "working_size", "lens_camera"]
 
 logger = logging.getLogger(__name__)
 
 #: Samples of the radius (normalised image coordinates) on which the distortion polynomial is checked
 #: for a fold (where the distorted radius stops growing with the undistorted one).
 _FOLD_SAMPLES = 4096
+#: ``resize="auto"``: frames are scaled to about this many pixels (0.5 MP, e.g. 942x530 from 720p or
+#: 1080p): flow, semantics and the solver take time in proportion to the pixels, and KITTI's 1242x375
+#: (0.47 MP), the size the defaults are tuned at, is about as many.
+AUTO_PIXELS = 500_000
+#: ``resize="auto"`` keeps frames of up to this factor above :data:`AUTO_PIXELS` as they are (960x540 is
+#: 0.52 MP): a resample that small costs sharpness for little time.
+_AUTO_KEEP = 1.1
+
+
+def intrinsics_from_hfov(width: int, height: int, hfov_deg: float) -> tuple[float, float, float, float]:
+    """Approximate pinhole intrinsics ``(fx, fy, cx, cy)`` (pixels) from a horizontal field of view.
+
+    Convention: pixel centres at integer coordinates, so the image centre is ``((W-1)/2, (H-1)/2)``;
+    square pixels (``fy = fx``); no distortion. ``fx = (W / 2) / tan(hfov / 2)``.
+
+    Raises:
+        InputError: ``hfov_deg`` not in (0, 180).
+    """
+    if not (0.0 < float(hfov_deg) < 180.0) or not math.isfinite(float(hfov_deg)):
+        raise InputError(f"data.hfov_deg: horizontal field of view must be in (0, 180) degrees, got {hfov_deg}")
+    fx = (width / 2.0) / math.tan(math.radians(float(hfov_deg)) / 2.0)
+    return fx, fx, (width - 1) / 2.0, (height - 1) / 2.0
+
+
+def working_size(resize: Any, W: int, H: int) -> tuple[int, int]:
+    """(H, W) pixels after ``resize`` of ``W x H`` frames: None (as stored), ``"auto"`` (about
+    :data:`AUTO_PIXELS`, even sizes, never upscaled), a factor, or ``[W, H]`` pixels.
+
+    Raises:
+        InputError: anything else, a factor that is not positive, a size that is not positive.
+    """
+    if resize is None:
+        return H, W
+    if isinstance(resize, str):
+        if resize.strip().lower() != "auto":
+            raise InputError(f"data.resize: expected auto, a factor or [W, H] pixels, got {resize!r}")
+        if W * H <= AUTO_PIXELS * _AUTO_KEEP:
+            return H, W
+        s = math.sqrt(AUTO_PIXELS / (W * H))
+        # Even sizes: video encoders (the overlay video) and 2x pyramids want them.
+        return max(2, 2 * round(H * s / 2)), max(2, 2 * round(W * s / 2))
+    if isinstance(resize, (int, float)) and not isinstance(resize, bool):
+        f = float(resize)
+        if not (f > 0 and math.isfinite(f)):
+            raise InputError(f"data.resize: factor must be positive, got {resize}")
+        return max(1, round(H * f)), max(1, round(W * f))
+    try:
+        w, h = (int(x) for x in resize)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"data.resize: expected auto, a factor or [W, H] pixels, got {resize!r}") from e
+    if w < 1 or h < 1:
+        raise InputError(f"data.resize: [W, H] must be positive, got {resize!r}")
+    return h, w
+
+
+def lens_camera(intrinsics: str | Path | None, hfov_deg: float | None, size_in: tuple[int, int],
+                size: tuple[int, int], camera_height: float, pitch: float, mask: str | Path | None = None,
+                what: str = "video", frames_what: str = "the video's frames") -> tuple[Camera, str, "FrameWarp"]:
+    """The camera of frames undistorted and resized from ``size_in`` to ``size`` ((H, W) pixels), where its
+    intrinsics came from, and the warp that makes the frames (with the user's mask, read and checked
+    against ``size_in``).
+
+    Args:
+        intrinsics: intrinsics file (pixels of the stored frames; its ``distortion`` undistorts them).
+            It wins over ``hfov_deg`` (a warning says ``hfov_deg`` is not used).
+        hfov_deg: horizontal field of view (degrees), used without a file: :func:`intrinsics_from_hfov`.
+        size_in: (H, W) of the stored frames.
+        size: (H, W) of the frames handed on (:func:`working_size`).
+        camera_height: metres above the road; pitch: radians, positive = looking down.
+        mask: the user's mask image (non-zero = ignore) of ``size_in``, or None.
+        what: the source's name for the messages (``"video"``, ``"frames"``); frames_what: its frames'.
+
+    Returns:
+        (camera at ``size``, the intrinsics' source: the file's path or ``"hfov D deg (approximate)"``, warp).
+
+    Raises:
+        InputError: neither a file nor ``hfov_deg`` (both options named), a malformed file, a file that
+            states another image size, ``hfov_deg`` out of (0, 180), a mask of another size.
+    """
+    H0, W0 = size_in
+    distortion = None
+    if intrinsics is not None:
+        source = str(intrinsics)
+        if hfov_deg is not None:
+            logger.warning("%s: data.hfov_deg=%g not used: the intrinsics file %s gives the camera", what,
+                           float(hfov_deg), intrinsics)
+        fx, fy, cx, cy = read_intrinsics_file(intrinsics)
+        distortion = read_distortion(intrinsics)
+        check_intrinsics_size(intrinsics, size_in, frames_what)
+    elif hfov_deg is not None:
+        source = f"hfov {float(hfov_deg):g} deg (approximate)"
+        fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
+        logger.warning("%s: intrinsics from a horizontal field of view of %g deg: approximate (principal "
+                       "point at the centre, no distortion); depths scale with the focal length", what, float(hfov_deg))
+    else:
+        raise InputError(f"{what}: no intrinsics: set data.intrinsics=FILE (fx fy cx cy) or data.hfov_deg=DEGREES "
+                         f"(horizontal field of view, approximate)")
+    user_mask = None if mask is None else read_mask_file(mask, size_in)
+    warp = FrameWarp((fx, fy, cx, cy), distortion, size_in, size, user_mask)
+    return make_camera(*warp.intrinsics, camera_height, pitch), source, warp
 
 
 class FrameWarp:
@@ -94,6 +207,11 @@ class FrameWarp:
     def undistorts(self) -> bool:
         """Whether frames are undistorted (a non-zero distortion was given)."""
         return self._maps is not None
+
+    @property
+    def changes_frames(self) -> bool:
+        """Whether :meth:`image` changes a frame (it undistorts or resizes)."""
+        return self._maps is not None or self.size_out != self.size_in
 
     def image(self, img: np.ndarray) -> np.ndarray:
         """A stored frame undistorted and resized.

@@ -9,7 +9,10 @@ import torch
 from monostixels._checks import InputError, check_finite_fast, check_same_size, check_shape
 from monostixels.core.geometry import Camera, Motion
 
-__all__ = ["GroundTruth", "FramePair", "PreviousFrame"]
+__all__ = ["GroundTruth", "FramePair", "PreviousFrame", "FOLDER_FPS"]
+
+#: Frame rate (Hz) of a folder of images that states none (``data=frames``' ``data.fps``): KITTI's 10 Hz.
+FOLDER_FPS = 10.0
 
 
 @dataclass

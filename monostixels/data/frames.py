@@ -1,29 +1,37 @@
-"""A folder of images from a user's own camera, plus an intrinsics file.
+"""A folder of images from a user's own camera, with an intrinsics file or a field of view.
 
 Layout::
 
     root/000.png, root/001.png, ...   images, sorted by file name = temporal order
     root/intrinsics.yaml              default intrinsics file (or data.intrinsics = any path)
 
-Pairs: current = image ``i``, previous = image ``i - step`` in name order.
+Pairs: current = image ``i``, previous = image ``i - step`` in name order. Frame interval
+``meta["dt"] = step / fps`` seconds (``fps``: the folder's frame rate, ``data.fps``, default
+:data:`~monostixels.data.base.FOLDER_FPS`): velocities and TTC use it.
 
-Intrinsics file formats (see :func:`monostixels.data._io.read_intrinsics_file`), pixels:
+Intrinsics, pixels of the images as stored (before ``resize``), :func:`monostixels.data._lens.lens_camera`:
 
-- YAML / JSON: ``fx: 718.9`` ``fy: 718.9`` ``cx: 607.2`` ``cy: 185.2`` (``fy`` optional = ``fx``),
-  or ``K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``;
-- text: ``fx fy cx cy`` (4 numbers) or the 9 numbers of K (row-major), or ``key: value`` lines.
+- a file, in the formats of :func:`monostixels.data._io.read_intrinsics_file`:
+  YAML / JSON ``fx: 718.9`` ``fy: 718.9`` ``cx: 607.2`` ``cy: 185.2`` (``fy`` optional = ``fx``),
+  or ``K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``; text ``fx fy cx cy`` (4 numbers) or the 9 numbers
+  of K (row-major), or ``key: value`` lines. A ``distortion: [k1, k2, p1, p2, k3]`` key (OpenCV's
+  order; what ``monostixels calibrate`` writes) undistorts every image, keeping the file's camera
+  matrix (:mod:`monostixels.data._lens`). With ``data.intrinsics`` unset,
+  ``root/intrinsics.{yaml,yml,json,txt}`` is used (the first that exists);
+- else a horizontal field of view ``hfov_deg`` (as for ``data=video``): ``fx = fy = (W / 2) /
+  tan(hfov / 2)``, principal point at the image centre. **Approximate** (no distortion);
+- a file and ``hfov_deg`` both: the file wins, and a warning says ``hfov_deg`` is not used;
+- neither: an error naming both.
 
-A ``distortion: [k1, k2, p1, p2, k3]`` key (OpenCV's order; what ``monostixels calibrate`` writes)
-undistorts every image, keeping the file's camera matrix (:mod:`monostixels.data._lens`).
+``resize`` scales the (undistorted) images and the intrinsics with them, as for ``data=video``:
+``"auto"`` (about :data:`~monostixels.data._lens.AUTO_PIXELS`, never upscaled), None, a factor or
+``[W, H]`` pixels. The first readable image's size sets up the tables; every image must have it.
 
-Optional mask (``data.mask``): an image of the images' size, non-zero = ignore, undistorted with
-them (nearest neighbour); each pair then carries it as ``meta["ignore_mask"]`` ((H, W) torch bool,
-True = ignore; also True where undistortion leaves a pixel without a source). With a distortion, a
-mask or an intrinsics file that states its image size (``width``, ``height``), the first image is read
-when the source is made (its size sets up the tables and is checked) and every image must have its size.
+Optional mask (``data.mask``): an image of the stored size, non-zero = ignore, undistorted and resized
+with the images (nearest neighbour); each pair then carries it as ``meta["ignore_mask"]`` ((H, W) torch
+bool at the working size, True = ignore; also True where undistortion leaves a pixel without a source).
 
-With ``data.intrinsics`` unset, ``root/intrinsics.{yaml,yml,json,txt}`` is used (the first that
-exists). Camera height from ``data.camera_height`` (metres), else the camera config.
+Camera height from ``data.camera_height`` (metres), else the camera config.
 
 Optional poses (``data.poses``): camera-to-world ``T_w_cam`` per image in the formats of
 :func:`monostixels.data._io.read_poses_file`: 13 values per line (image id = the file stem as a
@@ -34,8 +42,10 @@ without poses ``motion`` is None. No ground truth otherwise.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -45,22 +55,16 @@ from monostixels._checks import InputError, check_same_size
 from monostixels.data._io import (
     LazySource,
     UnreadableFrame,
-    _read_intrinsics,
-    check_intrinsics_size,
     limit_frames,
     list_images,
-    make_camera,
-    read_distortion,
-    read_intrinsics_file,
-    read_mask_file,
     read_poses_file,
     read_rgb,
     relative_motion,
     require_dir,
 )
-from monostixels.data._lens import FrameWarp
+from monostixels.data._lens import lens_camera, working_size
 from monostixels.inputs.static_regions import AUTO_FRAMES, AUTO_MASK, with_static_region
-from monostixels.data.base import FramePair, GroundTruth
+from monostixels.data.base import FOLDER_FPS, FramePair, GroundTruth
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
 __all__ = ["FramesSource", "INTRINSICS_NAMES"]
@@ -81,13 +85,17 @@ class _Pair:
 
 
 class FramesSource(LazySource):
-    """Consecutive image pairs of a folder, with intrinsics from a file.
+    """Consecutive image pairs of a folder, with intrinsics from a file or a horizontal field of view.
 
     Args:
         root: the image folder.
-        intrinsics: intrinsics file; None = ``root/intrinsics.{yaml,yml,json,txt}``.
+        intrinsics: intrinsics file; None = ``root/intrinsics.{yaml,yml,json,txt}``, else ``hfov_deg``.
+        hfov_deg: horizontal field of view (degrees), used without an intrinsics file (approximate).
         step: index distance of a pair in name order.
         frames: at most this many pairs (None = all).
+        fps: the folder's frame rate (Hz): ``meta["dt"] = (frames between the two images) / fps`` seconds.
+        resize: None, ``"auto"`` (about :data:`~monostixels.data._lens.AUTO_PIXELS`, never upscaled), a
+            factor, or ``(W, H)`` pixels.
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down).
         poses: optional poses file (see the module docstring).
@@ -95,9 +103,10 @@ class FramesSource(LazySource):
             region at the bottom found from the first images (a bonnet, :mod:`monostixels.inputs.static_regions`).
 
     Raises:
-        InputError: missing root, empty folder, missing / malformed intrinsics (or distortion) or poses
-            file, fewer than ``step + 1`` images, a mask of another size than the first image; at access:
-            unreadable image, images of different sizes.
+        InputError: missing root, empty folder, neither an intrinsics file nor ``hfov_deg``, a malformed
+            intrinsics (or distortion) or poses file, a bad ``fps`` / ``resize`` / ``hfov_deg``, fewer than
+            ``step + 1`` images, no readable image, a mask of another size than the first image; at access:
+            unreadable image, an image of another size than the first.
     """
 
     def __init__(
@@ -105,8 +114,11 @@ class FramesSource(LazySource):
         root: str | Path,
         *,
         intrinsics: str | Path | None = None,
+        hfov_deg: float | None = None,
         step: int = 1,
         frames: int | None = None,
+        fps: float = FOLDER_FPS,
+        resize: float | Sequence[int] | str | None = None,
         camera_height: float = KITTI_CAMERA_HEIGHT_M,
         pitch: float = 0.0,
         poses: str | Path | None = None,
@@ -115,38 +127,31 @@ class FramesSource(LazySource):
         self.root = require_dir(root, "frames data.root")
         if int(step) < 1:
             raise InputError(f"data.step: must be a positive number of frames, got {step}")
+        if not (isinstance(fps, (int, float)) and not isinstance(fps, bool) and math.isfinite(fps) and fps > 0):
+            raise InputError(f"data.fps: the folder's frame rate must be a positive number of frames a second, got {fps!r}")
+        self.fps = float(fps)
         images = list_images(self.root, "frames data.root")
         if intrinsics is None:
             found = [self.root / n for n in INTRINSICS_NAMES if (self.root / n).is_file()]
-            if not found:
+            if not found and hfov_deg is None:
                 raise InputError(
-                    f"frames: no intrinsics file: set data.intrinsics or put one of {', '.join(INTRINSICS_NAMES)} in {self.root}"
+                    f"frames: no intrinsics: set data.intrinsics=FILE (or put one of {', '.join(INTRINSICS_NAMES)} in "
+                    f"{self.root}) or data.hfov_deg=DEGREES (horizontal field of view, approximate)"
                 )
-            intrinsics = found[0]
-        self.intrinsics_path = Path(intrinsics).expanduser()
-        fx, fy, cx, cy = read_intrinsics_file(self.intrinsics_path)
-        distortion = read_distortion(self.intrinsics_path)
-        self._warp: FrameWarp | None = None
+            intrinsics = found[0] if found else None
+        self.intrinsics_path = None if intrinsics is None else Path(intrinsics).expanduser()
+        self._first = self._first_readable(images)
+        self.size_in: tuple[int, int] = tuple(read_rgb(self._first).shape[-2:])  # type: ignore[assignment]
+        H0, W0 = self.size_in
+        self.size = working_size(resize, W0, H0)
         auto = mask == AUTO_MASK
+        self.camera: Camera
+        self.camera, self.intrinsics_source, self._warp = lens_camera(
+            self.intrinsics_path, hfov_deg, self.size_in, self.size, camera_height, pitch, None if auto else mask,
+            what="frames", frames_what=f"the images of {self.root}")
         if auto:
-            mask = None
-        if distortion is not None or mask is not None or _read_intrinsics(self.intrinsics_path).size is not None:
-            size = tuple(read_rgb(images[0]).shape[-2:])  # decoded once: the first pair reads it from the cache
-            check_intrinsics_size(self.intrinsics_path, size, f"the images of {self.root}")  # type: ignore[arg-type]
-            user_mask = None if mask is None else read_mask_file(mask, size)  # type: ignore[arg-type]
-            self._warp = FrameWarp((fx, fy, cx, cy), distortion, size, size, user_mask)  # type: ignore[arg-type]
-            fx, fy, cx, cy = self._warp.intrinsics
-        if auto:
-            sample = self._sample(images, int(step))
-            ignore = with_static_region(None if self._warp is None else self._warp.ignore, sample,
-                                        f"frames {self.root}")
-            if ignore is not None and self._warp is None:
-                # A mask to carry, without undistortion: a warp that only hands it on.
-                size = tuple(ignore.shape)
-                self._warp = FrameWarp((fx, fy, cx, cy), None, size, size)  # type: ignore[arg-type]
-            if self._warp is not None:
-                self._warp.ignore = ignore
-        self.camera: Camera = make_camera(fx, fy, cx, cy, camera_height, pitch)
+            self._warp.ignore = with_static_region(self._warp.ignore, self._sample(images, int(step)),
+                                                   f"frames {self.root}")
         pose_of: list[np.ndarray | None] = [None] * len(images)
         if poses is not None:
             pose_of = self._match_poses(Path(poses).expanduser(), images)
@@ -158,7 +163,20 @@ class FramesSource(LazySource):
             for i in range(int(step), len(images))
         ]
         self._items = limit_frames(items, frames, f"frames {self.root} ({len(images)} image(s), step {step})")
-        logger.info("frames: %d frame pairs under %s", len(self._items), self.root)
+        logger.info("frames: %d frame pairs under %s (%dx%d -> %dx%d, %g fps, intrinsics %s)", len(self._items),
+                    self.root, W0, H0, self.size[1], self.size[0], self.fps, self.intrinsics_source)
+
+    @staticmethod
+    def _first_readable(images: list[Path]) -> Path:
+        """The first image that decodes (once: its pair reads it from the cache), whose size sets up the tables;
+        unreadable ones before it are left to the pairs, which report them."""
+        for p in images:
+            try:
+                read_rgb(p)
+                return p
+            except InputError:
+                continue
+        raise InputError(f"frames data.root: no image of {images[0].parent} can be read")
 
     @staticmethod
     def _match_poses(path: Path, images: list[Path]) -> list[np.ndarray | None]:
@@ -191,6 +209,9 @@ class FramesSource(LazySource):
             return None
         return _Pair(item.index, item.path, self._images[j], item.T_w_cur, self._poses[j])
 
+    def _pair_dt(self, item: _Pair) -> float:
+        return (item.index - self._index_of[item.path_prev]) / self.fps
+
     def _pair_motion(self, item: _Pair) -> Motion | None:
         if item.T_w_cur is None or item.T_w_prev is None:
             return None
@@ -211,43 +232,39 @@ class FramesSource(LazySource):
 
     def _sample(self, images: list[Path], step: int) -> list[np.ndarray]:
         """Up to :data:`~monostixels.inputs.static_regions.AUTO_FRAMES` of the first images, ``step`` apart (BGR,
-        undistorted where the folder's lens asks for it), for the static region search; unreadable ones and
-        ones of another size than the first readable one are left out (the pairs report them)."""
+        undistorted and resized), for the static region search; unreadable ones and ones of another size than
+        the first readable one are left out (the pairs report them)."""
         out: list[np.ndarray] = []
         for p in images[: step * AUTO_FRAMES: step]:
             img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if img is None or (out and img.shape != out[0].shape):
+            if img is None or img.shape[:2] != self._warp.size_in:
                 continue
-            if self._warp is not None:
-                if img.shape[:2] != self._warp.size_in:
-                    continue
-                img = self._warp.image(img)
-            out.append(img)
+            out.append(self._warp.image(img))
         return out
 
     def _load(self, item: _Pair) -> FramePair:
         image, image_prev = self._read(item.path, True), self._read(item.path_prev, False)
         check_same_size(image, image_prev, f"image {item.path} (current)", f"image {item.path_prev} (previous)")
-        if self._warp is not None:
-            image, image_prev = self._warped(image, item.path), self._warped(image_prev, item.path_prev)
+        image, image_prev = self._warped(image, item.path), self._warped(image_prev, item.path_prev)
         motion = self._pair_motion(item)
-        meta = {"source": "frames", "index": item.index, "path": str(item.path), "path_prev": str(item.path_prev),
-                "intrinsics": str(self.intrinsics_path), "sequence": self._sequence_key(item),
-                "frame": item.index, "frame_prev": self._index_of[item.path_prev],
-                "name_prev": self._prev_name(item)}
-        ignore = None if self._warp is None else self._warp.ignore_mask()
+        meta: dict[str, Any] = {
+            "source": "frames", "index": item.index, "path": str(item.path), "path_prev": str(item.path_prev),
+            "intrinsics": self.intrinsics_source, "sequence": self._sequence_key(item), "frame": item.index,
+            "frame_prev": self._index_of[item.path_prev], "name_prev": self._prev_name(item),
+            "dt": self._pair_dt(item)}
+        ignore = self._warp.ignore_mask()
         if ignore is not None:
             meta["ignore_mask"] = ignore
         return FramePair(image=image, image_prev=image_prev, camera=self.camera, motion=motion, gt=GroundTruth(),
                          name=item.path.stem, meta=meta)
 
     def _warped(self, image: torch.Tensor, path: Path) -> torch.Tensor:
-        """(3, H, W) float RGB undistorted (the size checked against the first image's)."""
-        assert self._warp is not None
+        """(3, H, W) float RGB undistorted and resized (the size checked against the first image's)."""
         H, W = image.shape[-2:]
         if (H, W) != self._warp.size_in:
-            raise InputError(f"frames: image {path} is {W}x{H}, the first image {self._images[0].name} "
-                             f"{self._warp.size_in[1]}x{self._warp.size_in[0]} (the distortion and mask tables are "
-                             f"set up for that size)")
+            raise InputError(f"frames: image {path} is {W}x{H}, the first image {self._first.name} "
+                             f"{self._warp.size_in[1]}x{self._warp.size_in[0]}: every image must have that size")
+        if not self._warp.changes_frames:
+            return image
         hwc = np.ascontiguousarray(image.permute(1, 2, 0).numpy())
         return torch.from_numpy(np.ascontiguousarray(self._warp.image(hwc).transpose(2, 0, 1)))

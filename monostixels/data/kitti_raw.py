@@ -11,15 +11,26 @@ Layout under ``root`` (KITTI raw "synced + rectified" download)::
     root/DATE/calib_imu_to_velo.txt, calib_velo_to_cam.txt  needed with oxts/ (the pose chain)
     root/DATE/DATE_drive_NNNN_sync/proj_depth/velodyne/image_02/*.npz       optional LiDAR depth
     root/DATE/DATE_drive_NNNN_sync/proj_depth/groundtruth/image_02/*.png    optional (KITTI depth benchmark)
+    root/DATE/DATE_drive_NNNN_sync/proj_depth/velodyne_raw/image_02/*.png   optional (KITTI depth benchmark)
+    root/DATE/DATE_drive_NNNN_sync/velodyne_points/data/*.bin  optional: raw scans (with calib_velo_to_cam.txt)
     root/DATE/DATE_drive_NNNN_sync/image_02/timestamps.txt  optional: frame times (frame interval)
+
+A drive folder is ``DATE_drive_LABEL_sync``: ``LABEL`` is KITTI's 4-digit drive number
+(``2011_09_26_drive_0023_sync``, frames named ``2011_09_26_drive_0023_0000000005``) or any other
+label of letters, digits and ``-`` (``2011_09_26_drive_traffic_sync``, frames named
+``2011_09_26_drive_traffic_0000000005``); only numbered drives can have stixel-bottom labels.
 
 Pairs: current = frame ``n``, previous = frame ``n - step`` (raw frame numbers), for every ``n``
 whose predecessor exists.
 
 Camera motion: from ``poses_cam0.txt`` where present, else from the OXTS records (every KITTI raw
 drive has them; ``oxts="velocity"`` or ``"position"``, see :func:`oxts_poses`), else none.
-Depth ground truth: the LiDAR depth of the current frame (``proj_depth/velodyne`` npz first, else
-the depth-benchmark PNG), 0 = no return. KITTI raw has no moving-object mask, so ``gt.moving`` is
+Depth ground truth: the LiDAR depth of the current frame (metres, z in camera 2, 0 = no return), from
+the first of these a frame has (:data:`DEPTH_SOURCES`): the ``proj_depth/velodyne`` npz (this
+package's format: a folder prepared with it keeps its numbers), the depth benchmark's
+``proj_depth/groundtruth`` PNG (accumulated over neighbouring scans and cleaned: denser and truer than
+one scan), its ``proj_depth/velodyne_raw`` PNG (one scan), the raw scan ``velodyne_points/data/*.bin``
+projected here (:func:`project_velodyne`). ``meta["depth_from"]`` names the one used. KITTI raw has no moving-object mask, so ``gt.moving`` is
 None and only the ``overall`` split is scored.
 
 Convention: camera motion ``X_prev = R X_cur + t`` (docs/conventions.md, section 2) of *camera 2*.
@@ -60,6 +71,7 @@ from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 __all__ = [
     "KittiRawSource", "POSES_FILE", "BOTTOMS_FILE", "CALIB_FILE", "OXTS_MODES", "read_stixel_bottoms", "cam2_offset",
     "read_oxts", "oxts_poses", "read_timestamps", "read_lidar_npz", "read_depth_png", "imu_to_cam2",
+    "velo_to_cam0_rect", "read_velodyne_bin", "project_velodyne", "DEPTH_SOURCES",
 ]
 
 logger = logging.getLogger(__name__)
@@ -82,6 +94,13 @@ OXTS_DIR = Path("oxts") / "data"
 LIDAR_NPZ_DIR = Path("proj_depth") / "velodyne" / "image_02"
 LIDAR_NPZ_KEY = "velodyne_depth"
 DEPTH_PNG_DIR = Path("proj_depth") / "groundtruth" / "image_02"
+VELODYNE_RAW_PNG_DIR = Path("proj_depth") / "velodyne_raw" / "image_02"
+#: Raw Velodyne scans: float32 ``x y z reflectance`` per return (Velodyne axes, metres).
+VELODYNE_BIN_DIR = Path("velodyne_points") / "data"
+#: Where a frame's LiDAR depth comes from, in the order of preference: (folder in the drive, file pattern).
+DEPTH_SOURCES: tuple[tuple[Path, str], ...] = (
+    (LIDAR_NPZ_DIR, "*.npz"), (DEPTH_PNG_DIR, "*.png"), (VELODYNE_RAW_PNG_DIR, "*.png"), (VELODYNE_BIN_DIR, "*.bin"),
+)
 #: KITTI depth benchmark PNGs store metres x 256 (devkit ``depth_read``), 0 = no measurement.
 DEPTH_PNG_SCALE = 256.0
 #: How the OXTS poses get their positions: integrated velocities, or GPS latitude/longitude.
@@ -95,7 +114,8 @@ _OXTS_MIN_COLUMNS = 11
 _VF, _VL, _VU = 8, 9, 10
 
 _DATE_RE = re.compile(r"^\d{4}_\d{2}_\d{2}$")
-_DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_sync$")
+#: ``DATE_drive_LABEL_sync``: LABEL = KITTI's 4-digit number, or any label of letters, digits and ``-``.
+_DRIVE_RE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_([A-Za-z0-9-]+)_sync$")
 
 
 def cam2_offset(P_rect_02: np.ndarray) -> np.ndarray:
@@ -220,6 +240,28 @@ def _rigid(calib: dict[str, np.ndarray], path: Path) -> np.ndarray:
     return T
 
 
+def velo_to_cam0_rect(date_folder: str | Path, what: str) -> np.ndarray:
+    """(4, 4) from Velodyne to rectified camera 0: ``R_rect_00 T_cam0_velo`` (KITTI raw devkit;
+    ``calib_velo_to_cam.txt`` R|T, ``calib_cam_to_cam.txt`` R_rect_00), metres.
+
+    Args:
+        date_folder: the ``DATE`` folder holding the calibration files.
+        what: what needs it, for the messages (``"the OXTS poses"``).
+
+    Raises:
+        InputError: a missing calibration file or entry.
+    """
+    dd = Path(date_folder)
+    p_vc, p_cc = dd / VELO_TO_CAM_FILE, dd / CALIB_FILE
+    T_cam0_velo = _rigid(read_kitti_calib(require_file(p_vc, f"kitti_raw calibration for {what}")), p_vc)
+    cc = read_kitti_calib(require_file(p_cc, "kitti_raw calibration"))
+    if "R_rect_00" not in cc or cc["R_rect_00"].size != 9:
+        raise InputError(f"calibration: {p_cc} has no R_rect_00 (9 numbers), needed for {what}")
+    R_rect = np.eye(4)
+    R_rect[:3, :3] = cc["R_rect_00"].reshape(3, 3)
+    return R_rect @ T_cam0_velo
+
+
 def imu_to_cam2(date_folder: str | Path, P_rect_02: np.ndarray) -> np.ndarray:
     """``T_cam2_imu`` (4, 4): IMU -> Velodyne -> camera 0 (rectified with ``R_rect_00``) -> camera 2.
 
@@ -229,18 +271,11 @@ def imu_to_cam2(date_folder: str | Path, P_rect_02: np.ndarray) -> np.ndarray:
     Raises:
         InputError: a missing calibration file or entry.
     """
-    dd = Path(date_folder)
-    p_iv, p_vc, p_cc = dd / IMU_TO_VELO_FILE, dd / VELO_TO_CAM_FILE, dd / CALIB_FILE
+    p_iv = Path(date_folder) / IMU_TO_VELO_FILE
     T_velo_imu = _rigid(read_kitti_calib(require_file(p_iv, "kitti_raw OXTS calibration")), p_iv)
-    T_cam0_velo = _rigid(read_kitti_calib(require_file(p_vc, "kitti_raw OXTS calibration")), p_vc)
-    cc = read_kitti_calib(require_file(p_cc, "kitti_raw calibration"))
-    if "R_rect_00" not in cc or cc["R_rect_00"].size != 9:
-        raise InputError(f"calibration: {p_cc} has no R_rect_00 (9 numbers), needed for the OXTS poses")
-    R_rect = np.eye(4)
-    R_rect[:3, :3] = cc["R_rect_00"].reshape(3, 3)
     T_cam2_cam0 = np.eye(4)
     T_cam2_cam0[:3, 3] = cam2_offset(P_rect_02)
-    return T_cam2_cam0 @ R_rect @ T_cam0_velo @ T_velo_imu
+    return T_cam2_cam0 @ velo_to_cam0_rect(date_folder, "the OXTS poses") @ T_velo_imu
 
 
 def oxts_poses(records: dict[int, np.ndarray], times: dict[int, float] | None = None, *,
@@ -330,10 +365,62 @@ def read_depth_png(path: str | Path) -> np.ndarray:
     return read_png16(require_file(path, "depth PNG"), 1).astype(np.float32) / DEPTH_PNG_SCALE
 
 
+def read_velodyne_bin(path: str | Path) -> np.ndarray:
+    """A raw Velodyne scan (N, 4) float32: ``x y z`` (metres, Velodyne axes: x forward, y left, z up) and
+    reflectance, from a KITTI ``velodyne_points/data/*.bin`` (little-endian float32, 4 per return).
+
+    Raises:
+        InputError: unreadable, a size that is not a whole number of returns, non-finite coordinates.
+    """
+    p = require_file(path, "Velodyne scan")
+    try:
+        raw = np.fromfile(p, dtype="<f4")
+    except OSError as e:
+        raise InputError(f"Velodyne scan: cannot read {p} ({e})") from e
+    if raw.size % 4:
+        raise InputError(f"Velodyne scan: {p} holds {raw.size} float32 values, not a multiple of 4 (x y z reflectance)")
+    pts = raw.reshape(-1, 4).astype(np.float32)
+    if not np.all(np.isfinite(pts[:, :3])):
+        raise InputError(f"Velodyne scan: {p} holds non-finite coordinates")
+    return pts
+
+
+def project_velodyne(points: np.ndarray, P_velo_to_img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """LiDAR depth (H, W) float32 metres from a scan: ``x = P_velo_to_img @ [X; 1]`` (KITTI raw devkit:
+    ``P_rect_02 @ R_rect_00 @ Tr_velo_to_cam``), depth = ``x[2]`` (z in rectified camera 2), 0 = no return.
+
+    Convention (the KITTI devkit's, as its MATLAB projection and the depth benchmark's maps do it): a return
+    lands in the pixel ``(round(x[0] / x[2]) - 1, round(x[1] / x[2]) - 1)`` counted from 0 (MATLAB's
+    1-based index of the rounded coordinate), rounding half up; only returns in front of the camera
+    (``x[2] > 0``) and inside the image are kept, and of the returns in one pixel the nearest.
+
+    Args:
+        points: (N, 3+) Velodyne points, metres (further columns, the reflectance, are not used).
+        P_velo_to_img: (3, 4) projection from Velodyne coordinates to pixels.
+        size: (H, W) of the image.
+    """
+    H, W = int(size[0]), int(size[1])
+    X = np.asarray(points, dtype=np.float64)[:, :3]
+    x = np.asarray(P_velo_to_img, dtype=np.float64) @ np.vstack([X.T, np.ones(len(X))])
+    z = x[2]
+    front = z > 0
+    x, z = x[:, front], z[front]
+    col = np.floor(x[0] / z + 0.5).astype(np.int64) - 1
+    row = np.floor(x[1] / z + 0.5).astype(np.int64) - 1
+    inside = (col >= 0) & (col < W) & (row >= 0) & (row < H)
+    idx, z = row[inside] * W + col[inside], z[inside]
+    order = np.lexsort((z, idx))  # by pixel, nearest first
+    idx, z = idx[order], z[order]
+    first = np.r_[True, idx[1:] != idx[:-1]] if len(idx) else np.zeros(0, bool)
+    depth = np.zeros(H * W, np.float32)
+    depth[idx[first]] = z[first]
+    return depth.reshape(H, W)
+
+
 @dataclass
 class _Drive:
     date: str
-    drive: int
+    drive: int | str  # KITTI's drive number, or the folder's label where it is not a 4-digit number
     folder: Path
     camera: Camera
     P_rect_02: np.ndarray
@@ -341,8 +428,14 @@ class _Drive:
     poses: dict[int, np.ndarray] | None  # raw frame -> T_w_cam2 (4, 4)
     bottoms: dict[int, tuple[np.ndarray, list[str]]] | None
     motion_source: str = ""  # "poses_cam0.txt" | "oxts (velocity)" | ...
-    depth_files: dict[int, Path] | None = None  # raw frame -> LiDAR npz / depth PNG
+    depth_files: dict[int, Path] | None = None  # raw frame -> LiDAR npz / depth PNG / Velodyne scan
     times: dict[int, float] | None = None  # raw frame -> seconds
+    P_velo: np.ndarray | None = None  # (3, 4) Velodyne -> pixels, where scans are projected
+
+    @property
+    def label(self) -> str:
+        """The drive's name in frame names and sequence keys: ``0023`` (a number) or the folder's label."""
+        return f"{self.drive:04d}" if isinstance(self.drive, int) else self.drive
 
 
 @dataclass
@@ -359,7 +452,8 @@ class KittiRawSource(LazySource):
     Args:
         root: folder holding the ``DATE`` folders.
         date: only this date (``2011_09_30``); None = all dates found.
-        drive: only this drive (``28``, ``"0028"`` or the folder name); None = all drives.
+        drive: only this drive (``28``, ``"0028"``, a label such as ``"traffic"``, or the folder name);
+            None = all drives.
         step: frame distance of a pair (current ``n``, previous ``n - step``).
         frames: at most this many pairs (None = all).
         only_labelled: only pairs whose current frame has stixel-bottom labels.
@@ -369,7 +463,8 @@ class KittiRawSource(LazySource):
             ``"position"`` (GPS lat/lon), see :func:`oxts_poses`.
 
     Ground truth: ``motion`` (from ``poses_cam0.txt``, else from ``oxts/``), ``gt.depth`` (LiDAR
-    depth of the current frame where ``proj_depth/`` has it), ``gt.bottoms`` (from the label file,
+    depth of the current frame where ``proj_depth/`` or ``velodyne_points/`` has it, in the order of
+    :data:`DEPTH_SOURCES`), ``gt.bottoms`` (from the label file,
     for labelled frames). ``meta["dt"]``: seconds between the two frames (timestamps, else 10 Hz).
 
     Raises:
@@ -422,17 +517,19 @@ class KittiRawSource(LazySource):
         for dd in dates:
             for p in sorted(dd.iterdir()):
                 m = _DRIVE_RE.match(p.name)
-                if p.is_dir() and m and (drive is None or _drive_matches(drive, p.name, int(m.group(2)))):
+                if p.is_dir() and m and (drive is None or _drive_matches(drive, p.name, _drive_id(m.group(2)))):
                     out.append(p)
         if not out:
             want = f" matching drive {drive}" if drive is not None else ""
-            raise InputError(f"kitti_raw: no DATE_drive_NNNN_sync folders{want} under {', '.join(map(str, dates))}")
+            raise InputError(f"kitti_raw: no DATE_drive_NNNN_sync folders{want} under {', '.join(map(str, dates))} "
+                             f"(a drive folder: DATE_drive_NNNN_sync, or DATE_drive_LABEL_sync with a label of letters, "
+                             f"digits and -)")
         return out
 
     def _load_drive(self, folder: Path, camera_height: float, pitch: float) -> _Drive:
         m = _DRIVE_RE.match(folder.name)
         assert m is not None
-        date, drive = m.group(1), int(m.group(2))
+        date, drive = m.group(1), _drive_id(m.group(2))
         calib_path = folder.parent / CALIB_FILE
         calib = read_kitti_calib(require_file(calib_path, f"kitti_raw calibration of {date}"))
         P = projection_matrix(calib, P_RECT_KEY, calib_path)
@@ -468,16 +565,35 @@ class KittiRawSource(LazySource):
             motion_source = f"oxts ({self.oxts})"
         bottoms = None
         if (folder / BOTTOMS_FILE).exists():
+            if not isinstance(drive, int):
+                raise InputError(f"kitti_raw: {folder / BOTTOMS_FILE} names drives by number; the folder {folder.name} "
+                                 f"has none (DATE_drive_NNNN_sync)")
             bottoms = read_stixel_bottoms(folder / BOTTOMS_FILE, date, drive)
+        depth_files, counts = self._depth_files(folder)
+        P_velo = None
+        if counts[VELODYNE_BIN_DIR]:
+            P_velo = P @ velo_to_cam0_rect(folder.parent, f"projecting the Velodyne scans of {folder.name}")
+        logger.info("kitti_raw %s: %d images, motion from %s, LiDAR depth for %d frames%s", folder.name, len(images),
+                    motion_source or "nothing", len(depth_files),
+                    "".join(f", {n} from {sub}" for sub, n in counts.items() if n) if depth_files else "")
+        return _Drive(date, drive, folder, camera, P, images, poses, bottoms, motion_source, depth_files or None, times,
+                      P_velo)
+
+    @staticmethod
+    def _depth_files(folder: Path) -> tuple[dict[int, Path], dict[Path, int]]:
+        """Raw frame -> the LiDAR depth file it takes (the first of :data:`DEPTH_SOURCES` that has the frame),
+        and how many frames take each source."""
         depth_files: dict[int, Path] = {}
-        for sub, pattern in ((DEPTH_PNG_DIR, "*.png"), (LIDAR_NPZ_DIR, "*.npz")):  # npz wins where both exist
+        counts: dict[Path, int] = {}
+        for sub, pattern in DEPTH_SOURCES:
+            counts[sub] = 0
             for f in sorted((folder / sub).glob(pattern)) if (folder / sub).is_dir() else []:
                 if not f.stem.isdigit():
                     raise InputError(f"kitti_raw: depth file {f} is not named by its raw frame number")
-                depth_files[int(f.stem)] = f
-        logger.info("kitti_raw %s: %d images, motion from %s, LiDAR depth for %d frames", folder.name, len(images),
-                    motion_source or "nothing", len(depth_files))
-        return _Drive(date, drive, folder, camera, P, images, poses, bottoms, motion_source, depth_files or None, times)
+                if int(f.stem) not in depth_files:
+                    depth_files[int(f.stem)] = f
+                    counts[sub] += 1
+        return depth_files, counts
 
     @staticmethod
     def _read_poses(path: Path, b: np.ndarray) -> dict[int, np.ndarray]:
@@ -499,7 +615,7 @@ class KittiRawSource(LazySource):
 
     # --- sequences (keyframes) ------------------------------------------------------------------
     def _sequence_key(self, item: _Pair) -> str:
-        return f"kitti_raw/{item.drive.date}_drive_{item.drive.drive:04d}"
+        return f"kitti_raw/{item.drive.date}_drive_{item.drive.label}"
 
     def _back(self, item: _Pair, back: int) -> _Pair | None:
         prev = item.frame - int(back) * self.step
@@ -518,7 +634,7 @@ class KittiRawSource(LazySource):
         return relative_motion(d.poses[item.frame], d.poses[item.frame_prev])
 
     def _prev_name(self, item: _Pair) -> str:
-        return f"{item.drive.date}_drive_{item.drive.drive:04d}_{item.frame_prev:010d}"
+        return f"{item.drive.date}_drive_{item.drive.label}_{item.frame_prev:010d}"
 
     def _load(self, item: _Pair) -> FramePair:
         d = item.drive
@@ -528,9 +644,17 @@ class KittiRawSource(LazySource):
             logger.warning("kitti_raw: %s lacks frame %d or %d: no ground-truth motion for this pair",
                            d.motion_source, item.frame, item.frame_prev)
         gt = GroundTruth()
+        depth_from = None
         if d.depth_files is not None and item.frame in d.depth_files:
             f = d.depth_files[item.frame]
-            depth = read_lidar_npz(f) if f.suffix == ".npz" else read_depth_png(f)
+            depth_from = str(f.parent.relative_to(d.folder))
+            if f.suffix == ".npz":
+                depth = read_lidar_npz(f)
+            elif f.suffix == ".bin":
+                assert d.P_velo is not None
+                depth = project_velodyne(read_velodyne_bin(f), d.P_velo, tuple(image.shape[-2:]))  # type: ignore[arg-type]
+            else:
+                depth = read_depth_png(f)
             if depth.shape != tuple(image.shape[-2:]):
                 raise InputError(f"kitti_raw: depth {f} is {depth.shape[1]}x{depth.shape[0]}, image "
                                  f"{d.images[item.frame]} is {image.shape[-1]}x{image.shape[-2]}")
@@ -540,18 +664,25 @@ class KittiRawSource(LazySource):
                       "frame_prev": item.frame_prev, "path": str(d.images[item.frame]),
                       "path_prev": str(d.images[item.frame_prev]), "dt": dt, "name_prev": self._prev_name(item),
                       "sequence": self._sequence_key(item), "motion_source": d.motion_source}
+        if depth_from is not None:
+            meta["depth_from"] = depth_from
         if d.bottoms is not None and item.frame in d.bottoms:
             pts, splits = d.bottoms[item.frame]
             gt.bottoms = torch.from_numpy(pts.copy())
             meta["bottoms_split"] = sorted(set(splits))
         return FramePair(
             image=image, image_prev=image_prev, camera=d.camera, motion=motion, gt=gt,
-            name=f"{d.date}_drive_{d.drive:04d}_{item.frame:010d}", meta=meta,
+            name=f"{d.date}_drive_{d.label}_{item.frame:010d}", meta=meta,
         )
 
 
-def _drive_matches(want: int | str, folder_name: str, number: int) -> bool:
+def _drive_id(label: str) -> int | str:
+    """A drive folder's label as its id: KITTI's 4-digit number as an int, any other label as it is."""
+    return int(label) if len(label) == 4 and label.isdigit() else label
+
+
+def _drive_matches(want: int | str, folder_name: str, drive: int | str) -> bool:
     s = str(want)
-    if s == folder_name:
+    if s in (folder_name, str(drive)):
         return True
-    return s.isdigit() and int(s) == number
+    return s.isdigit() and isinstance(drive, int) and int(s) == drive

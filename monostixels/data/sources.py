@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, List, Mapping, Optional, Sequence, Union
 
 from monostixels._checks import InputError, config_params, is_unset, option_params
-from monostixels.data.base import FramePair
+from monostixels.data.base import FOLDER_FPS, FramePair
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.inputs.static_regions import AUTO_MASK
 
@@ -156,17 +156,24 @@ class DdadDataConfig:
 
 @dataclass
 class FramesDataConfig:
-    """``data=frames``: a folder of images of your own camera (sorted by name = temporal order) and its
-    intrinsics file.
+    """``data=frames``: a folder of images of your own camera (sorted by name = temporal order), with an
+    intrinsics file or a horizontal field of view.
 
     Attributes:
         root: the folder of images.
         intrinsics: the intrinsics file: YAML/JSON ``{fx, fy, cx, cy}`` (pixels) or ``{K: 3x3}``, or text
             ``fx fy cx cy`` / the 9 numbers of K; with ``distortion: [k1, k2, p1, p2, k3]`` (OpenCV's order,
             as ``monostixels calibrate`` writes it) the images are undistorted. None =
-            ``<root>/intrinsics.yaml`` (or .yml/.json/.txt).
+            ``<root>/intrinsics.yaml`` (or .yml/.json/.txt), else ``hfov_deg``. A file wins over ``hfov_deg``
+            (a warning says so).
+        hfov_deg: without an intrinsics file, the horizontal field of view (degrees), as for ``data=video``:
+            fx = fy = (W/2) / tan(hfov/2), principal point at the image centre. Approximate.
         step: pair = (image i, image i - step) in name order.
         frames: at most this many frame pairs (None = all).
+        fps: the folder's frame rate (Hz; a 20 fps dashcam's frames: 20): a pair's interval is step / fps
+            seconds, which velocities and TTC use.
+        resize: resize of the (undistorted) images, the intrinsics with them, as for ``data=video``: ``auto``
+            (about 0.5 megapixels, never upscaled), None (as stored), a factor or ``[W, H]`` pixels.
         camera_height: camera height above the road (metres); None = ``camera.height``.
         poses: camera-to-world poses (a line per image: 12 or 16 numbers, or an image number and 12), the
             ground-truth motion; None = no motion (estimate it with ``motion=mono``).
@@ -178,8 +185,12 @@ class FramesDataConfig:
     name: str = "frames"
     root: Optional[str] = None
     intrinsics: Optional[str] = None
+    hfov_deg: Optional[float] = None
     step: int = 1
     frames: Optional[int] = None
+    fps: float = FOLDER_FPS
+    # auto, a factor or [W, H]: no one type (working_size checks it).
+    resize: Any = "auto"
     camera_height: Optional[float] = None
     poses: Optional[str] = None
     mask: Optional[str] = AUTO_MASK
@@ -222,7 +233,7 @@ class VideoDataConfig:
     step: int = 1
     start: int = 0
     end: Optional[int] = None
-    # auto, a factor or [W, H]: no one type (VideoSource checks it).
+    # auto, a factor or [W, H]: no one type (working_size checks it).
     resize: Any = "auto"
     mask: Optional[str] = AUTO_MASK
     frames: Optional[int] = None
@@ -321,10 +332,17 @@ def _frames_folder(data: FramesDataConfig, camera: Any) -> Sequence[FramePair]:
     return FramesSource(
         data.root,
         intrinsics=None if data.intrinsics is None else Path(data.intrinsics),
-        step=data.step, frames=data.frames, camera_height=height, pitch=pitch,
-        poses=None if data.poses is None else Path(data.poses),
+        hfov_deg=data.hfov_deg, step=data.step, frames=data.frames, fps=data.fps, resize=_resize(data.resize),
+        camera_height=height, pitch=pitch, poses=None if data.poses is None else Path(data.poses),
         mask=_mask(data.mask),
     )
+
+
+def _resize(value: Any) -> Any:
+    """``data.resize`` as :func:`monostixels.data._lens.working_size` takes it: a config list as a list."""
+    if value is not None and not isinstance(value, (int, float, str)):
+        return list(value)
+    return value
 
 
 def _mask(value: str | None) -> str | Path | None:
@@ -338,12 +356,9 @@ def _video(data: VideoDataConfig, camera: Any, window: int = 10) -> Sequence[Fra
     from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
     height, pitch = camera_mount(data, camera)
-    resize = data.resize
-    if resize is not None and not isinstance(resize, (int, float, str)):
-        resize = list(resize)
     common = dict(
         intrinsics=None if data.intrinsics is None else Path(data.intrinsics),
-        hfov_deg=data.hfov_deg, step=data.step, start=data.start, end=data.end, resize=resize,
+        hfov_deg=data.hfov_deg, step=data.step, start=data.start, end=data.end, resize=_resize(data.resize),
         frames=data.frames, camera_height=height, pitch=pitch, mask=_mask(data.mask),
     )
     if data.realtime or is_live_path(data.path):

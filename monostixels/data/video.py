@@ -41,11 +41,10 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import (LazySource, UnreadableFrame, check_intrinsics_size, limit_frames, make_camera,
-                                  read_distortion, read_intrinsics_file, read_mask_file, require_file)
-from monostixels.data._lens import FrameWarp
+from monostixels.data._io import LazySource, UnreadableFrame, limit_frames, require_file
+from monostixels.data._lens import AUTO_PIXELS, intrinsics_from_hfov, lens_camera, working_size
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
-from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera
+from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.inputs.static_regions import AUTO_FRAMES, AUTO_MASK, AUTO_SPACING_S, with_static_region
 
 __all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path", "AUTO_PIXELS"]
@@ -54,28 +53,6 @@ logger = logging.getLogger(__name__)
 
 #: Largest value of an 8-bit channel, to scale frames to [0, 1].
 _MAX_U8 = 255.0
-#: ``resize="auto"``: frames are scaled to about this many pixels (0.5 MP, e.g. 942x530 from 720p or
-#: 1080p): flow, semantics and the solver take time in proportion to the pixels, and KITTI's 1242x375
-#: (0.47 MP), the size the defaults are tuned at, is about as many.
-AUTO_PIXELS = 500_000
-#: ``resize="auto"`` keeps frames of up to this factor above :data:`AUTO_PIXELS` as they are (960x540 is
-#: 0.52 MP): a resample that small costs sharpness for little time.
-_AUTO_KEEP = 1.1
-
-
-def intrinsics_from_hfov(width: int, height: int, hfov_deg: float) -> tuple[float, float, float, float]:
-    """Approximate pinhole intrinsics ``(fx, fy, cx, cy)`` (pixels) from a horizontal field of view.
-
-    Convention: pixel centres at integer coordinates, so the image centre is ``((W-1)/2, (H-1)/2)``;
-    square pixels (``fy = fx``); no distortion.
-
-    Raises:
-        InputError: ``hfov_deg`` not in (0, 180).
-    """
-    if not (0.0 < float(hfov_deg) < 180.0) or not math.isfinite(float(hfov_deg)):
-        raise InputError(f"data.hfov_deg: horizontal field of view must be in (0, 180) degrees, got {hfov_deg}")
-    fx = (width / 2.0) / math.tan(math.radians(float(hfov_deg)) / 2.0)
-    return fx, fx, (width - 1) / 2.0, (height - 1) / 2.0
 
 
 @dataclass
@@ -156,10 +133,10 @@ class VideoSource(LazySource):
                 f"({count} frames in the file); a pair needs at least two"
             )
         self.size_in = (H0, W0)
-        self.size = self._out_size(resize, W0, H0)
+        self.size = working_size(resize, W0, H0)
         auto = mask == AUTO_MASK
-        self.camera, self.intrinsics_source, self._warp = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
-                                                                        camera_height, pitch, None if auto else mask)
+        self.camera, self.intrinsics_source, self._warp = lens_camera(intrinsics, hfov_deg, (H0, W0), self.size,
+                                                                      camera_height, pitch, None if auto else mask)
         if auto:
             self._warp.ignore = with_static_region(self._warp.ignore, self._sample_frames(used), f"video {self.path}")
         items = [_Pair(used[k], used[k - 1]) for k in range(1, len(used))]
@@ -191,32 +168,6 @@ class VideoSource(LazySource):
         finally:
             cap.release()
         return out
-
-    @staticmethod
-    def _out_size(resize: Any, W: int, H: int) -> tuple[int, int]:
-        """(H, W) after ``resize`` (``"auto"``, a factor or ``[W, H]``) of ``W x H`` frames."""
-        if resize is None:
-            return H, W
-        if isinstance(resize, str):
-            if resize.strip().lower() != "auto":
-                raise InputError(f"data.resize: expected auto, a factor or [W, H] pixels, got {resize!r}")
-            if W * H <= AUTO_PIXELS * _AUTO_KEEP:
-                return H, W
-            s = math.sqrt(AUTO_PIXELS / (W * H))
-            # Even sizes: video encoders (the overlay video) and 2x pyramids want them.
-            return max(2, 2 * round(H * s / 2)), max(2, 2 * round(W * s / 2))
-        if isinstance(resize, (int, float)) and not isinstance(resize, bool):
-            f = float(resize)
-            if not (f > 0 and math.isfinite(f)):
-                raise InputError(f"data.resize: factor must be positive, got {resize}")
-            return max(1, round(H * f)), max(1, round(W * f))
-        try:
-            w, h = (int(x) for x in resize)
-        except (TypeError, ValueError) as e:
-            raise InputError(f"data.resize: expected auto, a factor or [W, H] pixels, got {resize!r}") from e
-        if w < 1 or h < 1:
-            raise InputError(f"data.resize: [W, H] must be positive, got {resize!r}")
-        return h, w
 
     def _frame(self, index: int) -> torch.Tensor:
         """Video frame ``index`` as (3, H, W) float32 RGB in [0, 1] (undistorted, resized)."""
@@ -299,33 +250,6 @@ class VideoSource(LazySource):
 
 # ------------------------------------------------------------------------------------------------
 # Frames as they come: a camera, a URL, or a video file read at its frame rate.
-
-
-def _video_camera(intrinsics: Path | None, hfov_deg: float | None, size_in: tuple[int, int],
-                  size: tuple[int, int], camera_height: float, pitch: float,
-                  mask: str | Path | None = None) -> tuple[Camera, str, FrameWarp]:
-    """The camera of a video's frames undistorted and resized from ``size_in`` to ``size`` (H, W) pixels,
-    where its intrinsics came from (an intrinsics file: fx fy cx cy and the distortion of the stored
-    frames, or, approximate, a horizontal field of view in degrees) and the warp that makes the frames
-    (with the user's mask, read and checked against ``size_in``)."""
-    H0, W0 = size_in
-    distortion = None
-    if intrinsics is not None:
-        source = str(intrinsics)
-        fx, fy, cx, cy = read_intrinsics_file(intrinsics)
-        distortion = read_distortion(intrinsics)
-        check_intrinsics_size(intrinsics, size_in, "the video's frames")
-    elif hfov_deg is not None:
-        source = f"hfov {float(hfov_deg):g} deg (approximate)"
-        fx, fy, cx, cy = intrinsics_from_hfov(W0, H0, float(hfov_deg))
-        logger.warning("video: intrinsics from a horizontal field of view of %g deg: approximate (principal "
-                       "point at the centre, no distortion); depths scale with the focal length", float(hfov_deg))
-    else:
-        raise InputError("video: no intrinsics: set data.intrinsics=FILE (fx fy cx cy) or data.hfov_deg=DEGREES "
-                         "(horizontal field of view, approximate)")
-    user_mask = None if mask is None else read_mask_file(mask, size_in)
-    warp = FrameWarp((fx, fy, cx, cy), distortion, size_in, size, user_mask)
-    return make_camera(*warp.intrinsics, camera_height, pitch), source, warp
 
 
 def is_live_path(path: Any) -> bool:
@@ -436,14 +360,14 @@ class LiveVideoSource:
         H0, W0 = first.shape[:2]
         self.size_in = (H0, W0)
         try:
-            self.size = VideoSource._out_size(resize, W0, H0)
+            self.size = working_size(resize, W0, H0)
             if mask == AUTO_MASK:
                 # Frames as they come: none to look ahead at before the first pair.
                 logger.info("video: data.mask=auto looks for a bonnet in a file's first frames; a live source "
                             "takes data.mask=FILE")
                 mask = None
-            self.camera, self.intrinsics_source, self._warp = _video_camera(intrinsics, hfov_deg, (H0, W0), self.size,
-                                                                            camera_height, pitch, mask)
+            self.camera, self.intrinsics_source, self._warp = lens_camera(intrinsics, hfov_deg, (H0, W0), self.size,
+                                                                          camera_height, pitch, mask)
         except InputError:
             cap.release()
             raise
@@ -467,9 +391,6 @@ class LiveVideoSource:
         # The reader starts when the consumer asks for the first frame: a file's clock (frame k arrives
         # k / fps after the first) starts then, not while the pipeline is being built.
         self._thread = threading.Thread(target=self._read, args=(cap, first), name="monostixels-video-reader", daemon=True)
-        if hfov_deg is not None and intrinsics is None:
-            logger.warning("video: intrinsics from a horizontal field of view of %g deg: approximate (principal "
-                           "point at the centre, no distortion); depths scale with the focal length", float(hfov_deg))
         logger.info("video: %s %s (%dx%d -> %dx%d, %s fps, intrinsics %s)%s", self.kind, self.path, W0, H0,
                     self.size[1], self.size[0], f"{self.fps:g}" if self.fps else "unknown", self.intrinsics_source,
                     "; realtime: frames that arrive while one is solved are dropped" if self.realtime else "")
