@@ -66,6 +66,7 @@ from monostixels import cli  # noqa: E402
 from monostixels import pipeline as pipeline_mod  # noqa: E402
 from monostixels.pipeline import Pipeline, load_config  # noqa: E402
 from monostixels._threads import available_cores, set_threads, spinning  # noqa: E402
+from monostixels._cpu import runtime_report  # noqa: E402
 from monostixels.sequence import SequenceRunner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -311,6 +312,7 @@ def main() -> None:
     out.update({"dis_ms": dis_s * 1000.0, "dis_ms_runs": [t * 1000.0 for t, _ in dis_times], "dis_pair": dis_times[0][1],
                 "total_per_dis": results[names[0]]["total_per_dis"], "threads": results[names[0]]["threads"],
                 "cpu_seconds_per_frame": results[names[0]]["cpu_seconds_per_frame"]})
+    out.update(runtime_report())  # cpu, onnxruntime, int8_path, solver_build: where the numbers were measured
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

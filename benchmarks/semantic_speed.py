@@ -38,9 +38,13 @@ def measure(files: list[str | Path], *, size: tuple[int, int] = (384, 1248), run
         seed: of the random input.
 
     Returns:
-        ``{"size", "threads", "runs", "files": [{"file", "median_ms", "min_ms", "ratio", "times_ms"}]}``.
+        ``{"size", "threads", "runs", "files": [{"file", "median_ms", "min_ms", "ratio", "times_ms"}], "cpu",
+        "onnxruntime", "int8_path"}`` (the last three: :func:`monostixels._cpu.runtime_report`'s, where the
+        INT8 files ran).
     """
     import onnxruntime as ort
+
+    from monostixels._cpu import cpu_info, int8_path
 
     if len(size) != 2 or any(int(s) <= 0 or int(s) % 32 for s in size):
         raise ValueError(f"--size {list(size)}: height and width must be positive multiples of 32")
@@ -67,7 +71,8 @@ def measure(files: list[str | Path], *, size: tuple[int, int] = (384, 1248), run
     medians = [statistics.median(t) for t in times]
     return {"size": [int(size[0]), int(size[1])], "threads": int(threads), "runs": int(runs),
             "files": [{"file": str(f), "median_ms": m, "min_ms": min(t), "ratio": m / medians[0], "times_ms": t}
-                      for f, m, t in zip(files, medians, times)]}
+                      for f, m, t in zip(files, medians, times)],
+            "cpu": cpu_info(), "onnxruntime": ort.__version__, "int8_path": int8_path()}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -82,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
         rep = measure(args.files, size=tuple(args.size), runs=args.runs, threads=args.threads)
     except (ValueError, FileNotFoundError) as e:
         raise SystemExit(f"error: {e}") from None
+    print(f"{rep['cpu']['model']}, ONNX Runtime {rep['onnxruntime']}, INT8 path {rep['int8_path']}")
     for f in rep["files"]:
         print(f"{f['file']}: median {f['median_ms']:.1f} ms, min {f['min_ms']:.1f} ms, {f['ratio']:.3f}x the first")
     if args.json:

@@ -66,6 +66,7 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 
+from monostixels._cpu import cpu_info  # noqa: E402
 from monostixels.core import _dp_cpp  # noqa: E402
 from monostixels.data.synthetic import render_pair  # noqa: E402
 from monostixels.core.energy import PriorParams  # noqa: E402
@@ -105,8 +106,9 @@ def main() -> None:
     load_before = os.getloadavg()
     ms: dict[str, dict[str, float]] = {}
     cpu: dict[str, dict[str, float]] = {}
-    print(f"solver on {W}x{H}, backend {backend} (C++ kernel {'loaded' if _dp_cpp.available() else 'not used'}), "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {load_before[0]:.2f}")
+    print(f"solver on {W}x{H}, backend {backend} (C++ kernel "
+          f"{'built with ' + ' '.join(_dp_cpp.build_flags()) if _dp_cpp.available() else 'not used'}), "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {load_before[0]:.2f}; {cpu_info()['model']}")
     for threads in args.threads:
         torch.set_num_threads(threads)
         ms[str(threads)], cpu[str(threads)] = {}, {}
@@ -126,9 +128,11 @@ def main() -> None:
                   f"(median of {args.repeats}; "
                   f"stride {cfg.hypothesis_stride}; {len(st)} stixels)  peak RSS {_peak_mb():.0f} MB  "
                   f"load {os.getloadavg()[0]:.2f}", flush=True)
-    out = {"frame": f"{W}x{H}", "backend": backend, "kernel": _dp_cpp.available() and backend != "eager",
+    kernel = _dp_cpp.available() and backend != "eager"
+    out = {"frame": f"{W}x{H}", "backend": backend, "kernel": kernel,
            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "ms_per_frame": ms, "cpu_ms_per_frame": cpu, "peak_mb": _peak_mb(),
-           "loadavg": {"before": load_before, "after": os.getloadavg()}}
+           "loadavg": {"before": load_before, "after": os.getloadavg()}, "cpu": cpu_info(),
+           "build_flags": _dp_cpp.build_flags() if kernel else None}
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=2)

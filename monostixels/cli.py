@@ -376,7 +376,7 @@ def _run(cfg: DictConfig) -> None:
     from tqdm import tqdm
 
     from monostixels._checks import InputError, config_params
-
+    from monostixels._cpu import runtime_report
     from monostixels.output.bev import bev_image
     from monostixels.data._io import MAX_SKIPPED_FRAMES
     from monostixels.data.sources import camera_mount, data_params
@@ -460,8 +460,9 @@ def _run(cfg: DictConfig) -> None:
     restarts = list(getattr(src, "restarts", []))
     # What the run made of its input; unreadable frames are listed, never dropped silently.
     cam = camera_report(camera, camera_mount(cfg.data, cfg.camera)[0])
+    # platform: the CPU, ONNX Runtime's INT8 path and the solver's build (docs/conventions.md, section 4.3).
     run_summary = {"data": str(cfg.data.name), "frame_pairs": written, "skipped_frames": skipped,
-                   "sequence_restarts": restarts, "camera": cam}
+                   "sequence_restarts": restarts, "camera": cam, "platform": runtime_report()}
     (out / "summary.json").write_text(json.dumps(run_summary, indent=2))
     for line in camera_summary(cam):
         print(f"run: {line}")

@@ -1,6 +1,8 @@
 """The INT8 copies of our FCN-8s (monostixels.inputs.quantize, semantic=fcn8s_int8, preset=fast)."""
 from __future__ import annotations
 
+import functools
+import logging
 from pathlib import Path
 
 import cv2
@@ -9,8 +11,10 @@ import pytest
 import torch
 from onnx import numpy_helper
 
+from monostixels import _cpu
 from monostixels._checks import InputError
-from monostixels.inputs.quantize import quantize_fcn8s_onnx
+from monostixels.inputs import semantic
+from monostixels.inputs.quantize import SAFE_WEIGHT_MAX, can_saturate, int8_weight_max, quantize_fcn8s_onnx
 from monostixels.inputs.semantic import OnnxSegmenter, _fcn8s_segmenter
 from monostixels.pipeline import load_config
 
@@ -43,7 +47,14 @@ def test_quantized_copy_has_int8_convolutions_and_labels_an_unseen_frame_as_the_
     producers = {o: n for n in proto.graph.node for o in n.output}
     convs = [n for n in proto.graph.node if n.op_type == "Conv"]
     assert len(convs) == 18  # every convolution of the FCN-8s
+    quantized = [c for c in convs if c.input[1] in producers and producers[c.input[1]].op_type == "DequantizeLinear"]
+    # All but the first (the image's 3 channels) and the three score convolutions (10 classes out), which stay float.
+    assert len(quantized) == 14
     for conv in convs:
+        if conv not in quantized:
+            w = numpy_helper.to_array(inits[conv.input[1]])
+            assert w.dtype.name == "float32" and (w.shape[1] == 3 or w.shape[0] == 10)
+    for conv in quantized:
         # Its input and its weights each come through a DequantizeLinear; the weights are int8 per channel.
         x, w = (producers[name] for name in conv.input[:2])
         assert x.op_type == "DequantizeLinear" and w.op_type == "DequantizeLinear"
@@ -77,6 +88,37 @@ def test_fast_preset_runs_the_shipped_int8_copy_of_the_shipped_net() -> None:
     float_meta = {p.key: p.value for p in onnx.load(str(FLOAT)).metadata_props}
     assert all(meta[k] == v for k, v in float_meta.items())
     assert _agreement(FLOAT, INT8, _rgb(KITTI2015), 480 / 721.5377) >= 0.98
+
+
+def test_the_shipped_int8_file_cannot_saturate_on_any_cpu() -> None:
+    # On an x86 CPU without VNNI, ONNX Runtime adds pairs of u8 x s8 products into saturating 16-bit sums
+    # (VPMADDUBSW). Weights within [-64, 64] keep every pair within 2 x 255 x 64 = 32640 <= 32767, so the
+    # integer sums, and the labels, are the VNNI path's on every CPU. The copy before (8-bit weights up to
+    # 127) agreed with the float net on 0.971 of KITTI 000000_10 without VNNI, 0.992 with it.
+    assert SAFE_WEIGHT_MAX == 64 and 2 * 255 * SAFE_WEIGHT_MAX <= 2**15 - 1
+    assert int8_weight_max(INT8) == SAFE_WEIGHT_MAX and not can_saturate(INT8)
+    assert int8_weight_max(FLOAT) == 0 and not can_saturate(FLOAT)  # no int8 weights at all
+
+
+@needs_frames
+def test_8_bit_weights_can_saturate_and_fast_falls_back_to_the_float_net_without_vnni(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    calib = [_rgb(p) for p in sorted(CAMVID_TRAIN.glob("*.jpg"))[:2]]
+    wide = quantize_fcn8s_onnx(FLOAT, tmp_path / "wide_int8.onnx", calib, scale=0.5, reduce_range=False)
+    assert int8_weight_max(wide) == 127 and can_saturate(wide)
+    (tmp_path / FLOAT.name).write_bytes(FLOAT.read_bytes())
+    cfg = load_config(["preset=fast", f"semantic.model={wide}"]).semantic
+    monkeypatch.setattr(semantic, "_int8_checked", functools.lru_cache(semantic._int8_checked.__wrapped__))
+    assert _fcn8s_segmenter(cfg).path == wide  # a CPU with VNNI runs it
+    monkeypatch.setattr(_cpu, "int8_path", lambda: "no_vnni")
+    monkeypatch.setattr(semantic, "_int8_checked", functools.lru_cache(semantic._int8_checked.__wrapped__))
+    with caplog.at_level(logging.WARNING, logger="monostixels.inputs.semantic"):
+        assert _fcn8s_segmenter(cfg).path == tmp_path / FLOAT.name
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"semantic: {wide} has 8-bit weights, which can saturate on this CPU (no VNNI): running the float net "
+        f"{tmp_path / FLOAT.name} instead"]
+    # The shipped 7-bit copy runs as it is there.
+    assert _fcn8s_segmenter(load_config(["preset=fast"]).semantic).path.resolve() == INT8.resolve()
 
 
 @needs_frames

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from benchmarks.semantic_speed import measure
+from monostixels._cpu import FLAGS, int8_path
 
 
 def _tiny_onnx(path: Path, channels: int) -> Path:
@@ -23,6 +24,8 @@ def test_each_file_is_timed_runs_times_and_compared_with_the_first(tmp_path: Pat
     assert rep["size"] == [32, 64] and rep["threads"] == 1
     assert [len(f["times_ms"]) for f in rep["files"]] == [3, 3]
     assert rep["files"][0]["ratio"] == 1.0
+    # Where they ran: the CPU's flags and ONNX Runtime's INT8 path on it (VNNI or not).
+    assert set(rep["cpu"]["flags"]) == set(FLAGS) and rep["int8_path"] == int8_path() and rep["onnxruntime"]
     for f in rep["files"]:
         assert 0 < f["min_ms"] <= f["median_ms"]
         assert f["ratio"] == pytest.approx(f["median_ms"] / rep["files"][0]["median_ms"])

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["available", "build_flags", "march", "MARCH_ENV", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry",
+__all__ = ["available", "loaded", "build_flags", "march", "MARCH_ENV", "column_dp", "cell_sums", "cell_means_checked", "hypotheses", "geometry",
            "semantic_prefix", "build_error", "CHECK_FINITE",
            "CHECK_NONNEGATIVE", "CHECK_POSITIVE_DEFINITE"]
 
@@ -147,6 +147,11 @@ def available() -> bool:
                                "eager torch path (same results, ~50x slower). Set solver.backend=eager "
                                "to silence this.", str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         return bool(_state["ok"])
+
+
+def loaded() -> bool:
+    """Whether the kernel is loaded already (never builds it; :func:`available` does)."""
+    return bool(_state["ok"])
 
 
 def build_error() -> str | None:

@@ -7,6 +7,12 @@ follows them (RAFT's correlation lookup and flow arithmetic, the FCN's upsamplin
 float32. On a CPU with 8-bit dot products (AVX-512 VNNI, AVX-VNNI) an INT8 convolution takes about
 half the time of a float one (models/MODEL_CARD.md).
 
+Convention (the same result on every x86 CPU): on a CPU without VNNI, ONNX Runtime multiplies u8
+activations by s8 weights with ``VPMADDUBSW``, which adds each pair of products into a saturating
+16-bit sum. With weights of 7 bits (``reduce_range``: |w| <= :data:`SAFE_WEIGHT_MAX` = 64) no pair
+can saturate: 2 x 255 x 64 = 32640 <= 32767, and the integer sums are those of the VNNI path.
+:func:`can_saturate` tells a file whose weights are wider.
+
 Used by :func:`monostixels.inputs.raft.quantize_onnx` (RAFT, ``flow.runtime=auto``) and
 :func:`quantize_fcn8s_onnx` (the FCN-8s of ``semantic=fcn8s_int8``, the semantic net of
 ``preset=fast``).
@@ -17,7 +23,7 @@ import logging
 import os
 import tempfile
 import warnings
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -26,13 +32,18 @@ import torch
 
 from monostixels._checks import InputError
 
-__all__ = ["quantize_convolutions", "quantize_fcn8s_onnx"]
+__all__ = ["SAFE_WEIGHT_MAX", "can_saturate", "int8_weight_max", "quantize_convolutions", "quantize_fcn8s_onnx"]
 
 logger = logging.getLogger(__name__)
 
+#: The largest |int8 weight| whose u8 x s8 products cannot saturate a pairwise 16-bit sum:
+#: 2 x 255 x 64 = 32640 <= 32767 (ONNX Runtime's reduce_range gives weights in [-64, 64]).
+SAFE_WEIGHT_MAX = 64
+
 
 def quantize_convolutions(proto: Any, dst: str | os.PathLike, feeds: Iterable[dict[str, np.ndarray]],
-                          metadata: dict[str, str]) -> Path:
+                          metadata: dict[str, str], *, reduce_range: bool = True,
+                          keep_float: Callable[[tuple[int, ...]], bool] | None = None) -> Path:
     """Write an INT8 copy of the float graph ``proto`` (an ``onnx.ModelProto``) to ``dst``.
 
     Args:
@@ -40,6 +51,10 @@ def quantize_convolutions(proto: Any, dst: str | os.PathLike, feeds: Iterable[di
         dst: the INT8 file to write.
         feeds: calibration inputs, each ``{input name: array}`` as the graph is run.
         metadata: ``metadata_props`` of the copy (``quantized: int8`` is added).
+        reduce_range: weights in 7 bits (|w| <= 64), so that no CPU's 16-bit pairwise sums saturate
+            (module docstring); False: the full 8 bits.
+        keep_float: called with each convolution's weight shape (out, in, kh, kw); True keeps that
+            convolution float32.
 
     Returns:
         ``dst``.
@@ -67,6 +82,10 @@ def quantize_convolutions(proto: Any, dst: str | os.PathLike, feeds: Iterable[di
         proto.graph.initializer.remove(init)
     for k, node in enumerate(proto.graph.node):  # the quantizer names its nodes after these
         node.name = node.name or f"n{k}"
+    shapes = {i.name: tuple(i.dims) for i in proto.graph.initializer}
+    excluded = [node.name for node in proto.graph.node
+                if node.op_type == "Conv" and keep_float is not None and node.input[1] in shapes
+                and keep_float(shapes[node.input[1]])]
     seen = 0
 
     class _Feeds(CalibrationDataReader):
@@ -92,7 +111,8 @@ def quantize_convolutions(proto: Any, dst: str | os.PathLike, feeds: Iterable[di
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 quantize_static(str(f32), str(dst), _Feeds(), quant_format=QuantFormat.QDQ,
-                                op_types_to_quantize=["Conv"], per_channel=True, activation_type=QuantType.QUInt8,
+                                op_types_to_quantize=["Conv"], per_channel=True, reduce_range=reduce_range,
+                                nodes_to_exclude=excluded, activation_type=QuantType.QUInt8,
                                 weight_type=QuantType.QInt8, calibrate_method=CalibrationMethod.MinMax)
         except ValueError as err:
             if seen == 0:
@@ -111,7 +131,7 @@ def quantize_convolutions(proto: Any, dst: str | os.PathLike, feeds: Iterable[di
 
 
 def quantize_fcn8s_onnx(src: str | os.PathLike, dst: str | os.PathLike, images: Iterable[torch.Tensor],
-                        scale: float = 1.0) -> Path:
+                        scale: float = 1.0, *, reduce_range: bool = True) -> Path:
     """An INT8 copy of an FCN-8s ONNX file (:func:`monostixels.inputs.fcn8s.export_onnx`: input ``image``
     (1, 3, h, w) RGB in [0, 1], ImageNet normalisation inside the graph).
 
@@ -121,12 +141,20 @@ def quantize_fcn8s_onnx(src: str | os.PathLike, dst: str | os.PathLike, images: 
         images: calibration images (3, H, W) RGB in [0, 1]; each is resized by ``scale`` and padded to a
             multiple of 32, as ``semantic=fcn8s`` feeds the net.
         scale: resize factor of the calibration images.
+        reduce_range: weights in 7 bits (:func:`quantize_convolutions`); False: 8 bits, which can saturate.
 
     Returns:
         ``dst``, with the float file's metadata, ``quantized: int8`` and ``int8_from`` (the float file's name).
+
+    Weights in 7 bits (:func:`quantize_convolutions`' ``reduce_range``). The first convolution (the
+    image's 3 channels) and the three score convolutions (``NUM_CLASSES`` outputs) stay float32:
+    the first is faster so (its INT8 form quantizes the image first), and together they keep the
+    float net's labels on 0.994 of KITTI 000000_10's pixels against 0.987 with all 18 in INT8
+    (docs/experiments.md, "Every x86 CPU").
     """
     import onnx
 
+    from monostixels.core.classes import NUM_CLASSES
     from monostixels.inputs.semantic import _preprocess
 
     src = Path(src)
@@ -145,4 +173,34 @@ def quantize_fcn8s_onnx(src: str | os.PathLike, dst: str | os.PathLike, images: 
                                std=(1.0, 1.0, 1.0), pad_to=32)
             yield {"image": x.numpy()}
 
-    return quantize_convolutions(proto, dst, feeds(), {**meta, "int8_from": src.name})
+    def ends(shape: tuple[int, ...]) -> bool:
+        return shape[1] == 3 or shape[0] == NUM_CLASSES
+
+    return quantize_convolutions(proto, dst, feeds(), {**meta, "int8_from": src.name},
+                                 reduce_range=reduce_range, keep_float=ends)
+
+
+def int8_weight_max(path: str | os.PathLike) -> int:
+    """The largest |w| over the int8 weights of the quantized convolutions (``DequantizeLinear`` of an int8
+    initializer into a ``Conv``'s weight) of the ONNX file ``path``; 0 where there are none."""
+    import onnx
+    from onnx import numpy_helper
+
+    proto = onnx.load(str(path))
+    inits = {i.name: i for i in proto.graph.initializer}
+    producers = {o: n for n in proto.graph.node for o in n.output}
+    largest = 0
+    for conv in (n for n in proto.graph.node if n.op_type == "Conv"):
+        deq = producers.get(conv.input[1])
+        if deq is None or deq.op_type != "DequantizeLinear" or deq.input[0] not in inits:
+            continue
+        w = numpy_helper.to_array(inits[deq.input[0]])
+        if w.dtype == np.int8 and w.size:
+            largest = max(largest, int(np.abs(w.astype(np.int16)).max()))
+    return largest
+
+
+def can_saturate(path: str | os.PathLike) -> bool:
+    """Whether a pair of u8 x s8 products of the file's convolutions can overflow a 16-bit sum (weights wider
+    than :data:`SAFE_WEIGHT_MAX`): its results then depend on the CPU (module docstring)."""
+    return int8_weight_max(path) > SAFE_WEIGHT_MAX

@@ -402,7 +402,9 @@ def quantize_onnx(src: str | os.PathLike, dst: str | os.PathLike,
             (a, b), _ = pad_images(cur[None].float(), prev[None].float())
             yield {"image_cur": torch.cat([a, b]).numpy(), "image_prev": torch.cat([b, a]).numpy()}
 
-    quantize_convolutions(proto, dst, feeds(), meta)
+    # 8-bit weights, as the shipped copy was made: they can saturate on a CPU without VNNI
+    # (monostixels/inputs/quantize.py; models/MODEL_CARD.md says what that costs the flow).
+    quantize_convolutions(proto, dst, feeds(), meta, reduce_range=False)
     out = onnx.load(str(dst))
     compact_names(out)
     onnx.save(out, str(dst))

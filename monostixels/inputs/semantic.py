@@ -546,6 +546,7 @@ def _fcn8s_segmenter(cfg: Fcn8sSemanticConfig, threads: int = 0) -> OnnxSegmente
     runtime, scale = cfg.runtime, cfg.scale
     if runtime == "onnx":
         path = resolve_model_path(cfg.model, "semantic.model")
+        path = Path(_int8_checked(str(path), path.stat().st_mtime_ns))
         return _cached_onnx(str(path), path.stat().st_mtime_ns, None, scale,
                             (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), None, FCN8S_PAD_TO, True, int(threads))
     if runtime == "torch":
@@ -569,6 +570,34 @@ def onnx_segmenter(cfg: Any, *, threads: int = 0) -> OnnxSegmenter:
         None if mapping is None else tuple(mapping),
         cfg.pad_to, cfg.softmax, int(threads),
     )
+
+
+@functools.lru_cache(maxsize=4)
+def _int8_checked(path: str, mtime: int) -> str:
+    """The FCN-8s file to run for ``path``: ``path`` itself, unless it is an INT8 copy whose weights can
+    saturate (:func:`monostixels.inputs.quantize.can_saturate`) and this CPU has no VNNI; then the float
+    file it was made from (its ``int8_from``, beside it), with one warning. An INT8 file's CPU path is
+    logged (``summary.json`` ``platform`` records it too)."""
+    import onnx
+
+    from monostixels._cpu import cpu_info, int8_path
+    from monostixels.inputs.quantize import can_saturate
+
+    meta = {p.key: p.value for p in onnx.load(path).metadata_props}
+    if meta.get("quantized") != "int8":
+        return path
+    route = int8_path()
+    logger.info("semantic: INT8 net %s on %s, ONNX Runtime's %s path", path, cpu_info()["model"], route)
+    if route in ("vnni", "not_x86") or not can_saturate(path):
+        return path
+    src = Path(path).with_name(meta.get("int8_from", "")) if meta.get("int8_from") else None
+    if src is None or not src.is_file():
+        logger.warning("semantic: %s has 8-bit weights, which can saturate on this CPU (no VNNI), and no float "
+                       "file beside it; its labels may differ from the float net's", path)
+        return path
+    logger.warning("semantic: %s has 8-bit weights, which can saturate on this CPU (no VNNI): running the float "
+                   "net %s instead", path, src)
+    return str(src)
 
 
 # Sessions are expensive to create; one per (file, modification time, settings, threads).
