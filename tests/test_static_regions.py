@@ -9,7 +9,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.synthetic import render_pair
-from monostixels.inputs.static_regions import apply_ignore_mask, find_static_region
+from monostixels.inputs.static_regions import apply_ignore_mask, find_static_region, spread_samples
 
 #: Rows of the painted bonnet at the bottom of a quarter-size render (94 rows), its top edge curved.
 _BONNET_MIN, _BONNET_MAX = 10, 16
@@ -42,6 +42,19 @@ def _bgr(img: torch.Tensor) -> np.ndarray:
     return (img.permute(1, 2, 0).numpy()[..., ::-1] * 255).round().astype(np.uint8)
 
 
+def _write_clip(path: Path, frames: list[np.ndarray], K: torch.Tensor) -> None:
+    """An MJPG video of ``frames`` (BGR) at 5 fps, and its intrinsics ``K`` in ``intr.yaml`` beside it."""
+    import cv2
+
+    H, W = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (W, H))
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    (path.parent / "intr.yaml").write_text(f"fx: {float(K[0, 0])}\nfy: {float(K[1, 1])}\ncx: {float(K[0, 2])}\n"
+                                           f"cy: {float(K[1, 2])}\n")
+
+
 def test_a_bonnet_is_found_and_nothing_else():
     pair, frames = _clip()
     H, W = pair.size
@@ -59,6 +72,55 @@ def test_a_bonnet_is_found_and_nothing_else():
     assert not find_static_region([still, still, still]).any()
     with pytest.raises(InputError, match="at least 3 frames"):
         find_static_region([still, still])
+
+
+def test_samples_are_runs_spread_over_the_whole_clip():
+    runs = spread_samples(100, 4)
+    assert runs[0][:2] == [0, 4] and runs[-1][-1] == 99 and len(runs) == 4
+    assert all(len(r) == 4 and r[1] - r[0] == 4 for r in runs)
+    assert all(a[-1] < b[0] for a, b in zip(runs[:-1], runs[1:]))  # no overlap
+    assert spread_samples(3) == [[0, 1, 2]] and spread_samples(0) == []
+    with pytest.raises(InputError, match="bad sampling"):
+        spread_samples(10, 0)
+
+
+def test_a_bonnet_is_found_where_the_camera_stands_at_first(tmp_path):
+    """The camera stands for the first 12 frames (2.4 s) and drives later: data.mask=auto reads runs of frames
+    spread over the clip, and finds the bonnet in the runs where the scene moves."""
+    from monostixels.data.sources import make_source
+    from monostixels.pipeline import load_config
+
+    pair, frames = _clip()
+    H, W = pair.size
+    truth = _bonnet(H, W)
+    path = tmp_path / "standing_first.avi"
+    _write_clip(path, [_bgr(_paint(f, truth)) for f in [frames[0]] * 12 + frames + frames], pair.camera.K)
+    cfg = load_config(["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}",
+                       "data.resize=null", "data.mask=auto"])
+    ignore = make_source(cfg.data)[0].meta["ignore_mask"].numpy()
+    assert (ignore & truth).sum() >= 0.9 * truth.sum() and (ignore & ~truth).sum() <= 3 * W
+    # The first frames alone, as data.mask=auto read them before: a standing camera, no region.
+    still = [_bgr(_paint(frames[0], truth))] * 6
+    assert not find_static_region(still).any()
+
+
+def test_a_standing_camera_with_traffic_and_no_bonnet_has_no_static_region():
+    """The camera stands through the clip while a car crosses the picture: the road below keeps as still as
+    a bonnet would, but the scene above it hardly moves, so nothing is found."""
+    pair, _ = _clip()
+    H, W = pair.size
+    base = _bgr(pair.image)
+    car = np.random.default_rng(7).integers(0, 255, (H // 6, W // 5, 3), dtype=np.uint8)
+    frames = []
+    for k in range(12):
+        f = base.copy()
+        u = (k * W // 12) % (W - car.shape[1])
+        f[H // 2 - car.shape[0]: H // 2, u:u + car.shape[1]] = car  # a car driving across, in the middle band
+        frames.append(f)
+    assert not find_static_region(frames, [4, 4, 4]).any()
+    assert not find_static_region([base] * 12, [4, 4, 4]).any()
+    with pytest.raises(InputError, match="do not split"):
+        find_static_region(frames, [4, 4])
 
 
 def test_an_ignore_mask_splits_into_cut_rows_and_pixels():
@@ -102,8 +164,6 @@ def test_the_pipeline_leaves_the_bonnet_out_and_keeps_the_frame_size():
 
 def test_a_video_source_finds_the_bonnet_itself(tmp_path):
     """data=video with data.mask=auto (the default): the pairs carry the bonnet as their ignore mask."""
-    import cv2
-
     from monostixels.data.sources import make_source
     from monostixels.pipeline import load_config
 
@@ -111,13 +171,7 @@ def test_a_video_source_finds_the_bonnet_itself(tmp_path):
     H, W = pair.size
     truth = _bonnet(H, W)
     path = tmp_path / "bonnet.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (W, H))
-    for f in frames + frames[:2]:
-        writer.write(_bgr(_paint(f, truth)))
-    writer.release()
-    K = pair.camera.K
-    (tmp_path / "intr.yaml").write_text(f"fx: {float(K[0, 0])}\nfy: {float(K[1, 1])}\ncx: {float(K[0, 2])}\n"
-                                        f"cy: {float(K[1, 2])}\n")
+    _write_clip(path, [_bgr(_paint(f, truth)) for f in frames + frames[:2]], pair.camera.K)
     common = ["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}", "data.resize=null"]
     src = make_source(load_config(common).data)
     ignore = src[0].meta["ignore_mask"]
@@ -175,8 +229,6 @@ def test_a_smooth_bonnet_reflecting_the_sky_is_found_on_a_real_highway_clip():
 def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
     """A video with a bonnet through the sequence layer with the stream reading ahead (preset=fast): every
     pair is solved at the cropped size, its inputs computed ahead are used, the outputs have the frame's size."""
-    import cv2
-
     from monostixels.data.sources import make_source
     from monostixels.pipeline import load_config
     from monostixels.sequence import SequenceRunner
@@ -185,13 +237,7 @@ def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
     H, W = pair.size
     truth = _bonnet(H, W)
     path = tmp_path / "bonnet.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (W, H))
-    for f in frames + frames:
-        writer.write(_bgr(_paint(f, truth)))
-    writer.release()
-    K = pair.camera.K
-    (tmp_path / "intr.yaml").write_text(f"fx: {float(K[0, 0])}\nfy: {float(K[1, 1])}\ncx: {float(K[0, 2])}\n"
-                                        f"cy: {float(K[1, 2])}\n")
+    _write_clip(path, [_bgr(_paint(f, truth)) for f in frames + frames], pair.camera.K)
     cfg = load_config(["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}",
                        "data.resize=null", "preset=fast", "semantic=none", "keyframes.min_distance_m=0"])
     runner = SequenceRunner(cfg)

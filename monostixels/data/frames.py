@@ -63,7 +63,7 @@ from monostixels.data._io import (
     require_dir,
 )
 from monostixels.data._lens import lens_camera, working_size
-from monostixels.inputs.static_regions import AUTO_FRAMES, AUTO_MASK, with_static_region
+from monostixels.inputs.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
 from monostixels.data.base import FOLDER_FPS, FramePair, GroundTruth
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
@@ -100,7 +100,8 @@ class FramesSource(LazySource):
         pitch: camera pitch (radians, positive = looking down).
         poses: optional poses file (see the module docstring).
         mask: optional mask image, non-zero = ignore (see the module docstring), or ``auto``: a static
-            region at the bottom found from the first images (a bonnet, :mod:`monostixels.inputs.static_regions`).
+            region at the bottom found from images spread over the folder (a bonnet,
+            :mod:`monostixels.inputs.static_regions`).
 
     Raises:
         InputError: missing root, empty folder, neither an intrinsics file nor ``hfov_deg``, a malformed
@@ -230,17 +231,21 @@ class FramesSource(LazySource):
         except InputError as err:
             raise UnreadableFrame(str(err), name=path.stem, label=path.name, current=current) from None
 
-    def _sample(self, images: list[Path], step: int) -> list[np.ndarray]:
-        """Up to :data:`~monostixels.inputs.static_regions.AUTO_FRAMES` of the first images, ``step`` apart (BGR,
-        undistorted and resized), for the static region search; unreadable ones and ones of another size than
-        the first readable one are left out (the pairs report them)."""
-        out: list[np.ndarray] = []
-        for p in images[: step * AUTO_FRAMES: step]:
-            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if img is None or img.shape[:2] != self._warp.size_in:
-                continue
-            out.append(self._warp.image(img))
-        return out
+    def _sample(self, images: list[Path], step: int) -> list[list[np.ndarray]]:
+        """Runs of images ``step`` apart, spread over the whole folder
+        (:func:`~monostixels.inputs.static_regions.spread_samples`; BGR, undistorted and resized), for the static
+        region search; unreadable ones and ones of another size than the first readable one are left out (the
+        pairs report them)."""
+        used = images[::step]
+        min_gap = max(1, round(AUTO_SPACING_S * self.fps / step))
+        runs: list[list[np.ndarray]] = []
+        for run in spread_samples(len(used), min_gap):
+            runs.append([])
+            for i in run:
+                img = cv2.imread(str(used[i]), cv2.IMREAD_COLOR)
+                if img is not None and img.shape[:2] == self._warp.size_in:
+                    runs[-1].append(self._warp.image(img))
+        return runs
 
     def _load(self, item: _Pair) -> FramePair:
         image, image_prev = self._read(item.path, True), self._read(item.path_prev, False)

@@ -45,7 +45,7 @@ from monostixels.data._io import LazySource, UnreadableFrame, limit_frames, requ
 from monostixels.data._lens import AUTO_PIXELS, intrinsics_from_hfov, lens_camera, working_size
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
-from monostixels.inputs.static_regions import AUTO_FRAMES, AUTO_MASK, AUTO_SPACING_S, with_static_region
+from monostixels.inputs.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
 
 __all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path", "AUTO_PIXELS"]
 
@@ -53,6 +53,8 @@ logger = logging.getLogger(__name__)
 
 #: Largest value of an 8-bit channel, to scale frames to [0, 1].
 _MAX_U8 = 255.0
+#: Frames further ahead than this are sought (CAP_PROP_POS_FRAMES), nearer ones grabbed one by one.
+_SEEK_FRAMES = 60
 
 
 @dataclass
@@ -77,7 +79,7 @@ class VideoSource(LazySource):
         camera_height: camera height above the road (metres).
         pitch: camera pitch (radians, positive = looking down).
         mask: an image of the stored frame size, non-zero = ignore (see the module docstring), ``auto``
-            (a static region at the bottom found from the clip's first frames: a bonnet,
+            (a static region at the bottom found from frames spread over the used range: a bonnet,
             :mod:`monostixels.inputs.static_regions`), or None.
 
     Raises:
@@ -149,25 +151,29 @@ class VideoSource(LazySource):
                     self.path, W0, H0, self.size[1], self.size[0], f"{self.fps:g}" if self.fps else "unknown",
                     self.intrinsics_source)
 
-    def _sample_frames(self, used: list[int]) -> list[np.ndarray]:
-        """Up to :data:`~monostixels.inputs.static_regions.AUTO_FRAMES` frames from the start of the used range,
-        :data:`~monostixels.inputs.static_regions.AUTO_SPACING_S` apart (BGR, undistorted and resized), for the static
+    def _sample_frames(self, used: list[int]) -> list[list[np.ndarray]]:
+        """Runs of used frames, spread over the whole used range
+        (:func:`~monostixels.inputs.static_regions.spread_samples`; BGR, undistorted and resized), for the static
         region search; undecodable ones are left out."""
-        spacing = max(1, round(AUTO_SPACING_S * self.fps)) if self.fps else max(1, self.step)
-        wanted = set(range(used[0], used[-1] + 1, spacing)[:AUTO_FRAMES])
-        out: list[np.ndarray] = []
+        min_gap = max(1, round(AUTO_SPACING_S * self.fps / self.step)) if self.fps else 1
+        runs: list[list[np.ndarray]] = []
         cap = cv2.VideoCapture(str(self.path))
         try:
-            for k in range(max(wanted) + 1):
-                if k in wanted:
+            pos = 0  # index of the frame the capture returns next
+            for run in spread_samples(len(used), min_gap):
+                runs.append([])
+                for k in (used[i] for i in run):
+                    while pos < k and k - pos <= _SEEK_FRAMES and cap.grab():
+                        pos += 1  # near frames are grabbed: cheaper than a seek, which decodes from a key frame
+                    if pos != k:
+                        cap.set(cv2.CAP_PROP_POS_FRAMES, k)
                     ok, img = cap.read()
+                    pos = k + 1
                     if ok and img is not None and img.shape[:2] == self.size_in:
-                        out.append(self._warp.image(img))
-                elif not cap.grab():
-                    break
+                        runs[-1].append(self._warp.image(img))
         finally:
             cap.release()
-        return out
+        return runs
 
     def _frame(self, index: int) -> torch.Tensor:
         """Video frame ``index`` as (3, H, W) float32 RGB in [0, 1] (undistorted, resized)."""

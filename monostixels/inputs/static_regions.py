@@ -4,10 +4,14 @@ A dashcam films part of its own car. Those pixels stay where they are while the 
 their flow says "no motion": the ego-motion would read them as a standing camera, the movers as an object
 driving along with us. They are excluded from every stage (:func:`apply_ignore_mask`).
 
-:func:`find_static_region` finds such a region from a few frames of the clip, without optical flow (at
+:func:`find_static_region` finds such a region from a few runs of frames spread over the clip
+(:func:`spread_samples`: a camera that stands at the start drives later), without optical flow (at
 highway speed the flow on the near road is unreliable, and a flow of zero there would look static too):
 
-- a pixel carries evidence only where the later frame of a sampled pair has texture (grey-value gradient
+- a pair (two neighbours in a run) counts only where the scene above any bonnet changes in it (the band
+  of :data:`ABOVE_SHARE` above the highest region allowed, :data:`MIN_MOVING_ABOVE`); at a standing camera
+  the road keeps as still as a bonnet. At least :data:`MIN_PAIRS` must count;
+- a pixel carries evidence only where the later frame of a counted pair has texture (grey-value gradient
   above :data:`TEXTURE_GRAD`); there it is *static* in that pair where its grey value stays within
   :data:`STATIC_DIFF`;
 - the image is cut into vertical strips of :data:`STRIP_PX` pixels; a row of a strip is static where
@@ -36,15 +40,18 @@ import torch
 
 from monostixels._checks import InputError
 
-__all__ = ["AUTO_MASK", "AUTO_FRAMES", "AUTO_SPACING_S", "find_static_region", "with_static_region", "IgnoreMask",
+__all__ = ["AUTO_MASK", "AUTO_BURSTS", "AUTO_BURST", "AUTO_SPACING_S", "spread_samples", "find_static_region", "with_static_region", "IgnoreMask",
            "apply_ignore_mask", "crop_ignored"]
 
 logger = logging.getLogger(__name__)
 
 #: ``data.mask=auto``: the data source looks for a static region itself (:func:`with_static_region`).
 AUTO_MASK = "auto"
-#: Frames it reads for that from the start of the clip, and their spacing (seconds; the scene must move).
-AUTO_FRAMES = 6
+#: Frames it reads for that: AUTO_BURSTS runs of AUTO_BURST frames AUTO_SPACING_S apart (seconds: the scene
+#: moves, the exposure hardly changes), spread over the whole clip (:func:`spread_samples`): a camera that
+#: stands at the start moves later.
+AUTO_BURSTS = 4
+AUTO_BURST = 4
 AUTO_SPACING_S = 0.2
 #: Grey-value gradient (Sobel 3x3 of a [0, 1] image) above which a pixel has texture to judge motion by.
 TEXTURE_GRAD = 0.25
@@ -62,7 +69,10 @@ GAP_SHARE = 0.05
 #: Above the region (this share of the image height), at least MIN_MOVING_ABOVE of the textured pixels must
 #: change: the scene moves past the camera.
 ABOVE_SHARE = 0.25
-MIN_MOVING_ABOVE = 0.5
+MIN_MOVING_ABOVE = 0.4
+#: Pairs in which the scene moves (as MIN_MOVING_ABOVE asks of the band just above the highest region allowed)
+#: needed to find a region: the others, at a standing camera, are left out.
+MIN_PAIRS = 2
 #: The region must cover at least this share of the strips (a bonnet spans the picture) ...
 MIN_WIDTH_SHARE = 0.6
 #: ... and no strip's part may reach above this share of the image height.
@@ -76,12 +86,30 @@ def _grey(frame: np.ndarray) -> np.ndarray:
     return g / 255.0 if frame.dtype == np.uint8 else g
 
 
-def find_static_region(frames: Sequence[np.ndarray]) -> np.ndarray:
+def spread_samples(n: int, min_gap: int = 1, bursts: int = AUTO_BURSTS, burst: int = AUTO_BURST) -> list[list[int]]:
+    """Runs of up to ``burst`` indices ``min_gap`` apart, up to ``bursts`` of them spread evenly over ``0 .. n-1``
+    (the first starts at 0, the last ends near ``n - 1``; they do not overlap): the frames of a clip to look for
+    a static region in, compared within each run."""
+    if n < 0 or min_gap < 1 or bursts < 1 or burst < 2:
+        raise InputError(f"static region: bad sampling n={n}, min_gap={min_gap}, bursts={bursts}, burst={burst}")
+    length = min(burst, (n - 1) // min_gap + 1) if n else 0
+    if length < 1:
+        return []
+    span = (length - 1) * min_gap  # index distance within a run
+    room = n - 1 - span
+    k = max(1, min(bursts, room // (span + 1) + 1))
+    starts = sorted({round(i * room / max(1, k - 1)) for i in range(k)})
+    return [[s + j * min_gap for j in range(length)] for s in starts]
+
+
+def find_static_region(frames: Sequence[np.ndarray], runs: Sequence[int] | None = None) -> np.ndarray:
     """The region at the bottom of the picture that stays still while the scene moves (module docstring).
 
     Args:
         frames: at least 3 frames of one clip, in time order and some way apart (a few tenths of a second:
             the scene must move between them), (H, W) grey or (H, W, 3) BGR, uint8 or float in [0, 1].
+        runs: the frames are runs of these lengths (:func:`spread_samples`), each frame compared with the one
+            before it in its run; None = one run.
 
     Returns:
         (H, W) bool, True = static (to be ignored); all False where no such region is found.
@@ -92,13 +120,31 @@ def find_static_region(frames: Sequence[np.ndarray]) -> np.ndarray:
     H, W = grey[0].shape
     if any(g.shape != (H, W) for g in grey):
         raise InputError("static region: the frames differ in size")
+    runs = [len(frames)] if runs is None else [int(r) for r in runs]
+    if sum(runs) != len(frames) or min(runs) < 1:
+        raise InputError(f"static region: runs {runs} do not split {len(frames)} frames")
+    firsts = set(np.cumsum([0] + runs[:-1]).tolist())  # a run's first frame has no frame before it
     static = np.zeros((H, W), np.float32)
     textured_n = np.zeros((H, W), np.float32)
-    for a, b in zip(grey[:-1], grey[1:]):
+    band = slice(int((1.0 - MAX_HEIGHT_SHARE - ABOVE_SHARE) * H), int((1.0 - MAX_HEIGHT_SHARE) * H))
+    informative = 0
+    for k in range(1, len(grey)):
+        if k in firsts:
+            continue
+        a, b = grey[k - 1], grey[k]
         grad = np.hypot(cv2.Sobel(b, cv2.CV_32F, 1, 0), cv2.Sobel(b, cv2.CV_32F, 0, 1))
         textured = grad > TEXTURE_GRAD
+        still = textured & (np.abs(b - a) < STATIC_DIFF)
+        # A pair in which the scene above any bonnet keeps still (the camera stands, nothing passes) cannot
+        # tell a bonnet from the road: it is left out.
+        n_band = float(textured[band].sum())
+        if n_band < MIN_EVIDENCE or 1.0 - float(still[band].sum()) / n_band < MIN_MOVING_ABOVE:
+            continue
+        informative += 1
         textured_n += textured
-        static += textured & (np.abs(b - a) < STATIC_DIFF)
+        static += still
+    if informative < MIN_PAIRS:
+        return np.zeros((H, W), bool)
     mask = np.zeros((H, W), bool)
     strips = list(range(0, W, STRIP_PX))
     gap_max = max(3, int(GAP_SHARE * H))
@@ -150,13 +196,16 @@ def find_static_region(frames: Sequence[np.ndarray]) -> np.ndarray:
     return mask
 
 
-def with_static_region(ignore: torch.Tensor | None, frames: Sequence[np.ndarray], what: str) -> torch.Tensor | None:
-    """``ignore`` (H, W) bool or None, with the static region of ``frames`` (:func:`find_static_region`) added;
-    ``what`` names the clip in the log. Fewer than 3 frames: ``ignore`` as it is."""
-    if len(frames) < 3:
+def with_static_region(ignore: torch.Tensor | None, runs: Sequence[Sequence[np.ndarray]],
+                       what: str) -> torch.Tensor | None:
+    """``ignore`` (H, W) bool or None, with the static region of the runs of frames ``runs``
+    (:func:`find_static_region`) added; ``what`` names the clip in the log. Fewer than 3 frames, or no two in a
+    run: ``ignore`` as it is."""
+    frames = [f for run in runs for f in run]
+    if len(frames) < 3 or all(len(run) < 2 for run in runs):
         logger.info("%s: too few frames to look for a static region (bonnet)", what)
         return ignore
-    found = find_static_region(frames)
+    found = find_static_region(frames, [len(run) for run in runs if run])
     if not found.any():
         logger.info("%s: no static region (bonnet) found", what)
         return ignore
