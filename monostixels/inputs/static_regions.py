@@ -40,8 +40,8 @@ import torch
 
 from monostixels._checks import InputError
 
-__all__ = ["AUTO_MASK", "AUTO_BURSTS", "AUTO_BURST", "AUTO_SPACING_S", "spread_samples", "find_static_region", "with_static_region", "IgnoreMask",
-           "apply_ignore_mask", "crop_ignored"]
+__all__ = ["AUTO_MASK", "AUTO_BURSTS", "AUTO_BURST", "AUTO_SPACING_S", "spread_samples", "find_static_region",
+           "with_static_region", "IgnoreMask", "apply_ignore_mask", "crop_ignored"]
 
 logger = logging.getLogger(__name__)
 
