@@ -48,12 +48,10 @@ def test_quantized_copy_has_int8_convolutions_and_labels_an_unseen_frame_as_the_
     convs = [n for n in proto.graph.node if n.op_type == "Conv"]
     assert len(convs) == 18  # every convolution of the FCN-8s
     quantized = [c for c in convs if c.input[1] in producers and producers[c.input[1]].op_type == "DequantizeLinear"]
-    # All but the first (the image's 3 channels) and the three score convolutions (10 classes out), which stay float.
-    assert len(quantized) == 14
-    for conv in convs:
-        if conv not in quantized:
-            w = numpy_helper.to_array(inits[conv.input[1]])
-            assert w.dtype.name == "float32" and (w.shape[1] == 3 or w.shape[0] == 10)
+    # All but the first (the image's 3 channels), which stays float.
+    assert len(quantized) == 17
+    first = numpy_helper.to_array(inits[convs[0].input[1]])
+    assert convs[0] not in quantized and first.dtype.name == "float32" and first.shape[1] == 3
     for conv in quantized:
         # Its input and its weights each come through a DequantizeLinear; the weights are int8 per channel.
         x, w = (producers[name] for name in conv.input[:2])
