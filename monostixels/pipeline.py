@@ -224,6 +224,9 @@ class Pipeline:
         est = estimate_motion(pair, flow, self.motion_cfg, semantic, **warm)
         if track is not None:
             est = track.update(pair, est)
+        elif est.kind == "metric" and est.scale_std is None and est.motion is not None:
+            # A single pair's monocular length: the measurement's own uncertainty (no sequence to check it by).
+            est = dataclasses.replace(est, scale_std=float(getattr(self.motion_cfg, "scale_meas_std", 0.0)))
         if est.motion is None:
             if not est.degenerate and not self.allow_motion_failure:
                 raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")
@@ -237,6 +240,13 @@ class Pipeline:
                 kind=est.kind if est.kind in NO_METRIC_MOTION else "unknown", unit_motion=est.unit_motion,
             )
         return est
+
+    def scale_uncertain(self, motion: MotionEstimate) -> bool:
+        """Whether a metric motion's length is too uncertain to tell movers and warn of collisions:
+        its ``scale_std`` above ``motion.max_scale_std`` (docs/conventions.md, section 4.4)."""
+        bound = getattr(self.motion_cfg, "max_scale_std", None)
+        return (motion.kind == "metric" and motion.scale_std is not None and bound is not None
+                and motion.scale_std > bound)
 
     def camera_for(self, pair: FramePair, motion: MotionEstimate) -> Camera:
         """The camera the solver uses: ``pair.camera``, with the road normal fitted by the ego-motion
@@ -362,10 +372,12 @@ class Pipeline:
             stixels = solve(flow.flow, flow.cov, semantic, self.camera_for(pair, motion), motion.motion, self.prior,
                             self.solver_cfg)
         sec["solver"] = time.perf_counter() - t0
+        uncertain = self.scale_uncertain(motion)
         if self.mover_check.enabled and not motion.degenerate:
-            # Dynamic stixels that an object standing still explains become static (monostixels.post.movers).
+            # Dynamic stixels that an object standing still explains become static (monostixels.post.movers);
+            # with an uncertain length, every one whose flow fits the epipolar geometry.
             t0 = time.perf_counter()
-            stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check)
+            stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check, scale_known=not uncertain)
             sec["movers"] = time.perf_counter() - t0
         if self.solver_cfg.top_refine_rows and semantic is not None:
             # Moving objects' tops from cell edges to pixel rows (monostixels.post.boundaries).
@@ -385,6 +397,9 @@ class Pipeline:
         stixels.flags["camera_motion"] = motion.kind
         if motion.scale_from is not None:
             stixels.flags["scale_from"] = motion.scale_from
+        if motion.scale_std is not None and motion.kind == "metric":
+            stixels.flags["scale_std"] = round(float(motion.scale_std), 4)
+            stixels.flags["scale_uncertain"] = uncertain
         if motion.degenerate and not stixels.flags.get("degenerate_motion"):
             stixels.flags["degenerate_motion"] = True
         if stixels.flags.get("degenerate_motion"):

@@ -110,6 +110,39 @@ def test_mono_ignores_a_moving_object_and_uses_semantics():
     assert e_s["rot_err_deg"] < 0.01 and e_s["trans_dir_err_deg"] < 0.05 and e_s["scale_rel_err"] < 0.005, est_s.reason
 
 
+def test_mono_takes_the_sign_of_the_translation_from_the_road():
+    # Stop-and-go traffic (the KITTI traffic drive, frames 2-7): a truck beside the camera fills most of the
+    # view, the semantic net calls it a building, and it pulls ahead faster than the camera drives. Its flow is
+    # epipolar (it moves along the camera's axis), so it is an inlier of the essential matrix, and it votes
+    # for a camera driving backwards. The road, which cannot move, gives the sign. (Here two trucks, one on
+    # each side, leave a strip of road.)
+    gt = Motion(R=_rot(0.2, 0.0, 0.0), t=torch.tensor([0.0, 0.0, 0.4], dtype=torch.float64))
+    cam = _camera()
+    truck_delta = torch.tensor([0.0, 0.0, 1.2], dtype=torch.float64)  # it moves 1.2 m forward, the camera 0.4 m
+    relative = Motion(R=gt.R, t=gt.t - gt.R @ truck_delta)  # X_prev = R (X - Δ) + t
+    ground = [(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), HEIGHT)]
+    # Their sides 0.4 m right and left of the camera.
+    truck = [(torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), 0.4), (torch.tensor([-1.0, 0.0, 0.0], dtype=torch.float64), 0.4)]
+    flow_road = _analytic_flow(cam, gt, 0.05, planes=ground)
+    flow_truck = _analytic_flow(cam, relative, 0.05, seed=1, planes=truck)
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(cam.K, u, v)
+    z_road = torch.where(ray[..., 1] > 0, HEIGHT / ray[..., 1], torch.full_like(u, math.inf))
+    z_truck = torch.where(ray[..., 0] != 0, 0.4 / ray[..., 0].abs(), torch.full_like(u, math.inf))
+    on_truck = z_truck < z_road
+    flow = torch.where(on_truck[None], flow_truck, flow_road)
+    sem = torch.zeros(10, H, W)
+    sem[0] = (~on_truck).float()   # road
+    sem[3] = on_truck.float()      # "building"
+    assert on_truck.float().mean() > 0.5  # the truck outvotes the road
+    pair, fr = _pair_and_flow(gt, flow=flow)
+    est = estimate_motion(pair, fr, MONO, semantic=sem)
+    assert est.motion is not None and est.kind == "metric", est.reason
+    e = motion_errors(est.motion, gt)
+    assert e["trans_dir_err_deg"] < 1.0 and e["scale_rel_err"] < 0.05, est.reason
+    assert "direction reversed by the road" in est.reason
+
+
 def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
     from monostixels.pipeline import Pipeline, load_config
 
@@ -309,8 +342,14 @@ def test_mono_scale_from_the_images_when_the_road_flow_fails():
     # The renderer's road is level: the photometric road normal is the camera's "down".
     n = est.ground_normal.double()
     assert math.degrees(math.acos(float(n @ pair.camera.ground_normal.double()))) < 0.5
-    # Switched off, the same pair has no metric scale (reported, not guessed).
-    off = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "photometric_scale": False}), semantic=sem)
+    # Without it, the scene model gives the length: the buildings' and poles' flow depths against their
+    # ground contacts at the camera height.
+    scene = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "photometric_scale": False}), semantic=sem)
+    assert scene.kind == "metric" and scene.scale_from == "scene", scene.reason
+    assert motion_errors(scene.motion, pair.motion)["scale_rel_err"] < 2 * scene.scale_std < 0.15
+    # Both switched off, the same pair has no metric scale (reported, not guessed).
+    off = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "photometric_scale": False, "scene_scale": False}),
+                          semantic=sem)
     assert off.motion is None and "no metric scale" in off.reason
     # ... but the camera moves, and its direction is known: kept, for a sequence's speed to scale.
     assert off.kind == "scale_unknown" and off.unit_motion is not None
@@ -320,8 +359,10 @@ def test_mono_scale_from_the_images_when_the_road_flow_fails():
     # Images that do not show the motion: no clear minimum, no estimate.
     noise = torch.rand(3, *pair.size, generator=g)
     blind = FramePair(image=noise, image_prev=torch.rand(3, *pair.size, generator=g), camera=pair.camera, name="noise")
-    none = estimate_motion(blind, fr, MONO, semantic=sem)
+    none = estimate_motion(blind, fr, OmegaConf.create({"name": "mono", "scene_scale": False}), semantic=sem)
     assert none.motion is None and "photometric" in none.reason
+    # The scene model needs no image: the flow of the house fronts over their contacts still says it.
+    assert estimate_motion(blind, fr, MONO, semantic=sem).scale_from == "scene"
 
 
 def _track_pair(frame: int, seq: str = "s", dt: float = 0.1):
@@ -392,8 +433,19 @@ def test_motion_track_holds_the_speed_over_pairs_without_a_scale():
     for k, e in enumerate([_est(2.0), _est(2.0), _unit(), _est(2.0), _unit()]):
         out = tr.update(_track_pair(k + 1), e)
     assert out.scale_from == "sequence"
+    # The held length grows uncertain with the time held (its variance predicted, not updated).
+    tr = MotionTrack(MotionTrackParams(scale_hold_s=10.0))
+    for k in range(3):
+        tr.update(_track_pair(k + 1), _est(2.0))
+    stds = [tr.update(_track_pair(k + 4), _unit()).scale_std for k in range(30)]
+    assert all(b > a for a, b in zip(stds, stds[1:]))
+    assert stds[0] < tr.params.max_scale_std < stds[-1]  # held long enough, it is no longer trusted
     # No speed yet (the first pair), another sequence, or a gap: nothing to hold.
     assert MotionTrack().update(_track_pair(1), _unit()).kind == "scale_unknown"
+    # One pair's length is never held: uncorroborated, it may be the error (a first pair at a sixth of the speed).
+    tr = MotionTrack()
+    tr.update(_track_pair(1), _est(2.0))
+    assert tr.update(_track_pair(2), _unit()).kind == "scale_unknown"
     assert tr.update(_track_pair(9), _unit()).kind == "scale_unknown"  # frame 8 missing
     assert MotionTrack(MotionTrackParams(scale_hold_s=0.0)).update(_track_pair(1), _unit()).motion is None
 
@@ -414,13 +466,23 @@ def test_motion_track_restarts_after_a_first_pair_far_off():
     from monostixels.inputs.motion_track import MotionTrack
 
     # The first pair 25 % long, then a car slowing from 0.53 to 0.44 m a frame (drive 0028's profile):
-    # every later pair is an outlier against the first. Two in a row that agree restart the speed.
+    # the second pair contradicts a track of one pair, which has no more support than it: the track
+    # restarts at the second pair at once, that pair marked uncertain (its disagreement with the first).
     truth = [0.53 - 0.015 * k for k in range(7)]
     meas = [0.53 * 1.25] + truth[1:]
     tr = MotionTrack()
-    out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate(meas)]
-    assert out[1] == pytest.approx(out[0])  # one outlier: the prediction stands
-    assert all(abs(o / t - 1) < 0.04 for o, t in zip(out[2:], truth[2:]))  # the lag of a steady slowing, as above
+    ests = [tr.update(_track_pair(k + 1), _est(m)) for k, m in enumerate(meas)]
+    out = [float(e.motion.t[2]) for e in ests]
+    assert out[1] == pytest.approx(truth[1])  # the pair's own length, not the first pair's held
+    assert ests[1].scale_std == pytest.approx(math.log(meas[0] / truth[1]), rel=0.05)  # the disagreement
+    assert ests[1].scale_std > tr.params.max_scale_std  # uncertain: its movers and warnings fail safe
+    assert all(e.scale_std < tr.params.max_scale_std for e in ests[2:])  # confirmed from the third pair on
+    assert all(abs(o / t - 1) < 0.04 for o, t in zip(out[1:], truth[1:]))  # the lag of a steady slowing, as above
+    # A confirmed track outvoted by one pair keeps its prediction for that pair, marked uncertain.
+    tr = MotionTrack()
+    ests = [tr.update(_track_pair(k + 1), _est(m)) for k, m in enumerate([0.5, 0.5, 0.5, 0.8])]
+    assert float(ests[3].motion.t[2]) == pytest.approx(0.5, rel=0.01) and ests[3].scale_from == "sequence"
+    assert ests[3].scale_std == pytest.approx(math.log(0.8 / 0.5), rel=0.05)
     # Two outliers in a row that disagree with each other (+25 %, then -25 % of the truth): neither is taken.
     tr = MotionTrack()
     out = [float(tr.update(_track_pair(k + 1), _est(m)).motion.t[2]) for k, m in enumerate([0.9, 0.9, 1.12, 0.68, 0.9])]

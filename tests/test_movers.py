@@ -71,6 +71,23 @@ def test_standing_still_vs_crossing_vs_oncoming():
     assert check_movers(st, flow, still) is st
 
 
+def test_an_uncertain_scale_leaves_only_the_movers_that_break_the_epipolar_constraint():
+    # The same scene as above with a camera motion whose length is not trusted (motion.max_scale_std): the
+    # oncoming car of column 1 (epipolar flow, its contact elsewhere) can no longer be told from a static
+    # object at a wrong scale, and stands still, even as a kept class; the crossing mover stays dynamic.
+    flow = _wall_flow(10.0)
+    flow[0, :, 30:50] += 8.0
+    types = [DYNAMIC_OBJECT, DYNAMIC_OBJECT, STATIC_OBJECT, DYNAMIC_OBJECT, DYNAMIC_OBJECT, DYNAMIC_OBJECT]
+    st = _world([1 / 10.5, 1 / 4.0, 1 / 10.5, 1 / 10.0, 1 / 10.0, 1 / 10.0], types)
+    st.cls[1] = 8  # a person: kept dynamic by the shipped check where the scale is known
+    known = check_movers(st, flow, MOTION, params=MoverCheckParams())
+    unsure = check_movers(st, flow, MOTION, params=MoverCheckParams(), scale_known=False)
+    assert known.type[1] == DYNAMIC_OBJECT
+    assert unsure.type[0] == STATIC_OBJECT and unsure.type[1] == STATIC_OBJECT and unsure.type[5] == STATIC_OBJECT
+    assert unsure.type[3] == DYNAMIC_OBJECT and unsure.type[4] == DYNAMIC_OBJECT  # off the epipolar lines
+    assert float(unsure.motion[1].norm()) == 0.0 and unsure.flags["static_checked"] == 3
+
+
 # A camera with a KITTI-like focal length, so that a depth difference shows as rows at the ground contact.
 KC = intrinsics(500.0, 500.0, 90.0, 20.0)  # the columns lie 70-90 px left of the focus of expansion
 HC, WC, H_CAM = 120, 20, 1.5

@@ -259,6 +259,14 @@ def test_time_to_collision_of_a_hand_made_closing_object():
     warn = critical(X, v, ttc, TtcParams(warn_s=2.5, corridor_m=1.5))
     # In the path; beside it (3.5 m lateral); not closing; crossing into it (10 m ahead, 4 m/s sideways: x = -5 m).
     assert warn.tolist() == [True, False, False, False]
+    # Not in the path now, though its contact would be (2.5 m to the left, drifting in at 1.7 m/s: the traffic
+    # drive's pickup, whose wild velocity came from a wrong depth); a closing speed no road has (80 m/s).
+    X2 = torch.tensor([[-2.5, 0.0, 5.8], [0.0, 0.0, 60.0]], dtype=torch.float64)
+    v2 = torch.tensor([[1.7, 0.0, -4.4], [0.0, 0.0, -80.0]], dtype=torch.float64)
+    ttc2 = time_to_collision(X2, v2)
+    assert (ttc2 < 2.5).all()
+    assert critical(X2, v2, ttc2, TtcParams(warn_s=2.5, corridor_m=1.5)).tolist() == [False, False]
+    assert critical(X2, v2, ttc2, TtcParams(warn_s=2.5, corridor_m=3.0, max_closing_mps=100.0)).tolist() == [True, True]
 
 
 def test_a_warning_waits_for_its_track_to_be_confirmed():

@@ -151,6 +151,31 @@ _PATTERN_MAX_GAIN = 0.7
 _MAX_PHOTOMETRIC_WORKERS = 4
 
 
+def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, R: np.ndarray,
+                     t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, base: np.ndarray,
+                     lateral: bool) -> tuple[int, int] | None:
+    """The road's vectors that a plane explains with the translation ``t`` and with ``-t``.
+
+    The ground's flow is linear in ``m = (s / h) n`` (:func:`_ground_system`); reversing ``t`` reverses
+    ``m``. Each sign gets the RANSAC of the ground fit, its hypotheses within ``ground_max_tilt`` of the
+    downward normal ``n_g``: the count of road vectors (``base`` & the ground ahead) within
+    ``ground_threshold`` pixels of the best plane, or 0 where the fit leaves that cone. None with fewer than
+    ``min_points`` road vectors. Each fit draws from its own generator (``params.seed``), so that the
+    estimator's own stream is the same with or without this test.
+    """
+    gidx = np.nonzero(base & _ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
+    if len(gidx) < params.min_points:
+        return None
+    A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
+    votes = []
+    for sign in (1.0, -1.0):
+        # Under -t the plane vector of the same flow is -m: the fit of -A (A is linear in t).
+        m, ginl = _fit_ground(sign * A, bb, params.ground_threshold, np.random.default_rng(params.seed), n_g=n_g,
+                              max_tilt=params.ground_max_tilt)
+        votes.append(int(ginl.sum()) if float(np.linalg.norm(m)) > 0 and _tilt_deg(m, n_g) <= params.ground_max_tilt else 0)
+    return votes[0], votes[1]
+
+
 def _photometric_workers() -> int:
     """Threads of the photometric search: torch's thread count, which stands for the cores this
     process may use (``--threads`` of the benchmarks, ``torch.set_num_threads``), at most 4."""

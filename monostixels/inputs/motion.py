@@ -60,6 +60,7 @@ Backends (``cfg.name``):
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from concurrent.futures import wait
@@ -80,7 +81,8 @@ from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion, angle_deg
 from monostixels.inputs.ground import (_PATTERN_MAX_GAIN, _ROAD_CLASS, _fit_ground, _ground_candidates, _ground_system,
-                                       _photometric_ground, _photometric_inputs, _rays, _tilt_deg)
+                                       _photometric_ground, _photometric_inputs, _rays, _road_sign_votes, _tilt_deg)
+from monostixels.inputs.motion_scene import SceneScale, scene_scale
 from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
 
 __all__ = [
@@ -132,7 +134,11 @@ class MotionEstimate:
         scale_from: where a metric translation's length came from: ``given`` (gt / file),
             ``photometric`` (the road's image alignment), ``road_marks`` (the alignment of the road's marks
             and the travel direction, :mod:`~monostixels.inputs.road_marks`), ``ground_flow`` (the road's flow vectors),
-            ``sequence`` (the recent pairs' speed, :class:`~monostixels.inputs.motion_track.MotionTrack`); None otherwise.
+            ``sequence`` (the recent pairs' speed, :class:`~monostixels.inputs.motion_track.MotionTrack`), ``scene``
+            (static objects standing on the ground, :mod:`~monostixels.inputs.motion_scene`); None otherwise.
+        scale_std: the relative uncertainty (std of ``log |t|``) of a metric translation's length: 0 for a
+            given motion, the sequence filter's (:class:`~monostixels.inputs.motion_track.MotionTrack`) over a
+            sequence, the settings' ``scale_meas_std`` for a single pair; None without a metric translation.
     """
 
     motion: Motion | None
@@ -143,6 +149,7 @@ class MotionEstimate:
     kind: str = "metric"
     unit_motion: Motion | None = None
     scale_from: str | None = None
+    scale_std: float | None = None
 
 
 @dataclass
@@ -169,6 +176,10 @@ class MonoParams:
         photometric_pixels: at most this many ground pixels (seeded subset) in that search.
         photometric_sharp: the photometric estimate is taken first when its minimum is this sharp
             (best / median cost over the scale grid); a weaker one only when the flow gives no plane.
+        scene_scale: the scene model's length of ``t`` (static objects' ground contacts,
+            :mod:`monostixels.inputs.motion_scene`), with semantic scores: checked against the road's (where the
+            two disagree the pair's scale is uncertain) and taken where the road gives none.
+        kerb_height: how far sidewalks and verges lie above the road (m), for the scene model's contacts on them.
         road_marks: without a sharp photometric minimum, the scale and travel direction from the road's
             marks (:mod:`monostixels.inputs.road_marks`) where the flow of the ground gives none or
             one well short of theirs (:data:`FLOW_SHORT_RATIO`).
@@ -190,6 +201,8 @@ class MonoParams:
     photometric_pixels: int = 40000
     photometric_sharp: float = 0.3
     road_marks: bool = True
+    scene_scale: bool = True
+    kerb_height: float = 0.15
     seed: int = 0
 
 
@@ -241,7 +254,7 @@ def _known(motion: Motion, what: str) -> MotionEstimate:
     if tn < MIN_TRANSLATION_M:
         return MotionEstimate(motion, True, f"no translation ({what}): |t| = {tn:.2e} m < {MIN_TRANSLATION_M} m", 1.0,
                               kind="standing")
-    return MotionEstimate(motion, False, f"ok ({what})", 1.0, scale_from="given")
+    return MotionEstimate(motion, False, f"ok ({what})", 1.0, scale_from="given", scale_std=0.0)
 
 
 @lru_cache(maxsize=8)
@@ -497,11 +510,49 @@ def estimate_mono(
                                                      height, params, rng, ignore_np)
             if photometric else None)
     try:
-        return _mono_from_vectors(Kn, n_g, height, params, rng, H, W, ok, labels, idx, p_cur, p_prev, road, prep,
-                                  _prediction(prior, interval_ratio))
+        est = _mono_from_vectors(Kn, n_g, height, params, rng, H, W, ok, labels, idx, p_cur, p_prev, road, prep,
+                                 _prediction(prior, interval_ratio))
     finally:
         if prep is not None:
             wait([prep])  # its thread draws from ``rng``: done before this estimate returns
+    moving = est.motion if est.kind == "metric" and not est.degenerate else est.unit_motion
+    if labels is None or moving is None or float(moving.t.norm()) <= 0 or not params.scene_scale:
+        return _with_scene(est, None, np.zeros(3), params)
+    # The scene model's length of t (static objects stand on the ground): a second source beside the road's.
+    t_unit = moving.t.double().numpy() / float(moving.t.norm())
+    grid = (len(range(off, H, params.step)), len(range(off, W, params.step)))
+    scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, n_g, height, labels.reshape(grid), us, vs, f, ok,
+                        params.step, params.kerb_height)
+    return _with_scene(est, scene, t_unit, params)
+
+
+def _with_scene(est: MotionEstimate, scene: SceneScale | None, t_unit: np.ndarray, params: Any) -> MotionEstimate:
+    """``est`` with the scene model's length of its translation (:mod:`~monostixels.inputs.motion_scene`) as evidence.
+
+    A road's length gets the measurement error ``scale_meas_std``; where the scene model contradicts it (their
+    log lengths differ by more than ``scale_gate`` standard deviations of the difference), the pair's
+    uncertainty is that difference: one of the two is wrong, and nothing tells which. A pair whose road gave
+    no length (``scale_unknown``) takes the scene model's where its uncertainty is within ``max_scale_std``.
+    The settings are the ``motion=mono`` group's (:class:`~monostixels.inputs.motion_track.MonoMotionConfig`).
+    """
+    meas = float(getattr(params, "scale_meas_std", 0.04))
+    gate = float(getattr(params, "scale_gate", 2.0))
+    bound = float(getattr(params, "max_scale_std", 0.15))
+    if scene is None:
+        return est if est.kind != "metric" else dataclasses.replace(est, scale_std=meas)
+    note = f"scene model: {scene.scale:.3f} m (std {scene.std:.2f}, {scene.columns} contacts)"
+    if est.kind == "metric":
+        delta = math.log(float(est.motion.t.norm()) / scene.scale)
+        std = meas
+        if abs(delta) > gate * math.hypot(meas, scene.std):
+            std = abs(delta)
+            note += f", {delta * 100:+.0f} % from the road's: uncertain"
+        return dataclasses.replace(est, reason=f"{est.reason}; {note}", scale_std=std)
+    if est.kind == "scale_unknown" and scene.std <= bound:
+        motion = Motion(est.unit_motion.R, torch.from_numpy(np.ascontiguousarray(t_unit * scene.scale)))
+        return dataclasses.replace(est, motion=motion, kind="metric", unit_motion=None, scale_from="scene",
+                                   scale_std=scene.std, reason=f"{est.reason}; {note}: the length taken from it")
+    return dataclasses.replace(est, reason=f"{est.reason}; {note}")
 
 
 @dataclass
@@ -620,9 +671,22 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                                   float(inl.mean()), kind="unknown")
     inlier_ratio = float(inl.mean())
 
+    # 3b. The sign of t from the road. The epipolar constraint holds for -t as well, and the cheirality
+    # vote of step 3 counts every likely-static vector: in traffic, a truck beside the camera that the
+    # semantic net calls a building and that pulls ahead outvotes the scene behind it, and t comes out
+    # reversed (docs/experiments.md, "Camera motion on unseen footage"). The road cannot move and lies
+    # below the camera: its plane under +t has the normal pointing down, under -t up.
+    road_votes = _road_sign_votes(Kn, n_g, height, params, R, t, p_cur, p_prev,
+                                  ((labels == _ROAD_CLASS) & ok) if road else ok, lateral=not road)
+    flipped = road_votes is not None and road_votes[1] > road_votes[0]
+    if flipped:
+        t = -t
+
     # 4. Metric scale (and road normal) from the ground.
     head = (f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers{' (warm start)' if warm else ''}, "
             f"median parallax {parallax:.1f} px")
+    if flipped:
+        head += f", direction reversed by the road ({road_votes[1]} of its vectors against {road_votes[0]})"
     src = "road pixels" if road else "road region ahead"
     failures = []
     found = None

@@ -47,7 +47,14 @@ class MotionTrackParams:
         scale_hold_s: a pair whose translation direction is known but not its length
             (``scale_unknown``) takes the filtered speed of the pairs before it, for at most this many
             seconds after the last pair with a measured scale (a car's speed changes slowly); later, or
-            without such pairs, it stays ``scale_unknown``. 0 = never.
+            without such pairs, it stays ``scale_unknown``. 0 = never. Its uncertainty grows meanwhile
+            (``scale_std``), and past ``max_scale_std`` it moves nothing and warns of nothing.
+        max_scale_std: the bound on the scale's relative uncertainty (the std of ``log |t|``) above which
+            the camera motion's length is not trusted to tell movers: a flow that fits the epipolar
+            geometry does not make a stixel a mover, and no time-to-collision warning is raised
+            (:mod:`monostixels.post.movers`, :mod:`monostixels.sequence.runner`). 0.15: the mover check
+            calls a static object moving from a 30 % depth discrepancy (``movers.min_depth_discrepancy``),
+            twice this.
     """
 
     sequence_prior: bool = True
@@ -58,6 +65,7 @@ class MotionTrackParams:
     normal_meas_std_deg: float = 0.5
     normal_gate_deg: float = 3.0
     scale_hold_s: float = 2.0
+    max_scale_std: float = 0.15
 
 
 @dataclass
@@ -121,24 +129,29 @@ class MotionTrack:
         self._key: tuple | None = None
         self._x = 0.0  # log speed
         self._var = math.inf
-        self._rejected: float | None = None  # log speed of the last pair, where it was an outlier
+        self._rejected: float | None = None  # log speed of the last pair, where it contradicted the track
+        self._confirmed = False  # two pairs' measured scales agreed since the track (re)started
         self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
         self._held_s = 0.0  # seconds since the last pair with a measured scale
 
     def reset(self) -> None:
         self._key, self._x, self._var = None, 0.0, math.inf
         self._rejected = None
+        self._confirmed = False
         self._normals = {}
         self._held_s = 0.0
 
     def update(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
-        """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the state advanced)."""
+        """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the
+        state advanced); its ``scale_std`` is the relative uncertainty of the length it reports."""
         prm = self.params
         seq, cur, prev = pair.meta.get("sequence"), pair.meta.get("frame"), pair.meta.get("frame_prev")
         consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
                        and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
         dt = float(pair.meta.get("dt") or 1.0)
-        if est.kind == "scale_unknown" and est.unit_motion is not None and consecutive:
+        if est.kind == "scale_unknown" and est.unit_motion is not None and consecutive and self._confirmed:
+            # Only a confirmed track lends its speed: one pair's length, never corroborated, may be the
+            # error (a highway's first pair said 4 m/s at 27 m/s, and was held over 16 pairs).
             if self._held_s + dt <= prm.scale_hold_s:
                 return self._hold(est, cur, prev, dt)
         if est.motion is None or est.degenerate or seq is None or cur is None:
@@ -151,44 +164,52 @@ class MotionTrack:
         est = self._filter_normal(est, cur, prev if consecutive else None, dt)
         self._held_s = 0.0
         z = math.log(norm / dt)
-        r = prm.scale_meas_std**2
+        # The pair's own uncertainty where it has one (the road and the scene model disagreeing: larger).
+        r = max(prm.scale_meas_std, est.scale_std or 0.0) ** 2
         self._key = (seq, cur)
         if not consecutive:
-            self._x, self._var, self._rejected = z, r, None
-            return est
+            self._x, self._var, self._rejected, self._confirmed = z, r, None, False
+            return dataclasses.replace(est, scale_std=math.sqrt(r))
         x_pred = self._x
         p_pred = self._var + (prm.speed_process_std * dt) ** 2
         innov = z - x_pred
         s = p_pred + r
         last, self._rejected = self._rejected, None
         if abs(innov) > prm.scale_gate * math.sqrt(s):
-            # Two outliers in a row that agree with each other (two pairs' errors and the speed change
-            # between them): the track was off, not the pairs; it restarts at this one. Otherwise a track
-            # started off would hold a slowing car's pairs out for good: their innovations grow faster
-            # than the prediction's variance.
-            if last is not None and abs(z - last) <= prm.scale_gate * math.sqrt(2 * r + (prm.speed_process_std * dt) ** 2):
-                self._x, self._var = z, r
+            # The pair contradicts the track. Its uncertainty is the disagreement: the frames say two things,
+            # and until a later pair tells which, its movers and warnings fail safe (max_scale_std).
+            std = abs(innov)
+            if not self._confirmed or (last is not None and abs(z - last) <= prm.scale_gate * math.sqrt(
+                    2 * r + (prm.speed_process_std * dt) ** 2)):
+                # A track of one pair has no more support than this pair; two contradicting pairs that agree
+                # with each other: the track was off, not the pairs. The track restarts at this pair, and
+                # this pair's own length stands (no value the current frame contradicts is held).
+                self._x, self._var, self._confirmed = z, r, False
                 note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
-                        f"prediction, the second such pair in a row and consistent with the first: the speed restarts at it")
+                        f"prediction of an {'unconfirmed' if last is None else 'outvoted'} track: the speed restarts "
+                        f"at it (uncertain: {std:.2f})")
             else:
-                # An outlier: keep the prediction (its variance grows).
+                # One pair against a confirmed track: the prediction stands (its variance grows), marked uncertain.
                 self._x, self._var, self._rejected = x_pred, p_pred, z
                 note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
-                        f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m")
+                        f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m (uncertain: {std:.2f})")
                 # The length is the sequence's now, not the pair's own measurement.
                 est = dataclasses.replace(est, scale_from="sequence")
         else:
             k = p_pred / s
             self._x, self._var = x_pred + k * innov, (1 - k) * p_pred
+            self._confirmed = True
+            std = math.sqrt(self._var)
             note = f"sequence prior: scale {norm:.3f} -> {math.exp(self._x) * dt:.3f} m"
         t_new = est.motion.t * (math.exp(self._x) * dt / norm)
         logger.debug("%s: %s", pair.name, note)
-        return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}")
-
+        return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}",
+                                   scale_std=std)
 
     def _hold(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
         """A ``scale_unknown`` pair made metric by the filtered speed (predicted, not updated: its variance
-        grows) and, where the earlier frame has one, the filtered road normal turned into this camera."""
+        grows, and so does the ``scale_std`` reported) and, where the earlier frame has one, the filtered
+        road normal turned into this camera."""
         prm = self.params
         self._var += (prm.speed_process_std * dt) ** 2
         self._held_s += dt
@@ -207,7 +228,8 @@ class MotionTrack:
                 f"{self._held_s:.2f} s since the last measured scale)")
         logger.debug("%s", note)
         return dataclasses.replace(est, motion=Motion(R, t_unit / t_unit.norm() * length), kind="metric",
-                                   scale_from="sequence", ground_normal=normal, reason=f"{est.reason}; {note}")
+                                   scale_from="sequence", ground_normal=normal, reason=f"{est.reason}; {note}",
+                                   scale_std=math.sqrt(self._var))
 
     def _filter_normal(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
         """``est`` with its road normal fused with the one of frame ``prev`` (None: restart)."""

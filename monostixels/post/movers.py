@@ -113,7 +113,7 @@ class MoverCheckParams:
 
 
 def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point_depth: torch.Tensor | None = None,
-                 params: MoverCheckParams | None = None) -> StixelWorld:
+                 params: MoverCheckParams | None = None, scale_known: bool = True) -> StixelWorld:
     """Dynamic stixels that a static object explains become static (see the module docstring).
 
     All dynamic stixels are checked at once: their pixels are gathered into flat arrays with a
@@ -128,6 +128,10 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         point_depth: (H, W) per-pixel depth triangulated from ``flow`` and ``motion`` (metres;
             invalid = negative, inf or NaN), e.g. the SfM baseline's; None = triangulated here.
         params: thresholds.
+        scale_known: False where the camera motion's length is uncertain (``motion.max_scale_std``): a
+            stixel whose flow a static plane explains (it fits the epipolar geometry) stands still whatever
+            its depth, since a wrong length moves every static depth; only a flow that breaks the epipolar
+            constraint keeps a stixel dynamic (no kept classes, no depth or contact test).
 
     Returns:
         A new :class:`StixelWorld`; ``flags["static_checked"]`` = number of dynamic stixels made static.
@@ -180,6 +184,8 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         upd, vpd = apply_homography(Hd[sid], uu, vv)
         e_d = segment_lower_median(torch.hypot(upd - uu - fu, vpd - vv - fv), sid, counts)
         explained |= fit & (e_d >= prm.max_dynamic_residual_ratio * e_s)
+    if not scale_known:
+        return _stand_still(stixels, dyn, explained, d_s, S)
     if prm.keep_classes:
         kept = torch.tensor([CLASS_NAMES.index(c) for c in prm.keep_classes], dtype=torch.long)
         explained &= ~torch.isin(stixels.cls[dyn].long(), kept)
@@ -246,6 +252,12 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         if prm.keep_classes:
             alone &= ~torch.isin(stixels.cls[dyn].long(), kept)
         still = still | alone
+    return _stand_still(stixels, dyn, still, d_s, S)
+
+
+def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d_s: torch.Tensor, S: int) -> StixelWorld:
+    """``stixels`` with the dynamic stixels ``dyn[still]`` made static objects at their static depths ``d_s``
+    (S,) metres, with zero motion and their classes kept; ``flags["static_checked"]`` counts them."""
     k = dyn[still]
     types, p_out = stixels.type.clone(), stixels.inverse_depth.clone()
     mot, tau = stixels.motion.clone(), stixels.tau.clone()

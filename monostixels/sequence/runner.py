@@ -50,7 +50,7 @@ from omegaconf import DictConfig
 
 from monostixels._checks import InputError, config_params
 from monostixels._threads import threads, torch_threads
-from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
+from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.core.geometry import Motion
@@ -363,8 +363,17 @@ class SequenceRunner:
         obj = (st.type == STATIC_OBJECT) | (st.type == DYNAMIC_OBJECT)
         ttc = out["ttc"] if tracking else time_to_collision(torch.nan_to_num(X_cam, nan=-1.0), v_rel)
         ttc = torch.where(obj, ttc, torch.full((len(st),), math.inf, dtype=torch.float64))
-        warn = obj & critical(torch.nan_to_num(X_cam, nan=-1.0), v_rel, ttc, self.ttc)
+        # A warning only on a class that can move (a vehicle, a two-wheeler, a person: parked or moving), with a
+        # tracked closing that holds in both the filtered rate and the filtered velocity, and never where the
+        # camera motion's length is uncertain: with a wrong length the static world closes at the wrong speed
+        # (docs/conventions.md, section 4.4).
+        movable = torch.tensor(CLASS_TYPE)[st.cls.long()] == DYNAMIC_OBJECT
+        X_ok = torch.nan_to_num(X_cam, nan=-1.0)
+        ttc_both = torch.maximum(ttc, time_to_collision(X_ok, v_rel)) if tracking else ttc
+        warn = obj & movable & critical(X_ok, v_rel, ttc_both, self.ttc)
         warn = confirmed(warn, out["age"] if tracking else None, self.ttc)
+        if st.flags.get("scale_uncertain"):
+            warn = torch.zeros_like(warn)
         st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
         st.ttc_warning = warn
         st.pose = pose

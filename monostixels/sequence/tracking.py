@@ -148,14 +148,20 @@ class TtcParams:
         confirm_frames: on a tracked sequence, a critical stixel is warned about only once its track has
             continued this many frames: its closing rate is then filtered over them, not one pair's (a
             sliver of road taken for an object for one frame raises nothing). 0 = every critical stixel.
+        max_closing_mps: the fastest closing speed (m/s) a warning is raised at: two cars meeting head-on at
+            110 km/h each close at 61 m/s; a faster one is the estimate's error, not a road's traffic.
+
+    Warnings are raised only on the classes that can move (vehicle, two-wheeler, person) and never where the
+    camera motion's length is uncertain (:mod:`monostixels.sequence.runner`).
     """
 
     warn_s: float = 2.0
     corridor_m: float = 1.5
     confirm_frames: int = 2
+    max_closing_mps: float = 61.0
 
     def __post_init__(self) -> None:
-        for k in ("warn_s", "corridor_m"):
+        for k in ("warn_s", "corridor_m", "max_closing_mps"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0):
                 raise InputError(f"ttc.{k}: a number > 0, got {v!r}")
@@ -242,9 +248,16 @@ def time_to_collision(X: torch.Tensor, v_rel: torch.Tensor) -> torch.Tensor:
 
 
 def critical(X: torch.Tensor, v_rel: torch.Tensor, ttc: torch.Tensor, params: TtcParams) -> torch.Tensor:
-    """(N,) bool: closing within ``warn_s`` with the contact inside the corridor ``|X + v_rel,x ttc| < corridor_m``."""
+    """(N,) bool: in the camera's path now (``|X| < corridor_m``), closing within ``warn_s`` at a plausible
+    speed (``-v_rel,z <= max_closing_mps``), with the contact inside the corridor ``|X + v_rel,x ttc| < corridor_m``.
+
+    ``ttc`` (N,) seconds: the caller's time to collision; where it comes from a track's filtered closing rate,
+    the caller passes the larger of it and the one of the track's filtered velocity, so that a warning needs a
+    closing that holds in both (a single stixel's rate that grows while its track's velocity does not is noise).
+    """
     lateral = X[:, 0] + v_rel[:, 0] * torch.where(torch.isfinite(ttc), ttc, torch.zeros_like(ttc))
-    return (ttc < params.warn_s) & (lateral.abs() < params.corridor_m)
+    return ((ttc < params.warn_s) & (lateral.abs() < params.corridor_m) & (X[:, 0].abs() < params.corridor_m)
+            & (-v_rel[:, 2] <= params.max_closing_mps))
 
 
 def confirmed(warn: torch.Tensor, age: torch.Tensor | None, params: TtcParams) -> torch.Tensor:
