@@ -86,6 +86,8 @@ def test_an_uncertain_scale_leaves_only_the_movers_that_break_the_epipolar_const
     assert unsure.type[0] == STATIC_OBJECT and unsure.type[1] == STATIC_OBJECT and unsure.type[5] == STATIC_OBJECT
     assert unsure.type[3] == DYNAMIC_OBJECT and unsure.type[4] == DYNAMIC_OBJECT  # off the epipolar lines
     assert float(unsure.motion[1].norm()) == 0.0 and unsure.flags["static_checked"] == 3
+    # Their depths stay the scene model's: the flow's static depth scales with the uncertain length.
+    assert torch.equal(unsure.inverse_depth, st.inverse_depth)
 
 
 # A camera with a KITTI-like focal length, so that a depth difference shows as rows at the ground contact.

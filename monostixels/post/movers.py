@@ -130,8 +130,9 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         params: thresholds.
         scale_known: False where the camera motion's length is uncertain (``motion.max_scale_std``): a
             stixel whose flow a static plane explains (it fits the epipolar geometry) stands still whatever
-            its depth, since a wrong length moves every static depth; only a flow that breaks the epipolar
-            constraint keeps a stixel dynamic (no kept classes, no depth or contact test).
+            its depth, since a wrong length moves every static depth, and keeps the scene model's depth (the
+            flow's scales with that length); only a flow that breaks the epipolar constraint keeps a stixel
+            dynamic (no kept classes, no depth or contact test).
 
     Returns:
         A new :class:`StixelWorld`; ``flags["static_checked"]`` = number of dynamic stixels made static.
@@ -185,7 +186,9 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         e_d = segment_lower_median(torch.hypot(upd - uu - fu, vpd - vv - fv), sid, counts)
         explained |= fit & (e_d >= prm.max_dynamic_residual_ratio * e_s)
     if not scale_known:
-        return _stand_still(stixels, dyn, explained, d_s, S)
+        # Their depths stay the scene model's (the ground contact): the flow's static depth d_s scales with
+        # the very length that is uncertain (and a preceding car's is far off its contact).
+        return _stand_still(stixels, dyn, explained, None, S)
     if prm.keep_classes:
         kept = torch.tensor([CLASS_NAMES.index(c) for c in prm.keep_classes], dtype=torch.long)
         explained &= ~torch.isin(stixels.cls[dyn].long(), kept)
@@ -255,14 +258,17 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     return _stand_still(stixels, dyn, still, d_s, S)
 
 
-def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d_s: torch.Tensor, S: int) -> StixelWorld:
+def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d_s: torch.Tensor | None,
+                 S: int) -> StixelWorld:
     """``stixels`` with the dynamic stixels ``dyn[still]`` made static objects at their static depths ``d_s``
-    (S,) metres, with zero motion and their classes kept; ``flags["static_checked"]`` counts them."""
+    (S,) metres (None: their depths kept), with zero motion and their classes kept; ``flags["static_checked"]``
+    counts them."""
     k = dyn[still]
     types, p_out = stixels.type.clone(), stixels.inverse_depth.clone()
     mot, tau = stixels.motion.clone(), stixels.tau.clone()
     types[k] = STATIC_OBJECT
-    p_out[k] = (1.0 / d_s[still]).to(p_out.dtype)
+    if d_s is not None:
+        p_out[k] = (1.0 / d_s[still]).to(p_out.dtype)
     mot[k] = 0.0
     tau[k] = 0.0  # (t̃x, t̃y) belong to dynamic stixels only
     changed = int(still.sum())
