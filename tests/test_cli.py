@@ -99,6 +99,15 @@ def test_run_on_a_folder_of_frames(tmp_path):
         assert overlay.shape[:2] == pair0.size and fig.shape[0] == overlay.shape[0] and fig.shape[1] > overlay.shape[1]
     assert (out / "video.mp4").stat().st_size > 0 and (out / "bev.mp4").stat().st_size > 0
     assert "2 frame pair(s)" in p.stdout
+    # What it ran on (docs/conventions.md, section 4.3): the CPU's flags, ONNX Runtime's INT8 path, the kernel's build.
+    import onnxruntime
+
+    from monostixels._cpu import cpu_info, int8_path
+
+    ran_on = json.loads((out / "summary.json").read_text())["platform"]
+    assert ran_on["cpu"] == cpu_info() and ran_on["int8_path"] == int8_path()
+    assert ran_on["onnxruntime"] == onnxruntime.__version__
+    assert ran_on["solver_build"] is None or "-ffp-contract=off" in ran_on["solver_build"]
 
 
 @pytest.mark.parametrize("case", ["missing_intrinsics", "empty", "unreadable", "sizes"])
