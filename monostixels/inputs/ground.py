@@ -153,8 +153,8 @@ _MAX_PHOTOMETRIC_WORKERS = 4
 
 def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, R: np.ndarray,
                      t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, base: np.ndarray,
-                     lateral: bool) -> tuple[int, int] | None:
-    """The road's vectors that a plane explains with the translation ``t`` and with ``-t``.
+                     lateral: bool) -> tuple[int, int, int] | None:
+    """The road's vectors that a plane explains with the translation ``t`` and with ``-t``, and how many it has.
 
     The ground's flow is linear in ``m = (s / h) n`` (:func:`_ground_system`); reversing ``t`` reverses
     ``m``. Each sign gets the RANSAC of the ground fit, its hypotheses within ``ground_max_tilt`` of the
@@ -173,7 +173,7 @@ def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: Mon
         m, ginl = _fit_ground(sign * A, bb, params.ground_threshold, np.random.default_rng(params.seed), n_g=n_g,
                               max_tilt=params.ground_max_tilt)
         votes.append(int(ginl.sum()) if float(np.linalg.norm(m)) > 0 and _tilt_deg(m, n_g) <= params.ground_max_tilt else 0)
-    return votes[0], votes[1]
+    return votes[0], votes[1], len(gidx)
 
 
 def _photometric_workers() -> int:

@@ -602,6 +602,13 @@ def _cheirality_sign(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray)
     return 1.0 if front >= behind else -1.0
 
 
+#: The road reverses t only where the reversed plane explains at least this share of its vectors: a road whose
+#: flow failed (highway asphalt, pulled towards zero) fits a plane by chance with 2.5-7 % of its vectors under
+#: either sign (the shared highway clip, 6 of 40 pairs), a real one with 44-52 % (the KITTI traffic drive's
+#: frames 1-7). Chosen between those two clips; the synthetic renders and KITTI drives 0023 / 0028 never
+#: reverse. docs/experiments.md, "Camera motion on unseen footage".
+_ROAD_SIGN_SHARE = 0.25
+
 #: Warm start of the essential matrix: the prediction replaces RANSAC when, within this many times the
 #: RANSAC threshold (Sampson distance), it explains at least the given share of the vectors the last pair's
 #: estimate explained (a sudden turn or a mover taking the view fails it). A prediction is not exact (yaw
@@ -678,7 +685,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     # below the camera: its plane under +t has the normal pointing down, under -t up.
     road_votes = _road_sign_votes(Kn, n_g, height, params, R, t, p_cur, p_prev,
                                   ((labels == _ROAD_CLASS) & ok) if road else ok, lateral=not road)
-    flipped = road_votes is not None and road_votes[1] > road_votes[0]
+    flipped = (road_votes is not None and road_votes[1] > road_votes[0]
+               and road_votes[1] >= _ROAD_SIGN_SHARE * road_votes[2])
     if flipped:
         t = -t
 
@@ -686,7 +694,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     head = (f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers{' (warm start)' if warm else ''}, "
             f"median parallax {parallax:.1f} px")
     if flipped:
-        head += f", direction reversed by the road ({road_votes[1]} of its vectors against {road_votes[0]})"
+        head += f", direction reversed by the road ({road_votes[1]} of its {road_votes[2]} vectors against {road_votes[0]})"
     src = "road pixels" if road else "road region ahead"
     failures = []
     found = None
