@@ -552,6 +552,15 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     assert rep["metric"] == 3 and rep["no_metric_motion"] == 1 and rep["height_fit_m"] is None
     assert camera_summary(rep)[0] == ("camera motion metric on 3 of 4 pair(s) (scale: 1 photometric, 1 sequence); "
                                              "1 without a metric motion (no movers, no collision warnings there)")
+    assert rep["speed_mps"] is None and rep["scale_uncertain"] == 0  # no speeds given
+    # The camera speed of the moving metric pairs: median and range, and the pairs of an uncertain scale.
+    mixed[0]["speed_mps"], mixed[1]["speed_mps"] = 12.0, 8.0
+    mixed[1]["scale_uncertain"] = True
+    mixed.append({"camera_motion": "metric", "scale_from": "road_marks", "speed_mps": 9.0})
+    rep = camera_report(mixed, 1.4)
+    assert rep["speed_mps"] == {"median": 9.0, "min": 8.0, "max": 12.0, "pairs": 3} and rep["scale_uncertain"] == 1
+    assert camera_summary(rep)[1].startswith("camera speed median 9.0 m/s, range 8.0-12.0 m/s over 3 moving pair(s); "
+                                             "1 with an uncertain scale")
 
 
 def test_road_marks_are_read_only_where_the_road_flow_falls_short_of_the_stream_prediction(monkeypatch):
