@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -10,10 +11,12 @@ import torch
 from omegaconf import OmegaConf
 
 from monostixels._checks import InputError
+from monostixels._cpu import int8_path
 from monostixels.data.base import FramePair, GroundTruth
 from monostixels.core.geometry import Camera, intrinsics
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 from monostixels.inputs.flow import estimate_flow, flow_metrics
+from monostixels.inputs.quantize import can_saturate
 from monostixels.inputs.raft import OnnxRaft, RaftFlow, TorchRaft, build_raft, export_onnx, load_raft_weights, padded_size
 
 REPO = Path(__file__).resolve().parents[1]
@@ -442,17 +445,42 @@ def test_shipped_raft_files_agree_and_auto_runs_the_onnx_one():
     # The INT8 copy (flow.precision=int8, the default): what auto runs on a CPU, the same updates, a flow
     # within a few percent of the float one's (0.27 px of 7 px here, before any refinement) and as close
     # to the ground truth.
-    int8 = _raft_net(OmegaConf.merge(cfg, {"runtime": "onnx", "onnx": str(REPO / "models" / "raft_small_int8.onnx")}))
+    int8_file = REPO / "models" / "raft_small_int8.onnx"
+    int8 = _raft_net(OmegaConf.merge(cfg, {"runtime": "onnx", "onnx": str(int8_file)}))
     assert int8.quantized == "int8" and int8.num_flow_updates == int(cfg.iters) and cfg.precision == "int8"
+    # The copy's 8-bit weights can saturate the 16-bit pairwise sums of a CPU without VNNI (0.37 px from the
+    # float flow here on an emulated Haswell, 0.27 px with VNNI; monostixels/inputs/quantize.py): auto runs the
+    # float graph there.
+    saturates = int8_path() == "no_vnni" and can_saturate(int8_file)
     if not torch.cuda.is_available():
-        assert _raft_net(cfg).quantized == "int8"
+        assert _raft_net(cfg).quantized == (None if saturates else "int8")
         assert _raft_net(OmegaConf.merge(cfg, {"precision": "float32"})).quantized is None
-    f_int8 = int8(pair.image, pair.image_prev)
-    assert float((f_int8 - f_torch).norm(dim=0).mean()) < 0.05 * float(f_torch.norm(dim=0).mean())
-    epe = [float((f - pair.gt.flow).norm(dim=0).mean()) for f in (f_torch, f_int8)]
-    assert epe[1] < 1.03 * epe[0]
+    if not saturates:
+        f_int8 = int8(pair.image, pair.image_prev)
+        assert float((f_int8 - f_torch).norm(dim=0).mean()) < 0.05 * float(f_torch.norm(dim=0).mean())
+        epe = [float((f - pair.gt.flow).norm(dim=0).mean()) for f in (f_torch, f_int8)]
+        assert epe[1] < 1.03 * epe[0]
     with pytest.raises(InputError, match="flow.precision"):
         _raft_net(OmegaConf.merge(cfg, {"precision": "fp8"}))
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="runtime=auto takes torch on a GPU")
+def test_without_vnni_an_int8_raft_with_8_bit_weights_gives_way_to_the_float_graph(monkeypatch, caplog):
+    import logging
+
+    from monostixels import _cpu
+    from monostixels.inputs import flow as flow_mod
+    from monostixels.pipeline import load_config
+
+    cfg = load_config(["flow=raft"]).flow
+    monkeypatch.setattr(_cpu, "int8_path", lambda: "no_vnni")
+    monkeypatch.setattr(flow_mod, "_saturates_here", lru_cache(flow_mod._saturates_here.__wrapped__))
+    with caplog.at_level(logging.WARNING, logger="monostixels.inputs.flow"):
+        net = flow_mod._raft_net(cfg)
+        assert net.quantized is None and net.path.name == "raft_small.onnx"
+        flow_mod._raft_net(cfg)
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "raft_small_int8.onnx has 8-bit weights" in warned[0]
 
 
 def test_gather_correlation_lookup_equals_torchvisions_grid_sample():

@@ -106,6 +106,7 @@ def test_8_bit_weights_can_saturate_and_fast_falls_back_to_the_float_net_without
     assert int8_weight_max(wide) == 127 and can_saturate(wide)
     (tmp_path / FLOAT.name).write_bytes(FLOAT.read_bytes())
     cfg = load_config(["preset=fast", f"semantic.model={wide}"]).semantic
+    monkeypatch.setattr(_cpu, "int8_path", lambda: "vnni")
     monkeypatch.setattr(semantic, "_int8_checked", functools.lru_cache(semantic._int8_checked.__wrapped__))
     assert _fcn8s_segmenter(cfg).path == wide  # a CPU with VNNI runs it
     monkeypatch.setattr(_cpu, "int8_path", lambda: "no_vnni")

@@ -383,6 +383,21 @@ def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: DisFlowConfig,
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
+@lru_cache(maxsize=4)
+def _saturates_here(path: str) -> bool:
+    """Whether the INT8 file ``path`` has 8-bit weights, whose pairwise 16-bit sums can saturate, and this
+    CPU has no VNNI (``monostixels/inputs/quantize.py``): ``flow.precision=int8`` then runs the float graph
+    beside it, and one warning says so."""
+    from monostixels._cpu import int8_path
+    from monostixels.inputs.quantize import can_saturate
+
+    if int8_path() != "no_vnni" or not can_saturate(path):
+        return False
+    logger.warning("flow: %s has 8-bit weights, which can saturate on this CPU (no VNNI): running the float "
+                   "graph beside it instead", path)
+    return True
+
+
 def _raft_net(cfg: Any) -> Any:
     """The RAFT runner of ``cfg`` (``cfg.runtime`` auto | torch | onnx), loaded once per file."""
     from monostixels.inputs.raft import cached_onnx_raft, cached_torch_raft  # torchvision import is slow
@@ -395,13 +410,14 @@ def _raft_net(cfg: Any) -> Any:
         # train.flow writes both): other weights without one run in torch, and so does any on a GPU.
         # flow.precision=int8 takes the INT8 copy beside them (<name>_int8.onnx) where there is one:
         # its convolutions, most of the time, run faster on a CPU at a small cost in accuracy
-        # (docs/experiments.md "Flow").
+        # (docs/experiments.md "Flow"), except where its 8-bit weights can saturate (a CPU without VNNI).
         weights, precision = cfg.weights, cfg.precision
         if precision not in ("float32", "int8"):
             raise InputError(f"flow.precision: must be float32 or int8, got {precision!r}")
         if weights is not None and not torch.cuda.is_available():
             w = resolve_path(weights)
-            names = ([w.with_name(w.stem + "_int8.onnx")] if precision == "int8" else []) + [w.with_suffix(".onnx")]
+            int8 = [w.with_name(w.stem + "_int8.onnx")] if precision == "int8" else []
+            names = [n for n in int8 if n.is_file() and not _saturates_here(str(n))] + [w.with_suffix(".onnx")]
             for beside in (n for n in names if n.is_file()):
                 net = cached_onnx_raft(beside, cfg.threads)
                 # Its updates are fixed at export: another flow.iters runs in torch.

@@ -588,7 +588,7 @@ def _int8_checked(path: str, mtime: int) -> str:
         return path
     route = int8_path()
     logger.info("semantic: INT8 net %s on %s, ONNX Runtime's %s path", path, cpu_info()["model"], route)
-    if route in ("vnni", "not_x86") or not can_saturate(path):
+    if route != "no_vnni" or not can_saturate(path):
         return path
     src = Path(path).with_name(meta.get("int8_from", "")) if meta.get("int8_from") else None
     if src is None or not src.is_file():
