@@ -579,6 +579,7 @@ def _int8_checked(path: str, mtime: int) -> str:
     file it was made from (its ``int8_from``, beside it), with one warning. An INT8 file's CPU path is
     logged (``summary.json`` ``platform`` records it too)."""
     import onnx
+    import onnxruntime
 
     from monostixels._cpu import cpu_info, int8_path
     from monostixels.inputs.quantize import can_saturate
@@ -587,7 +588,8 @@ def _int8_checked(path: str, mtime: int) -> str:
     if meta.get("quantized") != "int8":
         return path
     route = int8_path()
-    logger.info("semantic: INT8 net %s on %s, ONNX Runtime's %s path", path, cpu_info()["model"], route)
+    logger.info("semantic: INT8 net %s, ONNX Runtime %s on %s: its %s path", path, onnxruntime.__version__,
+                cpu_info()["model"], route)
     if route != "no_vnni" or not can_saturate(path):
         return path
     src = Path(path).with_name(meta.get("int8_from", "")) if meta.get("int8_from") else None
