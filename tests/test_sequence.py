@@ -269,6 +269,25 @@ def test_time_to_collision_of_a_hand_made_closing_object():
     assert critical(X2, v2, ttc2, TtcParams(warn_s=2.5, corridor_m=3.0, max_closing_mps=100.0)).tolist() == [True, True]
 
 
+def test_a_warning_needs_an_object_wider_than_one_column():
+    from monostixels.core.stixels import StixelWorld
+    from monostixels.sequence.tracking import object_wide
+
+    # Columns 3-4 one object (overlapping rows), column 8 a lone sliver, column 10 beside column 9 but not
+    # sharing a row with it; column 9 is not warned.
+    cols, top, bot = [3, 4, 8, 9, 10], [10, 14, 30, 0, 20], [20, 25, 34, 5, 25]
+    n = len(cols)
+    world = StixelWorld(column_width=5, image_size=(40, 60), K=torch.eye(3, dtype=torch.float64),
+                        ground_normal=torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), column=torch.tensor(cols),
+                        v_top=torch.tensor(top), v_bottom=torch.tensor(bot), type=torch.full((n,), 2),
+                        cls=torch.full((n,), 6), inverse_depth=torch.full((n,), 0.1, dtype=torch.float64),
+                        motion=torch.zeros(n, 3, dtype=torch.float64), cost=torch.zeros(n),
+                        tau=torch.zeros(n, 2, dtype=torch.float64), energy=torch.zeros(12))
+    warn = torch.tensor([True, True, True, False, True])
+    assert object_wide(warn, world).tolist() == [True, True, False, False, False]
+    assert not object_wide(torch.zeros(n, dtype=torch.bool), world).any()
+
+
 def test_a_warning_waits_for_its_track_to_be_confirmed():
     """A car closing in the path is warned about once its track has continued ttc.confirm_frames frames; a
     stixel critical in one frame only (a new track each time) never is."""

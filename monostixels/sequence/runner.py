@@ -59,7 +59,7 @@ from monostixels.inputs.motion_track import motion_params
 from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult, motion_track_for
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamState
-from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, stixel_points,
+from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
                                    time_to_collision)
 
 __all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
@@ -371,7 +371,7 @@ class SequenceRunner:
         X_ok = torch.nan_to_num(X_cam, nan=-1.0)
         ttc_both = torch.maximum(ttc, time_to_collision(X_ok, v_rel)) if tracking else ttc
         warn = obj & movable & critical(X_ok, v_rel, ttc_both, self.ttc)
-        warn = confirmed(warn, out["age"] if tracking else None, self.ttc)
+        warn = object_wide(confirmed(warn, out["age"] if tracking else None, self.ttc), st)
         if st.flags.get("scale_uncertain"):
             warn = torch.zeros_like(warn)
         st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc

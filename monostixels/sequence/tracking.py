@@ -47,7 +47,8 @@ from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
 from monostixels.core.geometry import Motion, ground_basis, pixel_rays
 from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
 
-__all__ = ["TrackParams", "TtcParams", "TrackState", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed"]
+__all__ = ["TrackParams", "TtcParams", "TrackState", "Tracks", "stixel_points", "time_to_collision", "critical", "confirmed",
+           "object_wide"]
 
 #: Chi-square quantile of 4 degrees of freedom at 99.9 %: the association gate on position and velocity.
 _CHI2_4DOF_999 = 18.47
@@ -151,8 +152,9 @@ class TtcParams:
         max_closing_mps: the fastest closing speed (m/s) a warning is raised at: two cars meeting head-on at
             110 km/h each close at 61 m/s; a faster one is the estimate's error, not a road's traffic.
 
-    Warnings are raised only on the classes that can move (vehicle, two-wheeler, person) and never where the
-    camera motion's length is uncertain (:mod:`monostixels.sequence.runner`).
+    Warnings are raised only on the classes that can move (vehicle, two-wheeler, person), on objects wider than
+    one column (:func:`object_wide`), and never where the camera motion's length is uncertain
+    (:mod:`monostixels.sequence.runner`).
     """
 
     warn_s: float = 2.0
@@ -258,6 +260,19 @@ def critical(X: torch.Tensor, v_rel: torch.Tensor, ttc: torch.Tensor, params: Tt
     lateral = X[:, 0] + v_rel[:, 0] * torch.where(torch.isfinite(ttc), ttc, torch.zeros_like(ttc))
     return ((ttc < params.warn_s) & (lateral.abs() < params.corridor_m) & (X[:, 0].abs() < params.corridor_m)
             & (-v_rel[:, 2] <= params.max_closing_mps))
+
+
+def object_wide(warn: torch.Tensor, world: StixelWorld) -> torch.Tensor:
+    """(N,) bool: the warned stixels ``warn`` (N,) with a warned stixel beside them (an adjacent column, a
+    shared row): a vehicle, a two-wheeler or a person is wider than one column; a lone column is a sliver
+    the net called a vehicle (a shadow, a road mark), not an object closing."""
+    idx = torch.nonzero(warn).flatten()
+    if idx.numel() == 0:
+        return warn
+    beside = neighbours(world.column[idx], world.v_top[idx], world.v_bottom[idx]).any(1)
+    out = torch.zeros_like(warn)
+    out[idx[beside]] = True
+    return out
 
 
 def confirmed(warn: torch.Tensor, age: torch.Tensor | None, params: TtcParams) -> torch.Tensor:
