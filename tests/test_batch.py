@@ -224,7 +224,8 @@ def test_discover_clips_and_their_data_config(tmp_path):
     assert car2["intrinsics"] is None and car2["hfov_deg"] == 90.0
     drive = clip_data_config(user, Clip("drive7", str(frames), "frames"))
     assert drive["name"] == "frames" and drive["root"] == str(frames) and drive["step"] == 2
-    assert "hfov_deg" not in drive and "resize" not in drive
+    # A folder takes them too (data=frames has hfov_deg and resize); its own intrinsics file wins over hfov_deg.
+    assert drive["hfov_deg"] == 90.0 and drive["resize"] == 0.5 and drive["intrinsics"] is None
     with pytest.raises(InputError, match="data=synthetic"):
         clip_data_config({"name": "synthetic"}, clips[0])
 

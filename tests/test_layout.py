@@ -63,7 +63,8 @@ _STAGES = {
 }
 #: The only modules at the top: the per-pair computation, the entry points, the config groups' schemas
 #: (they gather every stage's settings) and private helpers.
-_TOP = {"__init__", "pipeline", "cli", "batch", "config_schema", "_checks", "_paths", "_pools", "_threads", "_torchvision"}
+_TOP = {"__init__", "pipeline", "cli", "batch", "config_schema", "_checks", "_cpu", "_paths", "_pools", "_threads",
+        "_torchvision"}
 
 
 def test_modules_sit_in_the_sub_package_of_their_stage():

@@ -597,7 +597,8 @@ def test_road_marks_are_read_only_where_the_road_flow_falls_short_of_the_stream_
 
 
 def test_the_scene_model_checks_the_road_and_stands_in_where_it_gives_none():
-    from monostixels.inputs.motion import MotionEstimate, _with_scene
+    from monostixels.inputs.motion import MotionEstimate
+    from monostixels.inputs.motion_scene import with_scene_scale
     from monostixels.inputs.motion_scene import SceneScale
     from monostixels.inputs.motion_track import MonoMotionConfig
 
@@ -606,15 +607,15 @@ def test_the_scene_model_checks_the_road_and_stands_in_where_it_gives_none():
     t = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     road = MotionEstimate(Motion(R, t), False, "ok", 0.9, scale_from="ground_flow")
     # Agreeing within two standard deviations of their difference: the road's own measurement error.
-    agree = _with_scene(road, SceneScale(1.05, 0.03, 40), t.numpy(), prm)
+    agree = with_scene_scale(road, SceneScale(1.05, 0.03, 40), t.numpy(), prm)
     assert agree.scale_std == pytest.approx(prm.scale_meas_std) and float(agree.motion.t.norm()) == 1.0
     # Twice the road's length: one of them is wrong, the pair is uncertain by the difference.
-    clash = _with_scene(road, SceneScale(2.0, 0.03, 40), t.numpy(), prm)
+    clash = with_scene_scale(road, SceneScale(2.0, 0.03, 40), t.numpy(), prm)
     assert clash.scale_std == pytest.approx(math.log(2.0)) and clash.scale_std > prm.max_scale_std
     assert clash.scale_from == "ground_flow" and float(clash.motion.t.norm()) == 1.0
     # No length from the road: the scene model's, where it is certain enough; else still unknown.
     unknown = MotionEstimate(None, False, "no metric scale", 0.9, kind="scale_unknown", unit_motion=Motion(R, t))
-    taken = _with_scene(unknown, SceneScale(0.8, 0.05, 40), t.numpy(), prm)
+    taken = with_scene_scale(unknown, SceneScale(0.8, 0.05, 40), t.numpy(), prm)
     assert taken.kind == "metric" and taken.scale_from == "scene" and float(taken.motion.t.norm()) == pytest.approx(0.8)
     assert taken.scale_std == pytest.approx(0.05)
-    assert _with_scene(unknown, SceneScale(0.8, 0.3, 40), t.numpy(), prm).kind == "scale_unknown"
+    assert with_scene_scale(unknown, SceneScale(0.8, 0.3, 40), t.numpy(), prm).kind == "scale_unknown"

@@ -396,5 +396,8 @@ def test_run_in_realtime_drops_frames_and_says_which_were_processed(tmp_path):
         assert prev == min(k for k in seen[-10:] if (f["frame"] - k) / FPS <= 2.0)
         assert s["capture_time_s"] == pytest.approx(f["frame"] / FPS, abs=1e-6)
         assert st["pair"]["previous"] == f"clip_{prev:06d}"
-        seen.append(f["frame"])
+        # A frame whose camera motion is unknown is no later pair's partner (a pan too wide for the flow
+        # between two frames far apart, as under load more frames are dropped).
+        if st["flags"]["camera_motion"] not in ("scale_unknown", "unknown"):
+            seen.append(f["frame"])
     assert "dropped while solving" in p.stdout

@@ -385,9 +385,8 @@ def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: DisFlowConfig,
 
 @lru_cache(maxsize=4)
 def _saturates_here(path: str) -> bool:
-    """Whether the INT8 file ``path`` has 8-bit weights, whose pairwise 16-bit sums can saturate, and this
-    CPU has no VNNI (``monostixels/inputs/quantize.py``): ``flow.precision=int8`` then runs the float graph
-    beside it, and one warning says so."""
+    """Whether the INT8 file ``path`` has 8-bit weights (pairwise 16-bit sums can saturate) and this CPU has
+    no VNNI (:mod:`monostixels.inputs.quantize`): ``flow.precision=int8`` then runs the float graph, warned once."""
     from monostixels._cpu import int8_path
     from monostixels.inputs.quantize import can_saturate
 

@@ -151,6 +151,13 @@ _PATTERN_MAX_GAIN = 0.7
 _MAX_PHOTOMETRIC_WORKERS = 4
 
 
+#: The road reverses t only where the reversed plane explains at least this share of its vectors: a road whose
+#: flow failed (highway asphalt, pulled towards zero) fits a plane by chance with 2.5-7 % of its vectors under
+#: either sign (the shared highway clip, 6 of 40 pairs), a real one with 44-52 % (the KITTI traffic drive's
+#: frames 1-7). Chosen between those two clips; the synthetic renders and KITTI drives 0023 / 0028 never
+#: reverse. docs/experiments.md, "Camera motion on unseen footage".
+_ROAD_SIGN_SHARE = 0.25
+
 def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, R: np.ndarray,
                      t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, base: np.ndarray,
                      lateral: bool) -> tuple[int, int, int] | None:

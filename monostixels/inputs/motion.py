@@ -25,6 +25,11 @@ Backends (``cfg.name``):
   3. Rotation and translation direction: essential matrix with RANSAC (OpenCV, five-point) and
      the cheirality test, then a robust nonlinear refinement of ``(R, t̂)`` on the inliers
      (Sampson distance, soft-L1 loss).
+     The sign of ``t`` then comes from the road where its flow says it clearly: the road's plane lies
+     below the camera (normal pointing down) under the true direction and above it under the reversed
+     one (:func:`~monostixels.inputs.ground._road_sign_votes`). The cheirality test counts every
+     likely-static vector, and a truck beside the camera that the semantic net calls a building and
+     that pulls ahead outvotes the scene; the road does not move.
   4. Metric scale from the ground: ground pixels (semantic road where given, else the road
      region in front of the car predicted by the camera height and ground normal) move with the
      plane homography ``K (R + t̂ m^T) K^-1`` with ``m = (s / h) n``: ``s`` the metric length of
@@ -52,11 +57,17 @@ Backends (``cfg.name``):
         the predicted length is not short, and the marks are not read. When the flow finds no plane,
         the road marks are used, else a weak photometric minimum; with neither, no estimate.
 
+     d. The scene model (``scene_scale``, with semantic scores; :mod:`monostixels.inputs.motion_scene`):
+        static objects standing on the ground give the length from their flow and their ground
+        contacts. It checks the road's length (where the two disagree, the pair's ``scale_std`` is
+        their difference) and stands in where the road gives none.
+
   5. Over a sequence (:class:`monostixels.inputs.motion_track.MotionTrack`, kept by the sequence layer,
      :mod:`monostixels.sequence`, for the consecutive pairs of one sequence): the speed ``|t| / dt`` follows a constant-velocity model, filtered in log space
-     (a 1-D Kalman filter); a per-pair scale that disagrees with the prediction by more than
-     ``scale_gate`` standard deviations is replaced by the prediction (flagged in ``reason``).
-     A single pair, or the first pair of a sequence, is unchanged.
+     (a 1-D Kalman filter, each pair's measurement error its own ``scale_std``); a pair's scale that
+     disagrees with a confirmed speed by more than ``scale_gate`` standard deviations is replaced by the
+     prediction and marked uncertain by the difference; one that disagrees with a speed never confirmed
+     restarts it. A single pair, or the first pair of a sequence, is unchanged.
 """
 from __future__ import annotations
 
@@ -81,8 +92,11 @@ from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion, angle_deg
 from monostixels.inputs.ground import (_PATTERN_MAX_GAIN, _ROAD_CLASS, _fit_ground, _ground_candidates, _ground_system,
-                                       _photometric_ground, _photometric_inputs, _rays, _road_sign_votes, _tilt_deg)
-from monostixels.inputs.motion_scene import SceneScale, scene_scale
+                                       _photometric_ground, _photometric_inputs, _rays, _road_sign_votes, _tilt_deg,
+                                       _ROAD_SIGN_SHARE)
+from monostixels.inputs.epipolar import (_cheirality_sign, _fit_rotation, _max_eigenvalue_at_most, _refine_pose,
+                                         _sampson, _skew)
+from monostixels.inputs.motion_scene import scene_scale, with_scene_scale
 from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
 
 __all__ = [
@@ -316,76 +330,6 @@ def _file_motion(pair: FramePair, cfg: FileMotionConfig) -> MotionEstimate:
 # mono
 
 
-def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
-    x = X @ K.T
-    return x[:, :2] / x[:, 2:3]
-
-
-def _fit_rotation(K: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, iters: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Best rotation-only motion (trimmed Procrustes on unit rays); returns R and pixel residuals (N,)."""
-    a = _rays(K, p_cur)
-    b = _rays(K, p_prev)
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    use = np.ones(len(a), dtype=bool)
-    R = np.eye(3)
-    for _ in range(iters):
-        U, _, Vt = np.linalg.svd(b[use].T @ a[use])  # maximise sum b^T R a
-        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        res = np.linalg.norm(_project(K, a @ R.T) - p_prev, axis=1)
-        use = res <= max(np.median(res) * 2.0, 1e-6)
-    return R, res
-
-
-def _max_eigenvalue_at_most(cov: np.ndarray, bound: float) -> np.ndarray:
-    """Mask (N,): the largest eigenvalue of each symmetric (N, 2, 2) matrix is <= ``bound``.
-
-    ``bound I - C`` positive semi-definite: both diagonal entries and the determinant >= 0
-    (the lower triangle is read, as ``eigvalsh`` reads it). For float32 covariances this is exact
-    in float64 (the products need at most ~50 bits), where an eigen-solver rounds; much faster
-    than ``torch.linalg.eigvalsh`` on the grid vectors of a frame.
-    """
-    c = cov.astype(np.float64)
-    pa, pd = bound - c[:, 0, 0], bound - c[:, 1, 1]
-    b = c[:, 1, 0]
-    return (pa >= 0) & (pd >= 0) & (pa * pd >= b * b)
-
-
-def _sampson(E: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Sampson distance (N,) of ray pairs (z = 1) under ``b^T E a = 0``, in normalised units."""
-    Ea = a @ E.T
-    Etb = b @ E
-    num = np.sum(b * Ea, axis=1)
-    den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Etb[:, 0] ** 2 + Etb[:, 1] ** 2
-    return num / np.sqrt(np.maximum(den, 1e-30))
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Nonlinear refinement of ``(R, t̂)`` minimising the Sampson distance (soft-L1) over ray pairs."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    # t on the unit sphere: t = normalize(t0 + B beta), B a basis of the tangent plane at t0.
-    t0 = t / np.linalg.norm(t)
-    B = np.linalg.svd(t0[None])[2][1:].T  # (3, 2)
-
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        Rx = Rotation.from_rotvec(x[:3]).as_matrix() @ R
-        tx = t0 + B @ x[3:]
-        return Rx, tx / np.linalg.norm(tx)
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        Rx, tx = unpack(x)
-        return _sampson(_skew(tx) @ Rx, a, b)
-
-    sol = least_squares(fun, np.zeros(5), loss="soft_l1", f_scale=f_scale, method="trf", x_scale="jac")
-    return unpack(sol.x)
-
-
 #: The flow of the ground is taken over the road marks' scale unless it is shorter than this share of it.
 FLOW_SHORT_RATIO = 0.7
 #: With a stream's constant-velocity prediction, a flow of the ground at least this share of the predicted
@@ -517,42 +461,13 @@ def estimate_mono(
             wait([prep])  # its thread draws from ``rng``: done before this estimate returns
     moving = est.motion if est.kind == "metric" and not est.degenerate else est.unit_motion
     if labels is None or moving is None or float(moving.t.norm()) <= 0 or not params.scene_scale:
-        return _with_scene(est, None, np.zeros(3), params)
+        return with_scene_scale(est, None, np.zeros(3), params)
     # The scene model's length of t (static objects stand on the ground): a second source beside the road's.
     t_unit = moving.t.double().numpy() / float(moving.t.norm())
     grid = (len(range(off, H, params.step)), len(range(off, W, params.step)))
     scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, n_g, height, labels.reshape(grid), us, vs, f, ok,
                         params.step, params.kerb_height)
-    return _with_scene(est, scene, t_unit, params)
-
-
-def _with_scene(est: MotionEstimate, scene: SceneScale | None, t_unit: np.ndarray, params: Any) -> MotionEstimate:
-    """``est`` with the scene model's length of its translation (:mod:`~monostixels.inputs.motion_scene`) as evidence.
-
-    A road's length gets the measurement error ``scale_meas_std``; where the scene model contradicts it (their
-    log lengths differ by more than ``scale_gate`` standard deviations of the difference), the pair's
-    uncertainty is that difference: one of the two is wrong, and nothing tells which. A pair whose road gave
-    no length (``scale_unknown``) takes the scene model's where its uncertainty is within ``max_scale_std``.
-    The settings are the ``motion=mono`` group's (:class:`~monostixels.inputs.motion_track.MonoMotionConfig`).
-    """
-    meas = float(getattr(params, "scale_meas_std", 0.04))
-    gate = float(getattr(params, "scale_gate", 2.0))
-    bound = float(getattr(params, "max_scale_std", 0.15))
-    if scene is None:
-        return est if est.kind != "metric" else dataclasses.replace(est, scale_std=meas)
-    note = f"scene model: {scene.scale:.3f} m (std {scene.std:.2f}, {scene.columns} contacts)"
-    if est.kind == "metric":
-        delta = math.log(float(est.motion.t.norm()) / scene.scale)
-        std = meas
-        if abs(delta) > gate * math.hypot(meas, scene.std):
-            std = abs(delta)
-            note += f", {delta * 100:+.0f} % from the road's: uncertain"
-        return dataclasses.replace(est, reason=f"{est.reason}; {note}", scale_std=std)
-    if est.kind == "scale_unknown" and scene.std <= bound:
-        motion = Motion(est.unit_motion.R, torch.from_numpy(np.ascontiguousarray(t_unit * scene.scale)))
-        return dataclasses.replace(est, motion=motion, kind="metric", unit_motion=None, scale_from="scene",
-                                   scale_std=scene.std, reason=f"{est.reason}; {note}: the length taken from it")
-    return dataclasses.replace(est, reason=f"{est.reason}; {note}")
+    return with_scene_scale(est, scene, t_unit, params)
 
 
 @dataclass
@@ -587,27 +502,6 @@ def _prediction(prior: MotionEstimate | None, ratio: float) -> _Prediction | Non
         n = n / np.linalg.norm(n)
     return _Prediction(R, t / s, s, n, float(prior.inlier_ratio))
 
-
-def _cheirality_sign(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    """+1 if ``(R, t)`` puts more of the ray pairs (current ``a``, previous ``b``, (N, 3)) in front of both
-    cameras than ``(R, -t)``, else -1. Depths from ``λ_a R a + t = λ_b b``: ``λ_a = -(b × t)·(b × Ra) /
-    |b × Ra|²``, ``λ_b = (Ra × t)·(Ra × b) / |Ra × b|²`` (both change sign with ``t``)."""
-    Ra = a @ R.T
-    bra = np.cross(b, Ra)
-    den = np.maximum(np.einsum("ij,ij->i", bra, bra), 1e-30)
-    lam_a = -np.einsum("ij,ij->i", np.cross(b, t[None]), bra) / den
-    lam_b = -np.einsum("ij,ij->i", np.cross(Ra, t[None]), bra) / den
-    front = int(np.count_nonzero((lam_a > 0) & (lam_b > 0)))
-    behind = int(np.count_nonzero((lam_a < 0) & (lam_b < 0)))
-    return 1.0 if front >= behind else -1.0
-
-
-#: The road reverses t only where the reversed plane explains at least this share of its vectors: a road whose
-#: flow failed (highway asphalt, pulled towards zero) fits a plane by chance with 2.5-7 % of its vectors under
-#: either sign (the shared highway clip, 6 of 40 pairs), a real one with 44-52 % (the KITTI traffic drive's
-#: frames 1-7). Chosen between those two clips; the synthetic renders and KITTI drives 0023 / 0028 never
-#: reverse. docs/experiments.md, "Camera motion on unseen footage".
-_ROAD_SIGN_SHARE = 0.25
 
 #: Warm start of the essential matrix: the prediction replaces RANSAC when, within this many times the
 #: RANSAC threshold (Sampson distance), it explains at least the given share of the vectors the last pair's

@@ -17,14 +17,21 @@ Convention: ``X_prev = R X_cur + t``, flow ``x_prev = x + f`` (docs/conventions.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 
 from monostixels.core.classes import CLASS_NAMES, CLASS_TYPE, GROUND, STATIC_OBJECT
+from monostixels.core.geometry import Motion
 
-__all__ = ["SceneScale", "scene_scale"]
+if TYPE_CHECKING:  # (that module imports this one)
+    from monostixels.inputs.motion import MotionEstimate
+
+__all__ = ["SceneScale", "scene_scale", "with_scene_scale"]
 
 #: Grid rows of ground below and of a static object above a contact (on the flow grid of the estimator).
 _RUN = 2
@@ -142,3 +149,32 @@ def scene_scale(K: np.ndarray, R: np.ndarray, t_unit: np.ndarray, n_g: np.ndarra
     n_eff = float(w.sum() ** 2 / np.sum(w**2))
     std = math.sqrt(1.5708 * (mad**2 + _MODEL_STD**2) / n_eff)
     return SceneScale(float(math.exp(med)), std, int(good.sum()))
+
+
+def with_scene_scale(est: MotionEstimate, scene: SceneScale | None, t_unit: np.ndarray, params: Any) -> MotionEstimate:
+    """``est`` with the scene model's length of its translation (:mod:`~monostixels.inputs.motion_scene`) as evidence.
+
+    A road's length gets the measurement error ``scale_meas_std``; where the scene model contradicts it (their
+    log lengths differ by more than ``scale_gate`` standard deviations of the difference), the pair's
+    uncertainty is that difference: one of the two is wrong, and nothing tells which. A pair whose road gave
+    no length (``scale_unknown``) takes the scene model's where its uncertainty is within ``max_scale_std``.
+    The settings are the ``motion=mono`` group's (:class:`~monostixels.inputs.motion_track.MonoMotionConfig`).
+    """
+    meas = float(getattr(params, "scale_meas_std", 0.04))
+    gate = float(getattr(params, "scale_gate", 2.0))
+    bound = float(getattr(params, "max_scale_std", 0.15))
+    if scene is None:
+        return est if est.kind != "metric" else dataclasses.replace(est, scale_std=meas)
+    note = f"scene model: {scene.scale:.3f} m (std {scene.std:.2f}, {scene.columns} contacts)"
+    if est.kind == "metric":
+        delta = math.log(float(est.motion.t.norm()) / scene.scale)
+        std = meas
+        if abs(delta) > gate * math.hypot(meas, scene.std):
+            std = abs(delta)
+            note += f", {delta * 100:+.0f} % from the road's: uncertain"
+        return dataclasses.replace(est, reason=f"{est.reason}; {note}", scale_std=std)
+    if est.kind == "scale_unknown" and scene.std <= bound:
+        motion = Motion(est.unit_motion.R, torch.from_numpy(np.ascontiguousarray(t_unit * scene.scale)))
+        return dataclasses.replace(est, motion=motion, kind="metric", unit_motion=None, scale_from="scene",
+                                   scale_std=scene.std, reason=f"{est.reason}; {note}: the length taken from it")
+    return dataclasses.replace(est, reason=f"{est.reason}; {note}")
