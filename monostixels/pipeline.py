@@ -37,7 +37,7 @@ from monostixels.inputs.flow_config import flow_params
 from monostixels.inputs.motion import NO_METRIC_MOTION, MotionEstimate, estimate_motion, implied_height
 from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
 from monostixels.inputs.semantic import estimate_semantics, semantic_params
-from monostixels.post.movers import MoverCheckParams, check_movers, static_only
+from monostixels.post.movers import MoverCheckParams, check_movers, settle_receding, static_only
 from monostixels.core.solver import SolverConfig, solve
 from monostixels.inputs.static_regions import crop_ignored
 from monostixels.core.stixels import StixelWorld
@@ -378,6 +378,8 @@ class Pipeline:
             # with an uncertain length, every one whose flow fits the epipolar geometry.
             t0 = time.perf_counter()
             stixels = check_movers(stixels, flow.flow, motion.motion, params=self.mover_check, scale_known=not uncertain)
+            # Static objects whose flow puts them behind the camera pull away: their depth is the scene model's.
+            stixels = settle_receding(stixels, flow.flow, motion.motion, float(pair.camera.height))
             sec["movers"] = time.perf_counter() - t0
         if self.solver_cfg.top_refine_rows and semantic is not None:
             # Moving objects' tops from cell edges to pixel rows (monostixels.post.boundaries).

@@ -344,3 +344,28 @@ def test_mover_on_a_contact_sliver_keeps_its_ground_contact():
     assert bool((on.type[mover] == DYNAMIC_OBJECT).all()) and torch.equal(on.inverse_depth[mover], st.inverse_depth[mover])
     # A sliver taller than the setting is an object of its own: the old comparison applies.
     assert bool((check_movers(st, flow, MOTION, params=geometric(contact_sliver_rows=4.0)).type[mover] == STATIC_OBJECT).all())
+
+
+def test_a_static_object_that_pulls_away_takes_the_scene_models_depth():
+    # A truck 10 m ahead that the net calls a building (typed static) and that pulls away at 1.5 m per frame,
+    # the camera 1 m: its flow triangulates behind the camera. It stands on the ground stixel below at the
+    # contact row, so its depth becomes 10 m, and the stixel stacked on it takes that depth too. A static wall
+    # at 10 m (its flow the camera's alone) keeps its depth.
+    import dataclasses
+
+    from monostixels.post.movers import settle_receding
+
+    st = _contact_world(10.0, upper=True)
+    st = dataclasses.replace(st, type=torch.where(st.type == DYNAMIC_OBJECT, STATIC_OBJECT, st.type),
+                             cls=torch.full_like(st.cls, 3), inverse_depth=torch.where(
+                                 st.type == DYNAMIC_OBJECT, torch.full_like(st.inverse_depth, 1 / 30.0), st.inverse_depth))
+    out = settle_receding(st, _moving_wall_flow(10.0, 1.5), MOTION, H_CAM)
+    obj = out.type == STATIC_OBJECT
+    assert out.flags["receding_static"] == int(obj.sum()) == 4
+    # Within 3 % of the 10 m it was made at: the contact is a pixel's lower edge (half a row off at 75 rows
+    # below the horizon), and the stixel's plane faces the column's ray, not the wall's z.
+    assert torch.allclose(1.0 / out.inverse_depth[obj], torch.full((4,), 10.0, dtype=torch.float64), rtol=0.03)
+    assert float(st.inverse_depth[obj].max()) < 0.05  # it was at 30 m
+    assert torch.equal(out.type, st.type) and torch.equal(out.cls, st.cls)
+    still = settle_receding(st, _moving_wall_flow(10.0, 0.0), MOTION, H_CAM)
+    assert still is st  # nothing recedes

@@ -47,7 +47,7 @@ from monostixels.post.sfm import triangulate_points
 from monostixels.core.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
 from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
 
-__all__ = ["MoverCheckParams", "check_movers", "static_only"]
+__all__ = ["MoverCheckParams", "check_movers", "settle_receding", "static_only"]
 
 logger = logging.getLogger(__name__)
 
@@ -299,3 +299,70 @@ def _contact_row(K: torch.Tensor, n_obj: torch.Tensor, n_g: torch.Tensor, d: tor
     X = d[:, None] * n_obj + d_g[:, None] * n_g
     x = X @ K.T
     return x[:, 1] / x[:, 2]
+
+
+def settle_receding(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, height: float) -> StixelWorld:
+    """Static object stixels whose flow puts them behind the camera take the scene model's depth.
+
+    An object in front of the camera whose flow triangulates behind it on most of its pixels (those with
+    parallax) is no static object: it pulls away faster than the camera drives, along its epipolar lines (a
+    truck beside the camera that the semantic net calls a building; the KITTI traffic drive). Its flow gives
+    it no depth; the scene model does: it stands where its bottom row meets the ground (the ground stixel
+    directly below, else the reference ground ``height`` below the camera), or at the depth of the object
+    below it. Its type and class stay (its
+    motion is not measured); ``flags["receding_static"]`` counts them.
+
+    Args:
+        stixels: the solver's result (after the mover check). flow: (2, H, W) current -> previous, pixels.
+        motion: the camera motion (metres). height: the camera height above the road (m).
+
+    Returns:
+        A new :class:`StixelWorld`, or ``stixels`` where nothing recedes.
+    """
+    stat = torch.nonzero(stixels.type == STATIC_OBJECT).flatten()
+    if stat.numel() == 0 or float(motion.t.norm()) == 0.0:
+        return stixels
+    K = stixels.K.double()
+    H, W = stixels.image_size
+    c0 = stixels.column[stat].long() * stixels.column_width
+    widths = torch.clamp(c0 + stixels.column_width, max=W) - c0
+    v0, v1 = stixels.v_top[stat].long(), stixels.v_bottom[stat].long() + 1
+    counts = (v1 - v0) * widths
+    sid = torch.repeat_interleave(torch.arange(stat.numel()), counts)
+    local = torch.arange(int(counts.sum())) - torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
+    vi = v0[sid] + local // widths[sid]
+    ui = c0[sid] + local % widths[sid]
+    # Parallax of at least a pixel: below it the flow's noise alone puts points behind.
+    z, _, _ = triangulate_points(K, motion.R.double(), motion.t.double(), ui.double(), vi.double(),
+                                 flow[0, vi, ui].double(), flow[1, vi, ui].double(), min_parallax_rad=1.0 / float(K[0, 0]))
+    finite = torch.isfinite(z)
+    n_fin = torch.bincount(sid[finite], minlength=stat.numel())
+    n_behind = torch.bincount(sid[finite & (z < 0)], minlength=stat.numel())
+    recede = (n_fin > 0) & (2 * n_behind > n_fin)
+    if not bool(recede.any()):
+        return stixels
+    k = stat[recede]
+    # Standing depth: the lower edge's ray meets the ground below (its plane distance 1 / p_g) at the object's
+    # plane distance d = (n_obj . r) / (n_g . r) / p_g (core.columns: gravity, standing depth).
+    N = stixels.type.numel()
+    start = torch.full((stixels.num_columns, H + 1), -1, dtype=torch.long)
+    start[stixels.column.long(), stixels.v_top.long()] = torch.arange(N)
+    below = start[stixels.column[k].long(), (stixels.v_bottom[k].long() + 1).clamp(max=H)]
+    bi = below.clamp(min=0)
+    on_ground = (below >= 0) & (stixels.type[bi] == GROUND) & (stixels.inverse_depth[bi] > 0)
+    p_g = torch.where(on_ground, stixels.inverse_depth[bi].double(), torch.full((k.numel(),), 1.0 / height, dtype=torch.float64))
+    u_c = stixels.column[k].double() * stixels.column_width + (widths[recede].double() - 1) / 2
+    ray = pixel_rays(K, u_c, stixels.v_bottom[k].double() + 0.5)
+    n_obj = stixels.normals().double()[k]
+    down = (ray * stixels.ground_normal.double()).sum(-1)
+    p_stand = torch.where(down > 1e-9, p_g * down / (ray * n_obj).sum(-1), stixels.inverse_depth[k].double())
+    # On an object below, the object's depth (the structural prior); stixels run bottom to top within a
+    # column, so the one below is settled first.
+    on_object = (below >= 0) & ((stixels.type[bi] == STATIC_OBJECT) | (stixels.type[bi] == DYNAMIC_OBJECT))
+    p_out = stixels.inverse_depth.clone()
+    for j in range(k.numel()):
+        p_out[k[j]] = (p_out[bi[j]] if bool(on_object[j]) else p_stand[j]).to(p_out.dtype)
+    flags = dict(stixels.flags)
+    flags["receding_static"] = int(k.numel())
+    logger.debug("%d static stixels recede (flow behind the camera): scene-model depths", k.numel())
+    return dataclasses.replace(stixels, inverse_depth=p_out, flags=flags)
