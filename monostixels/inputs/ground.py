@@ -157,6 +157,8 @@ _MAX_PHOTOMETRIC_WORKERS = 4
 #: frames 1-7). Chosen between those two clips; the synthetic renders and KITTI drives 0023 / 0028 never
 #: reverse. docs/experiments.md, "Camera motion on unseen footage".
 _ROAD_SIGN_SHARE = 0.25
+#: Most road vectors of that vote (:func:`_road_sign_votes`).
+_SIGN_VECTORS = 2000
 
 def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, R: np.ndarray,
                      t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, base: np.ndarray,
@@ -173,6 +175,9 @@ def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: Mon
     gidx = np.nonzero(base & _ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
     if len(gidx) < params.min_points:
         return None
+    n_road = len(gidx)
+    # A vote needs no more than _SIGN_VECTORS evenly spread vectors (the RANSAC's scoring is most of its time).
+    gidx = gidx[:: -(-n_road // _SIGN_VECTORS)]
     A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
     votes = []
     for sign in (1.0, -1.0):
@@ -180,7 +185,8 @@ def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: Mon
         m, ginl = _fit_ground(sign * A, bb, params.ground_threshold, np.random.default_rng(params.seed), n_g=n_g,
                               max_tilt=params.ground_max_tilt)
         votes.append(int(ginl.sum()) if float(np.linalg.norm(m)) > 0 and _tilt_deg(m, n_g) <= params.ground_max_tilt else 0)
-    return votes[0], votes[1], len(gidx)
+    # Counted in the road's vectors (scaled up from the ones voting).
+    return votes[0] * n_road // len(gidx), votes[1] * n_road // len(gidx), n_road
 
 
 def _photometric_workers() -> int:
