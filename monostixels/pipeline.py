@@ -224,9 +224,6 @@ class Pipeline:
         est = estimate_motion(pair, flow, self.motion_cfg, semantic, **warm)
         if track is not None:
             est = track.update(pair, est)
-        elif est.kind == "metric" and est.scale_std is None and est.motion is not None:
-            # A single pair's monocular length: the measurement's own uncertainty (no sequence to check it by).
-            est = dataclasses.replace(est, scale_std=float(getattr(self.motion_cfg, "scale_meas_std", 0.0)))
         if est.motion is None:
             if not est.degenerate and not self.allow_motion_failure:
                 raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated ({est.reason})")

@@ -194,8 +194,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         explained &= ~torch.isin(stixels.cls[dyn].long(), kept)
     # The stixel directly below each dynamic stixel (its column, starting at the next row), -1 = none.
     N = stixels.type.numel()
-    start = torch.full((stixels.num_columns, H + 1), -1, dtype=torch.long)
-    start[stixels.column.long(), stixels.v_top.long()] = torch.arange(N)
+    start = _starts(stixels)
     below = start[stixels.column[dyn].long(), (v1).clamp(max=H)]
     has_below = below >= 0
     bi = below.clamp(min=0)
@@ -293,6 +292,14 @@ def static_only(stixels: StixelWorld) -> StixelWorld:
     return dataclasses.replace(stixels, type=types, motion=mot, tau=tau, flags=flags)
 
 
+def _starts(stixels: StixelWorld) -> torch.Tensor:
+    """(columns, H + 1) int64: the index of the stixel whose top row is each row of each column, -1 where none
+    (row H: none); the stixel directly below stixel ``i`` is ``[column_i, v_bottom_i + 1]``."""
+    start = torch.full((stixels.num_columns, stixels.image_size[0] + 1), -1, dtype=torch.long)
+    start[stixels.column.long(), stixels.v_top.long()] = torch.arange(stixels.type.numel())
+    return start
+
+
 def _contact_row(K: torch.Tensor, n_obj: torch.Tensor, n_g: torch.Tensor, d: torch.Tensor, d_g: torch.Tensor) -> torch.Tensor:
     """Row (S,) where an upright plane ``n_obj^T X = d`` meets the ground ``n_g^T X = d_g`` in the
     vertical plane of its column centre (``n_obj`` is that centre's horizontal viewing direction)."""
@@ -313,8 +320,7 @@ def settle_receding(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, he
     truck beside the camera that the semantic net calls a building; the KITTI traffic drive). Its flow gives
     it no depth; the scene model does: it stands where its bottom row meets the ground (the ground stixel
     directly below, else the reference ground ``height`` below the camera), or at the depth of the object
-    below it. Its type and class stay (its
-    motion is not measured); ``flags["receding_static"]`` counts them.
+    below it. Its type and class stay (its motion is not measured); ``flags["receding_static"]`` counts them.
 
     Args:
         stixels: the solver's result (after the mover check). flow: (2, H, W) current -> previous, pixels.
@@ -350,10 +356,7 @@ def settle_receding(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, he
     k = stat[recede]
     # Standing depth: the lower edge's ray meets the ground below (its plane distance 1 / p_g) at the object's
     # plane distance d = (n_obj . r) / (n_g . r) / p_g (core.columns: gravity, standing depth).
-    N = stixels.type.numel()
-    start = torch.full((stixels.num_columns, H + 1), -1, dtype=torch.long)
-    start[stixels.column.long(), stixels.v_top.long()] = torch.arange(N)
-    below = start[stixels.column[k].long(), (stixels.v_bottom[k].long() + 1).clamp(max=H)]
+    below = _starts(stixels)[stixels.column[k].long(), (stixels.v_bottom[k].long() + 1).clamp(max=H)]
     bi = below.clamp(min=0)
     on_ground = (below >= 0) & (stixels.type[bi] == GROUND) & (stixels.inverse_depth[bi] > 0)
     p_g = torch.where(on_ground, stixels.inverse_depth[bi].double(), torch.full((k.numel(),), 1.0 / height, dtype=torch.float64))
