@@ -71,7 +71,6 @@ Backends (``cfg.name``):
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from concurrent.futures import wait
@@ -422,6 +421,7 @@ def estimate_mono(
     # 1. Grid of usable vectors.
     off = params.step // 2
     vs, us = np.meshgrid(np.arange(off, H, params.step), np.arange(off, W, params.step), indexing="ij")
+    grid = us.shape
     us, vs = us.ravel(), vs.ravel()
     f = flow_np[:, vs, us].astype(np.float64).T  # N x 2; gathered before the (exact) conversion
     ok = np.ones(len(us), dtype=bool) if ignore_np is None else ~ignore_np[vs, us]
@@ -464,7 +464,6 @@ def estimate_mono(
         return with_scene_scale(est, None, np.zeros(3), params)
     # The scene model's length of t (static objects stand on the ground): a second source beside the road's.
     t_unit = moving.t.double().numpy() / float(moving.t.norm())
-    grid = (len(range(off, H, params.step)), len(range(off, W, params.step)))
     scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, n_g, height, labels.reshape(grid), us, vs, f, ok,
                         params.step, params.kerb_height)
     return with_scene_scale(est, scene, t_unit, params)

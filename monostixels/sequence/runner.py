@@ -358,17 +358,17 @@ class SequenceRunner:
         # Time to collision: the tracks' filtered closing rate, or this pair's depth over its relative
         # velocity (the same monocular scale in both, so it cancels); current camera axes.
         X_cam, _, _ = stixel_points(st)
+        X_ok = torch.nan_to_num(X_cam, nan=-1.0)
         R_wc = pose[:3, :3]
         v_rel = velocity @ R_wc - v_cam[None]
         obj = (st.type == STATIC_OBJECT) | (st.type == DYNAMIC_OBJECT)
-        ttc = out["ttc"] if tracking else time_to_collision(torch.nan_to_num(X_cam, nan=-1.0), v_rel)
+        ttc = out["ttc"] if tracking else time_to_collision(X_ok, v_rel)
         ttc = torch.where(obj, ttc, torch.full((len(st),), math.inf, dtype=torch.float64))
         # A warning only on a class that can move (a vehicle, a two-wheeler, a person: parked or moving), with a
         # tracked closing that holds in both the filtered rate and the filtered velocity, and never where the
         # camera motion's length is uncertain: with a wrong length the static world closes at the wrong speed
         # (docs/conventions.md, section 4.4).
         movable = torch.tensor(CLASS_TYPE)[st.cls.long()] == DYNAMIC_OBJECT
-        X_ok = torch.nan_to_num(X_cam, nan=-1.0)
         ttc_both = torch.maximum(ttc, time_to_collision(X_ok, v_rel)) if tracking else ttc
         warn = obj & movable & critical(X_ok, v_rel, ttc_both, self.ttc)
         warn = object_wide(confirmed(warn, out["age"] if tracking else None, self.ttc), st)
