@@ -170,6 +170,47 @@ def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
     assert Pipeline(load_config(["motion=mono"])).camera_for(pair, est_gt) is pair.camera
 
 
+@pytest.mark.parametrize("turned", [True, False])
+def test_mono_takes_the_roads_normal_from_the_direction_of_travel(monkeypatch, turned):
+    # A phone on the windscreen looks down 12 degrees and is configured level (camera.pitch 0): beyond the
+    # road fit's cone around the configured normal. The car drives along its road, so t lies in the road
+    # plane and gives the normal; without that, the length of t comes out wrong.
+    import monostixels.inputs.motion as motion_mod
+
+    if not turned:
+        monkeypatch.setattr(motion_mod, "travel_normal", lambda n_g, t: n_g)
+    a = math.radians(12.0)
+    n_true = torch.tensor([0.0, math.cos(a), math.sin(a)], dtype=torch.float64)
+    planes = [(n_true, HEIGHT), *_scene_planes()[1:]]
+    forward = torch.tensor([0.0, -math.sin(a), math.cos(a)], dtype=torch.float64)  # along the road
+    gt = Motion(R=_rot(0.4, 0.0, 0.0), t=0.9 * forward + torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64))
+    pair, fr = _pair_and_flow(gt, flow=_analytic_flow(_camera(), gt, 0.05, planes=planes))
+    est = estimate_motion(pair, fr, MONO)
+    if turned:
+        assert est.kind == "metric" and est.ground_normal is not None, est.reason
+        assert math.degrees(math.acos(float(est.ground_normal @ n_true))) < 0.2
+        assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.01
+    else:  # the configured level road: no metric length, or a wrong one
+        assert est.kind != "metric" or motion_errors(est.motion, gt)["scale_rel_err"] > 0.05, est.reason
+
+
+def test_travel_normal_is_the_nearest_normal_across_the_translation():
+    from monostixels.inputs.motion import travel_normal
+
+    n_g = np.array([0.0, 1.0, 0.0])
+    t = np.array([0.1, -0.3, 2.0])
+    n = travel_normal(n_g, t)
+    assert abs(float(n @ t)) < 1e-12 and abs(float(np.linalg.norm(n)) - 1.0) < 1e-12
+    # The nearest such unit vector: no other one across t is closer to n_g (a dense check on the circle).
+    d = t / np.linalg.norm(t)
+    e1 = n
+    e2 = np.cross(d, e1)
+    angles = np.linspace(0, 2 * np.pi, 3601)
+    ring = np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2
+    assert float(n @ n_g) >= float((ring @ n_g).max()) - 1e-12
+    assert np.array_equal(travel_normal(n_g, np.zeros(3)), n_g)  # standing: the configured normal
+
+
 def test_mono_reports_an_opencv_failure_of_the_essential_matrix(monkeypatch):
     # OpenCV's 5-point solver can assert on a near-degenerate sample (solvePoly); the pair fails, the run goes on.
     import cv2

@@ -9,7 +9,8 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.synthetic import render_pair
-from monostixels.inputs.static_regions import apply_ignore_mask, find_static_region, spread_samples
+from monostixels.inputs.static_regions import (STILL_WINDOW, apply_ignore_mask, find_static_region, spread_samples,
+                                               still_pixels)
 
 #: Rows of the painted bonnet at the bottom of a quarter-size render (94 rows), its top edge curved.
 _BONNET_MIN, _BONNET_MAX = 10, 16
@@ -72,6 +73,32 @@ def test_a_bonnet_is_found_and_nothing_else():
     assert not find_static_region([still, still, still]).any()
     with pytest.raises(InputError, match="at least 3 frames"):
         find_static_region([still, still])
+
+
+def test_a_bonnet_is_found_through_changing_exposure_and_shake():
+    """The camera's exposure follows the scene and the camera shakes on its mount by a fraction of a pixel: a
+    bonnet's grey values change from frame to frame, its pattern does not (the Kochi phone's dashboard)."""
+    import cv2
+
+    pair, frames = _clip()
+    H, W = pair.size
+    truth = _bonnet(H, W)
+    # A real bonnet's pattern is smooth at the pixel scale (reflections, seams), unlike _paint's pixel noise.
+    g = cv2.GaussianBlur(np.random.default_rng(5).random((H, W)).astype(np.float32), (0, 0), 2.5)
+    pattern = 0.05 + 0.85 * (g - g.min()) / (g.max() - g.min())
+    out = []
+    for k, f in enumerate(frames):
+        img = _bgr(f).astype(np.float32)
+        img[truth] = 255.0 * pattern[truth][:, None]
+        shift = np.float32([[1, 0, 0.2 * (-1) ** k], [0, 1, 0.1 * (-1) ** k]])  # shake, sub-pixel
+        img = cv2.warpAffine(img, shift, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out.append(np.clip(img * (0.8 if k % 2 else 1.2), 0, 255).astype(np.uint8))  # exposure
+    found = find_static_region(out)
+    assert (found & truth).sum() >= 0.9 * truth.sum() and (found & ~truth).sum() <= 3 * W
+    # The pixel test itself: a gain and an offset keep a pattern; a shift by its own size does not.
+    g = np.random.default_rng(1).random((40, 40)).astype(np.float32)
+    assert still_pixels(g, 0.7 * g + 0.1)[8:-8, 8:-8].all()
+    assert still_pixels(g, np.roll(g, 7, axis=1))[8:-8, 8:-8].mean() < 0.05
 
 
 def test_samples_are_runs_spread_over_the_whole_clip():
@@ -241,10 +268,14 @@ def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
     cfg = load_config(["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}",
                        "data.resize=null", "preset=fast", "semantic=none", "keyframes.min_distance_m=0"])
     runner = SequenceRunner(cfg)
-    steps = list(runner.run(make_source(cfg.data)))
+    source = make_source(cfg.data)
+    found = source[0].meta["ignore_mask"].numpy()
+    # The bonnet, and at most the rows its pattern's window reaches above its edge (STILL_WINDOW // 2).
+    assert (found & truth).sum() >= 0.9 * truth.sum() and (found & ~truth).sum() <= (STILL_WINDOW // 2) * W
+    steps = list(runner.run(source))
     assert len(steps) == 7
     for s in steps:
         st = s.result.stixels
-        assert s.pair.size == (H, W) and st.image_size == (H, W) and st.flags["ignored_pixels"] == int(truth.sum())
+        assert s.pair.size == (H, W) and st.image_size == (H, W) and st.flags["ignored_pixels"] == int(found.sum())
         assert int(st.v_bottom.max()) < H - _BONNET_MIN
     assert runner.stream.ahead >= 4  # the pairs read ahead were the ones solved

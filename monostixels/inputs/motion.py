@@ -104,6 +104,7 @@ __all__ = [
     "NO_METRIC_MOTION",
     "MIN_TRANSLATION_M",
     "MonoParams",
+    "travel_normal",
     "GtMotionConfig",
     "FileMotionConfig",
     "MotionEstimate",
@@ -464,7 +465,7 @@ def estimate_mono(
         return with_scene_scale(est, None, np.zeros(3), params)
     # The scene model's length of t (static objects stand on the ground): a second source beside the road's.
     t_unit = moving.t.double().numpy() / float(moving.t.norm())
-    scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, n_g, height, labels.reshape(grid), us, vs, f, ok,
+    scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, travel_normal(n_g, t_unit), height, labels.reshape(grid), us, vs, f, ok,
                         params.step, params.kerb_height)
     return with_scene_scale(est, scene, t_unit, params)
 
@@ -509,6 +510,19 @@ def _prediction(prior: MotionEstimate | None, ratio: float) -> _Prediction | Non
 #: RANSAC's; its inliers within 2 px start the refinement RANSAC's would.
 _WARM_SEED_FACTOR = 4.0
 _WARM_MIN_INLIER_SHARE = 0.9
+
+
+def travel_normal(n_g: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The unit ground normal (3,) nearest to ``n_g`` (3,) that is perpendicular to the translation ``t`` (3,):
+    the configured normal turned, by the least rotation, into the plane the camera moves in. ``n_g`` as it
+    is where ``t`` is zero."""
+    q = float(np.linalg.norm(t))
+    if q <= 0:
+        return n_g
+    d = t / q
+    n = n_g - float(n_g @ d) * d
+    q = float(np.linalg.norm(n))
+    return n / q if q > 1e-9 else n_g  # t along the normal: no plane to turn into
 
 
 def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, rng: np.random.Generator,
@@ -582,6 +596,11 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                and road_votes[1] >= _ROAD_SIGN_SHARE * road_votes[2])
     if flipped:
         t = -t
+    # 3c. The road's normal from the direction of travel: a car moves along its road, so t lies in the road
+    # plane. A camera pitched down by 10 degrees and configured level (a phone on the windscreen,
+    # camera.pitch 0) put every length from the ground 15-25x off (docs/experiments.md, "The road's
+    # normal from the direction of travel").
+    n_g = travel_normal(n_g, t)
 
     # 4. Metric scale (and road normal) from the ground.
     head = (f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers{' (warm start)' if warm else ''}, "
