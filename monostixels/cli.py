@@ -210,6 +210,7 @@ def _calibrate(cfg: DictConfig) -> float:
 
 
 def _run(cfg: DictConfig) -> None:
+    """`run`: every pair of the source through the sequence layer into run's writers (output/writers.py)."""
     from tqdm import tqdm
 
     from monostixels._checks import InputError

@@ -33,9 +33,10 @@ from monostixels._checks import InputError, config_params
 from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
 
-__all__ = ["Frame", "Writer", "write_sequence", "FramePictures", "FrameFiles", "Videos", "Recording", "RunSummary",
-           "RunWriters", "run_writers", "camera_report", "camera_summary", "HEIGHT_WARN_SHARE", "SCHEMA_FIELDS",
-           "frame_rows", "arrow_schema", "StixelRows", "write_partition", "DemoFiles", "listed"]
+__all__ = ["Frame", "Writer", "write_sequence", "Pictures", "FramePictures", "FrameFiles", "video_fps", "Videos",
+           "Recording", "RunSummary", "RunWriters", "run_writers", "camera_report", "camera_summary",
+           "HEIGHT_WARN_SHARE", "SCHEMA_FIELDS", "frame_rows", "arrow_schema", "StixelRows", "write_partition",
+           "DemoFiles", "listed"]
 
 logger = logging.getLogger(__name__)
 
@@ -112,7 +113,9 @@ def listed(names: list[str], most: int = 20) -> str:
 
 # ------------------------------------------------------------------------------------------------ run
 @dataclass
-class _Pictures:
+class Pictures:
+    """A frame's pictures (:class:`FramePictures`)."""
+
     depth: torch.Tensor  # (H, W) metres, the stixels' depth map
     overlay: np.ndarray  # (H, W, 3) uint8 RGB
     bev: np.ndarray  # bird's-eye view, uint8 RGB
@@ -126,9 +129,9 @@ class FramePictures:
     def __init__(self, min_depth: float, max_depth: float) -> None:
         self.min_depth, self.max_depth = min_depth, max_depth
         self._frame: Frame | None = None
-        self._pictures: _Pictures | None = None
+        self._pictures: Pictures | None = None
 
-    def of(self, frame: Frame) -> _Pictures:
+    def of(self, frame: Frame) -> Pictures:
         """The pictures of ``frame`` (kept until the next frame is asked for)."""
         if self._frame is not frame or self._pictures is None:
             from monostixels.output.bev import bev_image
@@ -137,7 +140,7 @@ class FramePictures:
             lo, hi = self.min_depth, self.max_depth
             st = frame.result.stixels
             depth = st.depth_map()
-            self._pictures = _Pictures(depth, stixel_depth_overlay(frame.pair.image, st, min_depth=lo, max_depth=hi),
+            self._pictures = Pictures(depth, stixel_depth_overlay(frame.pair.image, st, min_depth=lo, max_depth=hi),
                                        bev_image(st, min_depth=lo, max_depth=hi),
                                        depth_colormap(depth, min_depth=lo, max_depth=hi))
             self._frame = frame
