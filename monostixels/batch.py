@@ -5,7 +5,8 @@ folder of images with its intrinsics file) as one Ray task and writes
 (docs/conventions.md, section 4.6):
 
 - ``DIR/stixels.parquet/clip=<name>/part-0.parquet``: a Parquet dataset partitioned by clip
-  (hive layout), one row per stixel per frame, columns :data:`SCHEMA`;
+  (hive layout), one row per stixel per frame, columns :data:`SCHEMA_FIELDS` (the writer
+  :class:`monostixels.output.writers.StixelRows`);
 - ``DIR/summary.json``: per clip its input, frames, status (``ok`` | ``failed``), error and seconds (and
   ``skipped_frames``, the unreadable frames skipped, where there were any).
 
@@ -20,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import math
 import os
 import re
 import sys
@@ -30,13 +30,12 @@ from glob import glob
 from pathlib import Path
 from typing import Any, List, Optional, Sequence
 
-import numpy as np
-
 from monostixels._checks import InputError, config_params
 from monostixels._threads import set_threads
-from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.data._io import IMAGE_EXTENSIONS
-from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
+# SCHEMA_FIELDS and frame_rows: the dataset's columns, named here as before (docs/conventions.md, section 4.6).
+from monostixels.output.writers import SCHEMA_FIELDS, frame_rows  # noqa: F401
+from monostixels.output.writers import StixelRows, write_partition, write_sequence
 
 __all__ = ["BatchConfig", "Clip", "SCHEMA_FIELDS", "discover_clips", "clip_data_config", "process_clip", "read_summary",
            "run_batch"]
@@ -48,37 +47,6 @@ DATASET_NAME = "stixels.parquet"
 SUMMARY_FORMAT = "monostixels-batch/1"
 #: Intrinsics files beside a video ``clip.mp4`` that the batch uses for it: ``clip.intrinsics.yaml`` ...
 _SIDECAR_SUFFIXES = (".intrinsics.yaml", ".intrinsics.yml", ".intrinsics.json", ".intrinsics.txt")
-
-#: Columns of the dataset (besides the partition column ``clip``): name, Arrow type, meaning.
-#: Temporal columns (track_id, velocity_*, ttc_s) are null where the pipeline does not provide them.
-SCHEMA_FIELDS: tuple[tuple[str, str, str], ...] = (
-    ("frame", "int32", "index of the frame pair in the clip, 0-based (run's `frame` timeline)"),
-    ("frame_name", "string", "the pair's name (run's per-frame folder)"),
-    ("timestamp", "float64", "seconds of the current frame into the video; null where unknown"),
-    ("dt", "float64", "seconds between the pair's two frames; null where unknown"),
-    ("column", "int32", "stixel column (width solver.column_width pixels)"),
-    ("v_top", "int32", "top pixel row (inclusive, v down)"),
-    ("v_bottom", "int32", "bottom pixel row (inclusive)"),
-    ("type", "string", "ground | static_object | dynamic_object | sky"),
-    ("class", "string", "one of the 10 classes (docs/conventions.md, section 2)"),
-    ("inverse_depth", "float64", "plane label p, 1/metres"),
-    ("depth", "float64", "depth z of the stixel's reference pixel, metres; null for sky (= stixels.json)"),
-    ("x", "float64", "world position of that pixel on the stixel's plane, metres (world = first camera, "
-                     "x right, y down, z forward); null for sky"),
-    ("y", "float64", ""),
-    ("z", "float64", ""),
-    ("motion_x", "float64", "motion Δ of a dynamic stixel between the pair's frames, current camera "
-                            "frame, metres (0 otherwise; = stixels.json `motion`)"),
-    ("motion_y", "float64", ""),
-    ("motion_z", "float64", ""),
-    ("track_id", "int64", "track of the stixel (sequence layer); null where absent"),
-    ("velocity_x", "float64", "world velocity, m/s (sequence layer); null where absent"),
-    ("velocity_y", "float64", ""),
-    ("velocity_z", "float64", ""),
-    ("ttc_s", "float64", "time to collision, s, inf when not closing (sequence layer); null where absent"),
-    ("degenerate_motion", "bool", "the frame's camera motion was degenerate: depths from the scene model"),
-)
-
 
 @dataclass
 class BatchConfig:
@@ -230,60 +198,6 @@ def clip_data_config(data: Any, clip: Clip) -> dict[str, Any]:
     return out
 
 
-# ------------------------------------------------------------------------------------------------ rows
-def frame_rows(index: int, pair: Any, res: Any, pose: np.ndarray, fps: float | None) -> dict[str, list]:
-    """Columns (:data:`SCHEMA_FIELDS`) of one frame's stixels, one entry per stixel.
-
-    Args:
-        index: the pair's index in the clip. pair: the FramePair. res: its PipelineResult.
-        pose: (4, 4) camera-to-world of the pair's current frame (world = the clip's first camera).
-        fps: the video's frame rate, or None.
-    """
-    world = res.stixels
-    n = len(world)
-    depth = world.depth.double().numpy()
-    X = to_world(pose, reference_points(world))
-    motion = world.motion.double().numpy().reshape(-1, 3)
-    track, vel, ttc = (optional_field(world, k) for k in ("track_id", "velocity", "ttc_s"))
-    vel = None if vel is None else np.asarray(vel, dtype=np.float64).reshape(-1, 3)
-    meta = getattr(pair, "meta", {}) or {}
-    dt = meta.get("dt")
-
-    def finite(a: np.ndarray) -> list[float | None]:
-        return [float(v) if math.isfinite(v) else None for v in a]
-
-    return {
-        "frame": [int(index)] * n,
-        "frame_name": [str(pair.name)] * n,
-        "timestamp": [frame_time(pair, fps)] * n,
-        "dt": [None if dt is None else float(dt)] * n,
-        "column": world.column.tolist(),
-        "v_top": world.v_top.tolist(),
-        "v_bottom": world.v_bottom.tolist(),
-        "type": [TYPE_NAMES[int(t)] for t in world.type],
-        "class": [CLASS_NAMES[int(c)] for c in world.cls],
-        "inverse_depth": world.inverse_depth.double().tolist(),
-        "depth": finite(depth),  # sky: inf -> null, as stixels.json writes it
-        "x": finite(X[:, 0]), "y": finite(X[:, 1]), "z": finite(X[:, 2]),
-        "motion_x": motion[:, 0].tolist(), "motion_y": motion[:, 1].tolist(), "motion_z": motion[:, 2].tolist(),
-        "track_id": [None] * n if track is None else [None if int(t) < 0 else int(t) for t in track],
-        "velocity_x": [None] * n if vel is None else vel[:, 0].tolist(),
-        "velocity_y": [None] * n if vel is None else vel[:, 1].tolist(),
-        "velocity_z": [None] * n if vel is None else vel[:, 2].tolist(),
-        "ttc_s": [None] * n if ttc is None else [float(v) for v in np.asarray(ttc, dtype=np.float64)],
-        "degenerate_motion": [bool(world.flags.get("degenerate_motion", False))] * n,
-    }
-
-
-def arrow_schema() -> Any:
-    """The Arrow schema of a clip's file (:data:`SCHEMA_FIELDS`, all nullable)."""
-    import pyarrow as pa
-
-    types = {"int32": pa.int32(), "int64": pa.int64(), "float64": pa.float64(), "string": pa.string(),
-             "bool": pa.bool_()}
-    return pa.schema([pa.field(name, types[t]) for name, t, _ in SCHEMA_FIELDS])
-
-
 # ------------------------------------------------------------------------------------------------ one clip
 def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dict[str, Any], Any]:
     """Run the pipeline on every frame pair of one clip (the body of a Ray task).
@@ -295,7 +209,6 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
         ``(summary, table)``: the clip's summary entry, and its rows as a ``pyarrow.Table`` (None
         where it failed). Never raises for a bad clip: the error goes into the summary.
     """
-    import pyarrow as pa
     from omegaconf import OmegaConf
 
     from monostixels.data.sources import make_source
@@ -307,7 +220,7 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
     start = time.perf_counter()
     entry: dict[str, Any] = {"input": clip.path, "kind": clip.kind, "frames": 0, "rows": 0, "status": "failed",
                              "error": None, "seconds": 0.0}
-    frames = 0
+    rows: StixelRows | None = None
     try:
         conf = OmegaConf.create(cfg)
         conf.data = clip_data_config(conf.data, clip)
@@ -316,23 +229,16 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
             raise InputError(f"{clip.path}: no frame pairs")
         # The same frames, pairs, tracks and TTC as `monostixels run` (keyframes and the stream state).
         runner = SequenceRunner(conf, Pipeline(conf, allow_motion_failure=True, sfm=False))
-        poses = PoseChain()
-        fps = getattr(src, "fps", None)
-        columns: dict[str, list] = {name: [] for name, _, _ in SCHEMA_FIELDS}
-        for i, step in enumerate(runner.run(src)):
-            pair, res = step.pair, step.result
-            rows = frame_rows(i, pair, res, poses.update(pair, res), fps)
-            for k, v in rows.items():
-                columns[k].extend(v)
-            frames += 1
+        rows = StixelRows(getattr(src, "fps", None))
+        write_sequence(runner.run(src), [rows])
+        frames = rows.frames
         skipped = list(getattr(src, "skipped_frames", []))  # unreadable frames, warned about and skipped
         if skipped:
             entry["skipped_frames"] = skipped
             if frames == 0:
                 raise InputError(f"{clip.path}: no frame pair could be made: {len(skipped)} unreadable frame(s) skipped")
-        table = pa.Table.from_pydict(columns, schema=arrow_schema())
-        entry.update(frames=frames, rows=table.num_rows, status="ok")
-        return entry, table
+        entry.update(frames=frames, rows=rows.table.num_rows, status="ok")
+        return entry, rows.table
     except InputError as e:
         entry["error"] = str(e)
     except Exception as e:  # noqa: BLE001 — one clip's failure must not stop the batch; its reason is kept
@@ -340,7 +246,7 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
         entry["error"] = f"{type(e).__name__}: {e}"
     finally:
         entry["seconds"] = round(time.perf_counter() - start, 3)
-    entry["frames"] = frames
+    entry["frames"] = rows.frames if rows is not None else 0  # those written before the failure
     return entry, None
 
 
@@ -377,20 +283,6 @@ def _settings(cfg: dict[str, Any]) -> str:
 
 def _partition(output: Path, name: str) -> Path:
     return output / DATASET_NAME / f"clip={name}"
-
-
-def _write_partition(output: Path, name: str, table: Any) -> Path:
-    """Write one clip's rows as ``stixels.parquet/clip=NAME/part-0.parquet`` (atomically)."""
-    import pyarrow.parquet as pq
-
-    d = _partition(output, name)
-    d.mkdir(parents=True, exist_ok=True)
-    for old in d.glob("*.parquet"):
-        old.unlink()
-    tmp = d / "part-0.parquet.tmp"
-    pq.write_table(table, tmp)
-    os.replace(tmp, d / "part-0.parquet")
-    return d / "part-0.parquet"
 
 
 def _done(entry: dict[str, Any] | None, clip: Clip, output: Path, retry_failed: bool) -> bool:
@@ -457,7 +349,7 @@ def run_batch(cfg: Any) -> int:
                                      "status": "failed", "error": f"{type(e).__name__}: {e}", "seconds": None}
                             table = None
                         if table is not None:
-                            _write_partition(output, clip.name, table)
+                            write_partition(_partition(output, clip.name), table)
                         summary["clips"][clip.name] = entry
                         _write_json(output / SUMMARY_NAME, summary)
                         bar.set_postfix_str(f"{clip.name} {entry['status']}")

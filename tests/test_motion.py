@@ -572,8 +572,8 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     """With a metric motion from elsewhere (motion=gt), a wrong camera.height shows: the road implies the true one."""
     import dataclasses
 
-    from monostixels.cli import camera_report, camera_summary
     from monostixels.data.synthetic import render_pair
+    from monostixels.output.writers import camera_report, camera_summary
     from monostixels.pipeline import Pipeline, load_config
 
     pair = render_pair(2, scale=0.5)

@@ -27,7 +27,8 @@ import numpy as np
 from monostixels._checks import InputError
 from monostixels.data._io import IMAGE_EXTENSIONS
 
-__all__ = ["CalibrateConfig", "Calibration", "MIN_BOARDS", "calibrate_images", "find_board", "write_intrinsics_file"]
+__all__ = ["CalibrateConfig", "Calibration", "MIN_BOARDS", "calibrate_images", "calibration_lines", "find_board",
+           "write_intrinsics_file"]
 
 logger = logging.getLogger(__name__)
 
@@ -239,6 +240,23 @@ def write_intrinsics_file(cal: Calibration, path: str | Path) -> Path:
     ]
     p.write_text("\n".join(lines) + "\n")
     return p
+
+
+def calibration_lines(cal: Calibration, path: Path) -> list[str]:
+    """What ``monostixels calibrate`` prints of calibration ``cal`` written to ``path``: the boards found, the
+    RMS reprojection error (pixels), the images left out, the intrinsics and the distortion."""
+    H, W = cal.size
+    k1, k2, p1, p2, k3 = cal.distortion
+    lines = [f"calibrate: {cal.board[0]}x{cal.board[1]} board found in {len(cal.boards)} of {len(cal.images)} images "
+             f"({W}x{H}); RMS reprojection error {cal.rms_px:.3f} px"]
+    if cal.no_board:
+        lines.append(f"  no board in: {', '.join(p.name for p in cal.no_board)}")
+    if cal.other_size:
+        lines.append(f"  skipped (not {W}x{H}): {', '.join(p.name for p in cal.other_size)}")
+    lines.append(f"  fx {cal.fx:.2f}  fy {cal.fy:.2f}  cx {cal.cx:.2f}  cy {cal.cy:.2f} px; "
+                 f"distortion k1 {k1:.4f} k2 {k2:.4f} p1 {p1:.5f} p2 {p2:.5f} k3 {k3:.4f}")
+    lines.append(f"wrote {path} (use it: data.intrinsics={path})")
+    return lines
 
 
 def _describe(images: str | Path | Sequence[str | Path]) -> str:

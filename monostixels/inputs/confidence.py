@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from monostixels._checks import InputError, check_finite_fast, check_shape
+from monostixels.inputs.grey import to_gray  # the structure tensor's grey image; named here as before
 
 __all__ = [
     "ConfidenceParams",
@@ -50,10 +51,6 @@ logger = logging.getLogger(__name__)
 
 #: Methods accepted by :func:`flow_covariance` (``flow.confidence`` in the config).
 CONFIDENCE_METHODS = ("constant", "structure_tensor")
-
-#: ITU-R BT.601 luma weights (R, G, B) for the grey image of the structure tensor.
-_LUMA_WEIGHTS = (0.299, 0.587, 0.114)
-
 
 @dataclass
 class ConfidenceParams:
@@ -89,21 +86,6 @@ class ConfidenceParams:
             raise InputError(f"flow confidence: sigma_min ({self.sigma_min}) > sigma_max ({self.sigma_max})")
         if not (math.isfinite(self.fb_weight) and self.fb_weight >= 0):
             raise InputError(f"flow confidence parameter fb_weight: must be >= 0, got {self.fb_weight}")
-
-
-def to_gray(image: torch.Tensor) -> torch.Tensor:
-    """Grey image (H, W) float32 in [0, 1] from an RGB image (3, H, W) in [0, 1] (or grey (H, W))."""
-    if image.dim() == 2:
-        return image.float()
-    check_shape(image, [3, "H", "W"], "image")
-    if image.device.type != "cpu" or image.requires_grad:
-        w = torch.tensor(_LUMA_WEIGHTS, dtype=torch.float32).view(3, 1, 1)
-        return (image.float() * w).sum(0)
-    # numpy, channels added in order: the same float32 values as torch's weighted sum over the
-    # channel axis, without torch's thread hand-offs (it runs in a thread beside the flow).
-    x = image.numpy().astype(np.float32, copy=False)
-    w = np.asarray(_LUMA_WEIGHTS, dtype=np.float32)
-    return torch.from_numpy(x[0] * w[0] + x[1] * w[1] + x[2] * w[2])
 
 
 def structure_tensor(gray: torch.Tensor, window_sigma: float) -> torch.Tensor:

@@ -59,6 +59,7 @@ from monostixels.data.base import FramePair
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 from monostixels.inputs.flow_config import (DeepFlowConfig, DisFlowConfig, ImageFlowConfig, RaftFlowConfig, flow_name,
                                             flow_params)
+from monostixels.inputs.grey import to_gray_u8
 
 __all__ = [
     "FLOW_BACKENDS",
@@ -196,11 +197,10 @@ def resolve_path(path: str | Path) -> Path:
 
 def _gray_u8(image: torch.Tensor) -> np.ndarray:
     """(3, H, W) float32 RGB in [0, 1] -> (H, W) uint8 grey (OpenCV flow backends work on 8-bit grey)."""
-    # numpy rather than torch ops (the same values): no thread hand-offs beside the other threads
-    # of the flow stage; the channels interleaved once, in uint8, as cvtColor wants them.
+    # Quantised in numpy rather than with torch ops (the same values): no thread hand-offs beside the
+    # other threads of the flow stage.
     x = np.clip(image.detach().numpy(), 0.0, 1.0)
-    rgb = np.ascontiguousarray((x * 255.0 + 0.5).astype(np.uint8).transpose(1, 2, 0))
-    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return to_gray_u8((x * 255.0 + 0.5).astype(np.uint8))
 
 
 @lru_cache(maxsize=4)

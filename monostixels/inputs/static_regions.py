@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
+from monostixels.inputs.grey import to_gray, to_gray_u8
 
 __all__ = ["AUTO_MASK", "AUTO_BURSTS", "AUTO_BURST", "AUTO_SPACING_S", "spread_samples", "still_pixels",
            "find_static_region", "with_static_region", "IgnoreMask", "apply_ignore_mask", "crop_ignored"]
@@ -86,8 +87,11 @@ MAX_HEIGHT_SHARE = 0.4
 
 
 def _grey(frame: np.ndarray) -> np.ndarray:
-    if frame.ndim == 3:
-        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    """(H, W) float32 grey in [0, 1] of a frame (H, W) or (H, W, 3) BGR, uint8 or float in [0, 1]."""
+    if frame.ndim == 3 and frame.dtype == np.uint8:
+        frame = to_gray_u8(frame.transpose(2, 0, 1), order="bgr")  # the frames as read: OpenCV's 8-bit grey
+    elif frame.ndim == 3:
+        frame = to_gray(torch.from_numpy(np.ascontiguousarray(frame[..., ::-1].transpose(2, 0, 1), np.float32))).numpy()
     g = frame.astype(np.float32)
     return g / 255.0 if frame.dtype == np.uint8 else g
 

@@ -13,7 +13,7 @@ Colour conventions (paper figures, docs/conventions.md, section 2): depth is col
 depth with matplotlib's ``jet``: close = red, far = dark blue, invalid (``<= 0``, NaN, inf, or 0 =
 no ground truth) = black. Semantic classes use the Cityscapes palette
 (:data:`monostixels.core.classes.PALETTE`). Optical flow uses the Middlebury colour wheel (Baker et al.,
-"A Database and Evaluation Methodology for Optical Flow", IJCV 2011).
+"A Database and Evaluation Methodology for Optical Flow", IJCV 2011), drawn by torchvision's ``flow_to_image``.
 """
 from __future__ import annotations
 
@@ -38,7 +38,6 @@ __all__ = [
     "depth_colormap",
     "semantic_colormap",
     "flow_colormap",
-    "make_flow_colorwheel",
     "stixel_overlay",
     "stixel_depth_overlay",
     "mover_groups",
@@ -54,9 +53,6 @@ logger = logging.getLogger(__name__)
 #: blue (conf/eval/default.yaml colormap_*); 80 m is the KITTI evaluation cap.
 COLORMAP_MIN_DEPTH_M = 3.0
 COLORMAP_MAX_DEPTH_M = 80.0
-#: Middlebury colour wheel: number of hues in each transition (Baker et al. 2011, flowToColor):
-#: red-yellow, yellow-green, green-cyan, cyan-blue, blue-magenta, magenta-red.
-_WHEEL_SEGMENTS = (("RY", 15), ("YG", 6), ("GC", 4), ("CB", 11), ("BM", 13), ("MR", 6))
 #: Colour of pixels with an unknown / invalid value.
 _INVALID_RGB = (0, 0, 0)
 #: Factor darkening a stixel's colour for its border.
@@ -146,27 +142,8 @@ def semantic_colormap(labels: torch.Tensor | np.ndarray) -> np.ndarray:
     return lut[np.where(known, lab, IGNORE_LABEL)]
 
 
-def make_flow_colorwheel() -> np.ndarray:
-    """The Middlebury colour wheel (55, 3) float in [0, 255], hue by hue (Baker et al. 2011)."""
-    rows = []
-    for name, n in _WHEEL_SEGMENTS:
-        ramp = np.arange(n, dtype=np.float64) / n * 255.0
-        full = np.full(n, 255.0)
-        zero = np.zeros(n)
-        seg = {
-            "RY": (full, ramp, zero),          # red -> yellow
-            "YG": (255.0 - ramp, full, zero),  # yellow -> green
-            "GC": (zero, full, ramp),          # green -> cyan
-            "CB": (zero, 255.0 - ramp, full),  # cyan -> blue
-            "BM": (ramp, zero, full),          # blue -> magenta
-            "MR": (full, zero, 255.0 - ramp),  # magenta -> red
-        }[name]
-        rows.append(np.stack(seg, axis=1))
-    return np.concatenate(rows, axis=0)
-
-
 def flow_colormap(flow: torch.Tensor | np.ndarray, *, max_flow: float | None = None) -> np.ndarray:
-    """Colour optical flow (2, H, W) with the Middlebury colour wheel.
+    """Colour optical flow (2, H, W) with the Middlebury colour wheel (torchvision's ``flow_to_image``).
 
     Hue encodes direction, saturation the magnitude relative to ``max_flow`` (default: the
     largest finite magnitude in the image). Convention as in the Middlebury code: the angle is
@@ -181,29 +158,23 @@ def flow_colormap(flow: torch.Tensor | np.ndarray, *, max_flow: float | None = N
     Returns:
         (H, W, 3) uint8 RGB.
     """
+    from monostixels._torchvision import torchvision
+
     f = _to_numpy(flow, "flow").astype(np.float64)
     if f.ndim != 3 or f.shape[0] != 2:
         raise InputError(f"flow: expected shape (2, H, W), got {f.shape}")
-    fu, fv = f[0], f[1]
-    valid = np.isfinite(fu) & np.isfinite(fv)
-    fu = np.where(valid, fu, 0.0)
-    fv = np.where(valid, fv, 0.0)
-    mag = np.hypot(fu, fv)
+    valid = np.isfinite(f).all(axis=0)
+    f = np.where(valid, f, 0.0)
+    mag = np.hypot(f[0], f[1])
     if max_flow is None:
         max_flow = float(mag[valid].max()) if valid.any() else 0.0
     scale = max_flow if max_flow > 0 else 1.0
-    rad = np.clip(mag / scale, 0.0, 1.0)
-    wheel = make_flow_colorwheel()
-    ncols = wheel.shape[0]
-    angle = np.arctan2(-fv, -fu) / np.pi  # -1..1
-    fk = (angle + 1.0) / 2.0 * (ncols - 1)
-    k0 = np.floor(fk).astype(np.int64)
-    k1 = (k0 + 1) % ncols
-    w = (fk - k0)[..., None]
-    col = ((1 - w) * wheel[k0] + w * wheel[k1]) / 255.0  # H x W x 3
-    # Saturation grows with the magnitude: white at zero flow, the wheel colour at max_flow.
-    col = 1.0 - rad[..., None] * (1.0 - col)
-    rgb = (col * 255.0 + 0.5).astype(np.uint8)
+    # flow_to_image saturates at the image's largest magnitude: magnitudes are clipped to max_flow, and one
+    # extra column holding a vector of exactly max_flow (cut off again) makes that the largest.
+    f = f * (scale / np.maximum(mag, scale))
+    pinned = np.concatenate([f, np.broadcast_to(np.array([scale, 0.0])[:, None, None], (2, f.shape[1], 1))], axis=2)
+    rgb = torchvision.utils.flow_to_image(torch.from_numpy(pinned).float()).permute(1, 2, 0).numpy()[:, :-1]
+    rgb = np.ascontiguousarray(rgb)
     rgb[~valid] = _INVALID_RGB
     return rgb
 
