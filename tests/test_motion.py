@@ -171,10 +171,11 @@ def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
 
 
 @pytest.mark.parametrize("turned", [True, False])
-def test_mono_takes_the_roads_normal_from_the_direction_of_travel(monkeypatch, turned):
+def test_the_scene_model_meets_the_road_in_the_plane_of_travel(monkeypatch, turned):
     # A phone on the windscreen looks down 12 degrees and is configured level (camera.pitch 0): beyond the
-    # road fit's cone around the configured normal. The car drives along its road, so t lies in the road
-    # plane and gives the normal; without that, the length of t comes out wrong.
+    # road fit's cone around the configured normal, so the scene model (walls standing on the road) gives
+    # the length. The car drives along its road, so t lies in the road plane: the scene model meets the
+    # road through that plane. Through the configured level normal its length comes out far off.
     import monostixels.inputs.motion as motion_mod
 
     if not turned:
@@ -184,14 +185,23 @@ def test_mono_takes_the_roads_normal_from_the_direction_of_travel(monkeypatch, t
     planes = [(n_true, HEIGHT), *_scene_planes()[1:]]
     forward = torch.tensor([0.0, -math.sin(a), math.cos(a)], dtype=torch.float64)  # along the road
     gt = Motion(R=_rot(0.4, 0.0, 0.0), t=0.9 * forward + torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64))
-    pair, fr = _pair_and_flow(gt, flow=_analytic_flow(_camera(), gt, 0.05, planes=planes))
-    est = estimate_motion(pair, fr, MONO)
+    cam = _camera()
+    pair, fr = _pair_and_flow(gt, flow=_analytic_flow(cam, gt, 0.05, planes=planes))
+    # Semantics: the road where the ground plane is the nearest, buildings (class 3) on the walls.
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(cam.K, u, v)
+    depth = torch.stack([torch.where(ray @ n > 0, d / (ray @ n), torch.tensor(math.inf, dtype=torch.float64))
+                         for n, d in planes])
+    road = depth.argmin(0) == 0
+    sem = torch.zeros(10, H, W)
+    sem[0][road] = 1.0
+    sem[3][~road] = 1.0
+    est = estimate_motion(pair, fr, MONO, semantic=sem)
     if turned:
-        assert est.kind == "metric" and est.ground_normal is not None, est.reason
-        assert math.degrees(math.acos(float(est.ground_normal @ n_true))) < 0.2
-        assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.01
-    else:  # the configured level road: no metric length, or a wrong one
-        assert est.kind != "metric" or motion_errors(est.motion, gt)["scale_rel_err"] > 0.05, est.reason
+        assert est.kind == "metric" and est.scale_from == "scene", est.reason
+        assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.03
+    else:  # through the configured level road: no metric length, or one far off
+        assert est.kind != "metric" or motion_errors(est.motion, gt)["scale_rel_err"] > 0.1, est.reason
 
 
 def test_travel_normal_is_the_nearest_normal_across_the_translation():

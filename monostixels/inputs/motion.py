@@ -464,8 +464,12 @@ def estimate_mono(
     if labels is None or moving is None or float(moving.t.norm()) <= 0 or not params.scene_scale:
         return with_scene_scale(est, None, np.zeros(3), params)
     # The scene model's length of t (static objects stand on the ground): a second source beside the road's.
+    # It meets the ground through the plane of travel (a car moves along its road): it fits no normal of its
+    # own, and a phone looking 10 deg down, configured level, put its length 10x off (docs/experiments.md,
+    # "The road's normal from the direction of travel"). The road's own searches fit their normal.
     t_unit = moving.t.double().numpy() / float(moving.t.norm())
-    scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, travel_normal(n_g, t_unit), height, labels.reshape(grid), us, vs, f, ok,
+    n_travel = travel_normal(n_g, t_unit)
+    scene = scene_scale(Kn, moving.R.double().numpy(), t_unit, n_travel, height, labels.reshape(grid), us, vs, f, ok,
                         params.step, params.kerb_height)
     return with_scene_scale(est, scene, t_unit, params)
 
@@ -596,12 +600,6 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                and road_votes[1] >= _ROAD_SIGN_SHARE * road_votes[2])
     if flipped:
         t = -t
-    # 3c. The road's normal from the direction of travel: a car moves along its road, so t lies in the road
-    # plane. A camera pitched down by 10 degrees and configured level (a phone on the windscreen,
-    # camera.pitch 0) put every length from the ground 15-25x off (docs/experiments.md, "The road's
-    # normal from the direction of travel").
-    n_g = travel_normal(n_g, t)
-
     # 4. Metric scale (and road normal) from the ground.
     head = (f"ok: {int(inl.sum())}/{len(inl)} essential-matrix inliers{' (warm start)' if warm else ''}, "
             f"median parallax {parallax:.1f} px")
