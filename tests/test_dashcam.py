@@ -27,7 +27,7 @@ def test_the_dashcam_clips_flags_poses_and_warnings_agree_with_what_the_camera_m
         if not known:
             assert row["ttc_warnings"] == 0  # nothing is called moving, nothing closes
         else:
-            assert row["scale_from"] in ("photometric", "road_marks", "ground_flow", "sequence")
+            assert row["scale_from"] in ("photometric", "road_marks", "ground_flow", "scene", "sequence")
     # The lane dashes fix the scale at highway speed (the flow of the near road does not): every pair metric,
     # at a steady speed near the dashes' yardstick (12.19 m per 12 frames at 25 fps, ~25 m/s; camera.height
     # is a guess, so the band is a highway's).
