@@ -27,9 +27,9 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
 
 Everything carried from frame to frame lives here: the kept frames and their poses, the speed the
 keyframes read, the stream's reused work (:class:`~monostixels.sequence.stream.StreamState`), the monocular
-scale's speed prior (:class:`~monostixels.inputs.motion_track.MotionTrack`, handed to each
-:meth:`Pipeline.run <monostixels.pipeline.Pipeline.run>`) and the tracks. The pipeline itself keeps
-nothing between pairs.
+scale's speed prior (:class:`~monostixels.inputs.motion_track.MotionTrack`, handed to each pair's camera
+motion) and the tracks. The pipeline itself keeps nothing between pairs: the stream runs its steps on each
+pair (:meth:`~monostixels.sequence.stream.StreamState.run_pair`).
 
 Independent pairs (KITTI 2015, synthetic pairs) pass through with single-pair velocities and TTC.
 
@@ -55,14 +55,14 @@ from monostixels.data._io import PairSkipped
 from monostixels.data.base import FramePair, PreviousFrame
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.inputs.motion_track import motion_params
-from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult, motion_track_for
+from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
+from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamState
 from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
                                    time_to_collision)
 
-__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
+__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix", "motion_track_for"]
 
 logger = logging.getLogger(__name__)
 
@@ -142,6 +142,15 @@ def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams,
         if recent:
             return recent[-1][0].back, recent[-1][1]
     return candidates[0].back, dist[0]
+
+
+def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
+    """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
+    with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
+    motion = motion_params(cfg.motion)
+    if isinstance(motion, MonoMotionConfig) and motion.sequence_prior:
+        return MotionTrack(motion)
+    return None
 
 
 def motion_matrix(motion: Motion) -> torch.Tensor:
@@ -269,7 +278,7 @@ class SequenceRunner:
     # ------------------------------------------------------------------ one frame
     def _solve(self, index: int, pair: FramePair, back: int | None, driven: float | None) -> SequenceStep:
         try:
-            res = self.pipeline.run(pair, state=self.stream, motion_track=self.motion_track)
+            res = self.stream.run_pair(self.pipeline, pair, self.motion_track)
         except MotionEstimationError as err:
             self.reset() if back is None else None
             return SequenceStep(index, pair, None, str(err))
