@@ -10,8 +10,8 @@ settings as the dataclass (:func:`monostixels._checks.config_params`, or
 :func:`monostixels._checks.option_params` by ``name``), also from a plain dict or a config rebuilt from one.
 
 Importing this module registers the schemas; the package config (``pkg://monostixels.conf``) imports it
-when it is loaded, and so does every place that composes it (:func:`monostixels.pipeline.load_config`,
-the command line, train/).
+when it is loaded, so every place that composes it (:func:`monostixels.pipeline.load_config`, the command
+line, train/) has them. It gathers every stage's settings, so it sits above them all, below the command line.
 
 =============  ===================================================================  ============================
 group          schema                                                               registered as
@@ -46,7 +46,8 @@ from typing import Sequence
 
 from hydra.core.config_store import ConfigStore
 
-from monostixels._checks import InputError, config_error
+from monostixels._checks import InputError
+from monostixels._config import composition_error, load_config
 from monostixels.batch import BatchConfig
 from monostixels.core.energy import PriorConfig
 from monostixels.core.solver import SolverConfig
@@ -93,25 +94,11 @@ def register() -> None:
         cs.store(group=group, name=name, node=schema)
 
 
-def composition_error(error: BaseException) -> InputError | None:
-    """The one-line :class:`InputError` for Hydra's refusal to compose (``error``, a
-    ``ConfigCompositionException``) of an unknown key or a value of the wrong type, naming the option;
-    None for any other composition error (a missing config file, a bad override's syntax)."""
-    from omegaconf.errors import OmegaConfBaseException
-
-    cause = error.__cause__
-    if not isinstance(cause, OmegaConfBaseException):
-        return None
-    return config_error(cause)
-
-
 def check_overrides(overrides: Sequence[str]) -> InputError | None:
     """Compose the package config with ``overrides`` as the command line would
     (:func:`monostixels.pipeline.load_config`); the one-line error of an unknown key or a wrong type among
     them, else None (the config composes, or fails for a reason Hydra reports itself)."""
     from hydra.core.global_hydra import GlobalHydra
-
-    from monostixels.pipeline import load_config
 
     if GlobalHydra.instance().is_initialized():
         return None

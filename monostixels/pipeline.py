@@ -19,7 +19,7 @@ import logging
 import time
 from concurrent.futures import wait
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -27,6 +27,7 @@ import torch
 from omegaconf import DictConfig
 
 from monostixels._checks import InputError, check_frame_size, config_params
+from monostixels._config import load_config
 from monostixels._pools import helper_pool
 from monostixels._threads import ensure_threads, set_opencv_threads, threads
 from monostixels.post.boundaries import refine_object_tops
@@ -41,7 +42,7 @@ from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motio
 from monostixels.inputs.semantic import estimate_semantics, semantic_params
 from monostixels.post.movers import MoverCheckParams, check_movers, settle_receding, static_only
 from monostixels.core.solver import SolverConfig, solve
-from monostixels.inputs.static_regions import crop_ignored
+from monostixels.data.static_regions import crop_ignored
 from monostixels.core.stixels import StixelWorld
 
 __all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Carried", "Chain", "Pipeline", "warp_scores",
@@ -52,34 +53,6 @@ logger = logging.getLogger(__name__)
 
 class MotionEstimationError(InputError):
     """The camera motion of a frame pair could not be estimated from its images (``motion=mono``)."""
-
-
-def load_config(overrides: Sequence[str] = ()) -> DictConfig:
-    """Compose the package's Hydra config (``conf/config.yaml``) with ``key=value`` overrides.
-
-    For use from Python (notebooks, tests); the ``monostixels`` command does the same through Hydra.
-    An unknown key or a value of the wrong type in a group with a schema (monostixels.config_schema) is
-    an :class:`InputError` naming the option.
-    """
-    from contextlib import nullcontext
-
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import ConfigCompositionException
-
-    from monostixels.config_schema import composition_error  # (registers the groups' schemas)
-
-    # Under a Hydra app (the command, train/) its search path holds the package config already.
-    inside_app = GlobalHydra.instance().is_initialized()
-    with nullcontext() if inside_app else initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
-        try:
-            return compose(config_name="config", overrides=list(overrides))
-        except ConfigCompositionException as e:
-            # An unknown key or a wrong type refused by a group's schema: one line naming the option.
-            named = composition_error(e)
-            if named is None:
-                raise
-            raise named from None
 
 
 @dataclass

@@ -9,7 +9,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.synthetic import render_pair
-from monostixels.inputs.static_regions import apply_ignore_mask, find_static_region, spread_samples
+from monostixels.data.static_regions import apply_ignore_mask, find_static_region, spread_samples
 
 #: Rows of the painted bonnet at the bottom of a quarter-size render (94 rows), its top edge curved.
 _BONNET_MIN, _BONNET_MAX = 10, 16

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, config_params
-from monostixels.inputs.static_regions import crop_ignored
+from monostixels.data.static_regions import crop_ignored
 from monostixels.data.base import FramePair
 from monostixels.inputs.motion_track import MotionTrack
 from monostixels.pipeline import Carried, Chain, Pipeline, PipelineResult, warp_scores
