@@ -38,7 +38,7 @@ def main() -> None:
                        "motion=mono", f"motion.sequence_prior={str(not args.no_sequence_prior).lower()}"])
     pipe = Pipeline(cfg)
     from monostixels.inputs.semantic import estimate_semantics
-    from monostixels.pipeline import motion_track_for
+    from monostixels.sequence.runner import motion_track_for
 
     track = motion_track_for(cfg)  # the sequence layer's speed prior over the drive's pairs
 

@@ -78,7 +78,7 @@ def ground_from_motion() -> None:
     """Experimental (a proposal, not the package's behaviour): with ``motion=mono``, solve with the
     ground normal fitted by the motion estimator instead of ``camera.ground_normal``.
 
-    The ``mono`` estimator fits the road plane to get the metric scale (``_fit_ground``) but keeps
+    The ``mono`` estimator fits the road plane to get the metric scale (``fit_ground``) but keeps
     the fitted normal to itself; this patch records it and swaps it into the pair's camera before
     the solver runs (``Pipeline.motion_for`` runs before ``solve``).
     """
@@ -88,7 +88,7 @@ def ground_from_motion() -> None:
 
     import monostixels.inputs.motion as motion_module
 
-    fit = motion_module._fit_ground
+    fit = motion_module.fit_ground
     last: dict[str, np.ndarray] = {}
 
     def _fit(*a: Any, **k: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -96,7 +96,7 @@ def ground_from_motion() -> None:
         last["m"] = m
         return m, inl
 
-    motion_module._fit_ground = _fit
+    motion_module.fit_ground = _fit
     orig = pipeline_module.Pipeline.motion_for
 
     def motion_for(self: Any, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None, *args: Any,

@@ -14,7 +14,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "one_line_errors", "refuse_bad_overrides", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
+__all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "one_line_errors", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
            "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error"]
 
 
@@ -189,24 +189,6 @@ def one_line_errors(prog: str) -> Callable[[Callable[[Any], Any]], Callable[[Any
                 sys.exit(1)
         return entry
     return wrap
-
-
-def refuse_bad_overrides(cmd: str, flags: list[str], overrides: list[str]) -> None:
-    """``monostixels CMD``'s ``overrides`` checked before Hydra composes them: an override of a group with a
-    schema (monostixels.config_schema) that Hydra refuses (an unknown key, a value of the wrong type): one line
-    naming the option and exit 1, as for any bad input (Hydra itself would print its composition error over
-    several lines). Sweeps (their overrides are ranges) are left to Hydra."""
-    if {"--multirun", "-m"} & set(flags):
-        return
-    from monostixels.config_schema import SCHEMAS, check_overrides
-
-    groups = {g for g, _, _ in SCHEMAS}
-    if not any(o.lstrip("+~").split("=", 1)[0].split(".", 1)[0] in groups for o in overrides):
-        return  # the packaged options compose (tests/test_config_schema.py): only a user's value can fail
-    error = check_overrides([*overrides, f"command={cmd}"])
-    if error is not None:
-        print(f"monostixels {cmd}: error: {error}", file=sys.stderr)
-        sys.exit(1)
 
 
 def _leaves(node: Any, prefix: str) -> Iterable[tuple[str, Any]]:

@@ -25,7 +25,6 @@ from typing import Any, Iterator
 
 from omegaconf import DictConfig
 
-from monostixels._checks import refuse_bad_overrides
 
 __all__ = ["main", "COMMANDS"]
 
@@ -128,6 +127,8 @@ def main() -> None:
     overrides = [a for a in rest if "=" in a and not a.startswith("-")]
     flags = [a for a in rest if a not in overrides]
     sys.argv = [f"monostixels {cmd}", *flags, *overrides, f"command={cmd}"]
+    from monostixels.config_schema import refuse_bad_overrides
+
     refuse_bad_overrides(cmd, flags, overrides)
     _hydra_main()
 

@@ -10,8 +10,8 @@ settings as the dataclass (:func:`monostixels._checks.config_params`, or
 :func:`monostixels._checks.option_params` by ``name``), also from a plain dict or a config rebuilt from one.
 
 Importing this module registers the schemas; the package config (``pkg://monostixels.conf``) imports it
-when it is loaded, and so does every place that composes it (:func:`monostixels.pipeline.load_config`,
-the command line, train/).
+when it is loaded, so every place that composes it (:func:`monostixels.pipeline.load_config`, the command
+line, train/) has them. It gathers every stage's settings, so it sits above them all, below the command line.
 
 =============  ===================================================================  ============================
 group          schema                                                               registered as
@@ -42,11 +42,13 @@ calibrate      :class:`monostixels.data.calibration.CalibrateConfig`            
 """
 from __future__ import annotations
 
+import sys
 from typing import Sequence
 
 from hydra.core.config_store import ConfigStore
 
-from monostixels._checks import InputError, config_error
+from monostixels._checks import InputError
+from monostixels._config import composition_error, load_config
 from monostixels.batch import BatchConfig
 from monostixels.core.energy import PriorConfig
 from monostixels.core.solver import SolverConfig
@@ -62,7 +64,7 @@ from monostixels.sequence.runner import KeyframeParams
 from monostixels.sequence.stream import StreamParams
 from monostixels.sequence.tracking import TrackParams, TtcParams
 
-__all__ = ["SCHEMAS", "register", "composition_error", "check_overrides"]
+__all__ = ["SCHEMAS", "register", "composition_error", "check_overrides", "refuse_bad_overrides"]
 
 #: ``(group, name in the ConfigStore, schema)`` of every schema: one per group, or one per option (by its
 #: ``name``) where the options of a group differ in their keys.
@@ -93,25 +95,11 @@ def register() -> None:
         cs.store(group=group, name=name, node=schema)
 
 
-def composition_error(error: BaseException) -> InputError | None:
-    """The one-line :class:`InputError` for Hydra's refusal to compose (``error``, a
-    ``ConfigCompositionException``) of an unknown key or a value of the wrong type, naming the option;
-    None for any other composition error (a missing config file, a bad override's syntax)."""
-    from omegaconf.errors import OmegaConfBaseException
-
-    cause = error.__cause__
-    if not isinstance(cause, OmegaConfBaseException):
-        return None
-    return config_error(cause)
-
-
 def check_overrides(overrides: Sequence[str]) -> InputError | None:
     """Compose the package config with ``overrides`` as the command line would
     (:func:`monostixels.pipeline.load_config`); the one-line error of an unknown key or a wrong type among
     them, else None (the config composes, or fails for a reason Hydra reports itself)."""
     from hydra.core.global_hydra import GlobalHydra
-
-    from monostixels.pipeline import load_config
 
     if GlobalHydra.instance().is_initialized():
         return None
@@ -124,3 +112,19 @@ def check_overrides(overrides: Sequence[str]) -> InputError | None:
     return None
 
 register()
+
+
+def refuse_bad_overrides(cmd: str, flags: list[str], overrides: list[str]) -> None:
+    """``monostixels CMD``'s ``overrides`` checked before Hydra composes them: an override of a group with a
+    schema (monostixels.config_schema) that Hydra refuses (an unknown key, a value of the wrong type): one line
+    naming the option and exit 1, as for any bad input (Hydra itself would print its composition error over
+    several lines). Sweeps (their overrides are ranges) are left to Hydra."""
+    if {"--multirun", "-m"} & set(flags):
+        return
+    groups = {g for g, _, _ in SCHEMAS}
+    if not any(o.lstrip("+~").split("=", 1)[0].split(".", 1)[0] in groups for o in overrides):
+        return  # the packaged options compose (tests/test_config_schema.py): only a user's value can fail
+    error = check_overrides([*overrides, f"command={cmd}"])
+    if error is not None:
+        print(f"monostixels {cmd}: error: {error}", file=sys.stderr)
+        sys.exit(1)

@@ -19,12 +19,15 @@ import logging
 import time
 from concurrent.futures import wait
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any
 
+import cv2
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
 from monostixels._checks import InputError, check_frame_size, config_params
+from monostixels._config import load_config
 from monostixels._pools import helper_pool
 from monostixels._threads import ensure_threads, set_opencv_threads, threads
 from monostixels.post.boundaries import refine_object_tops
@@ -39,45 +42,17 @@ from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motio
 from monostixels.inputs.semantic import estimate_semantics, semantic_params
 from monostixels.post.movers import MoverCheckParams, check_movers, settle_receding, static_only
 from monostixels.core.solver import SolverConfig, solve
-from monostixels.inputs.static_regions import crop_ignored
+from monostixels.data.static_regions import crop_ignored
 from monostixels.core.stixels import StixelWorld
-from monostixels.sequence.stream import Carried, StreamState, warp_scores
 
-__all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Pipeline", "load_config"]
+__all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Carried", "Chain", "Pipeline", "warp_scores",
+           "load_config"]
 
 logger = logging.getLogger(__name__)
 
 
 class MotionEstimationError(InputError):
     """The camera motion of a frame pair could not be estimated from its images (``motion=mono``)."""
-
-
-def load_config(overrides: Sequence[str] = ()) -> DictConfig:
-    """Compose the package's Hydra config (``conf/config.yaml``) with ``key=value`` overrides.
-
-    For use from Python (notebooks, tests); the ``monostixels`` command does the same through Hydra.
-    An unknown key or a value of the wrong type in a group with a schema (monostixels.config_schema) is
-    an :class:`InputError` naming the option.
-    """
-    from contextlib import nullcontext
-
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import ConfigCompositionException
-
-    from monostixels.config_schema import composition_error  # (registers the groups' schemas)
-
-    # Under a Hydra app (the command, train/) its search path holds the package config already.
-    inside_app = GlobalHydra.instance().is_initialized()
-    with nullcontext() if inside_app else initialize_config_module(config_module="monostixels.conf", version_base="1.3"):
-        try:
-            return compose(config_name="config", overrides=list(overrides))
-        except ConfigCompositionException as e:
-            # An unknown key or a wrong type refused by a group's schema: one line naming the option.
-            named = composition_error(e)
-            if named is None:
-                raise
-            raise named from None
 
 
 @dataclass
@@ -147,13 +122,48 @@ class PipelineResult:
         return sum(v for k, v in self.seconds.items() if k != "sfm")
 
 
-def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
-    """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
-    with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
-    motion = motion_params(cfg.motion)
-    if isinstance(motion, MonoMotionConfig) and motion.sequence_prior:
-        return MotionTrack(motion)
-    return None
+@dataclass
+class Carried:
+    """What a pair is given from the earlier frames of its stream (:mod:`monostixels.sequence.stream`; fields
+    None where nothing is carried).
+
+    Attributes:
+        grey_prev: (H, W) uint8 grey of the pair's previous image.
+        flow_init: (H, W, 2) float32 start of the flow, pixels (current -> previous).
+        semantic: (10, H, W) scores of the pair's previous frame, to carry through the flow; None = run the net.
+        motion: the last pair's camera-motion estimate (:class:`~monostixels.inputs.motion.MotionEstimate`).
+        interval_ratio: this pair's time interval over the last pair's (1 where unknown).
+    """
+
+    grey_prev: np.ndarray | None = None
+    flow_init: np.ndarray | None = None
+    semantic: torch.Tensor | None = None
+    motion: Any = None
+    interval_ratio: float = 1.0
+    chain: "Chain | None" = None
+
+    @property
+    def anything(self) -> bool:
+        """Whether anything is carried (else the pair runs exactly as on its own)."""
+        return any(x is not None for x in (self.grey_prev, self.flow_init, self.semantic, self.motion, self.chain))
+
+
+@dataclass
+class Chain:
+    """What a keyframe pair's flow is chained through (:func:`monostixels.inputs.flow.chained_flow`).
+
+    Attributes:
+        last_image: (3, H, W) image of the stream's last frame ``L`` (between the pair's two frames).
+        last_grey: (H, W) uint8 grey of it, or None.
+        prev_grey: (H, W) uint8 grey of the pair's earlier frame where the stream kept it, or None.
+        steps: the kept flows from ``L`` back to the pair's earlier frame, newest first: (flow from a frame
+            to the frame before it, flow back or None), (H, W, 2) float32 pixels.
+    """
+
+    last_image: torch.Tensor
+    last_grey: np.ndarray | None
+    steps: list[tuple[np.ndarray, np.ndarray | None]]
+    prev_grey: np.ndarray | None = None
 
 
 class Pipeline:
@@ -258,32 +268,55 @@ class Pipeline:
         n = motion.ground_normal.to(pair.camera.ground_normal.dtype)
         return dataclasses.replace(pair.camera, ground_normal=n)
 
-    def run(self, pair: FramePair, state: StreamState | None = None, motion_track: MotionTrack | None = None
-            ) -> PipelineResult:
-        """Run every stage on one frame pair.
+    def run(self, pair: FramePair, motion_track: MotionTrack | None = None) -> PipelineResult:
+        """Run every stage on one frame pair, on its own: nothing carried in from earlier frames.
+
+        A sequence's stream (:meth:`monostixels.sequence.stream.StreamState.run_pair`) runs the same steps
+        (:meth:`prepare`, :meth:`inputs`, :meth:`given_inputs`, :meth:`timed_motion`, :meth:`solve_pair`,
+        :meth:`at_full_size`) with what the last pair of the stream computed.
 
         Args:
             pair: the frame pair.
-            state: the stream state of a sequence (:mod:`monostixels.sequence.stream`): what the last pair of
-                the stream computed for this pair's previous frame (grey image, flow, semantic scores,
-                camera motion, as the config group ``stream`` says), and where this pair's is kept;
-                with ``stream.overlap`` it also holds this pair's flow and semantics, computed while the
-                last pair was solved. None, or a pair that does not continue the stream: every stage
-                from scratch.
             motion_track: the sequence's prior on the camera's speed (see :meth:`motion_for`), or None.
         """
+        pair, sec, start = self.prepare(pair)
+        carried = Carried()
+        flow, semantic = self.given_inputs(pair, self.inputs(pair, carried), sec)
+        motion = self.timed_motion(pair, flow, semantic, carried, motion_track, sec)
+        return self.at_full_size(self.solve_pair(pair, flow, semantic, motion, sec, start))
+
+    def prepare(self, pair: FramePair) -> tuple[FramePair, dict[str, float], float]:
+        """The pair as the stages see it (rows of an ignored region at the bottom cut off), an empty table
+        of each stage's seconds and the pair's start time."""
         # Before any stage: OpenCV's flow kills the process on frames below MIN_FRAME_SIZE.
         check_frame_size(*pair.size, pair.name or "frame")
         sec: dict[str, float] = {}
         start = time.perf_counter()
-        pair = crop_ignored(pair)  # a stream reading ahead has cropped it already
+        return crop_ignored(pair), sec, start  # a stream reading ahead has cropped it already
+
+    def given_inputs(self, pair: FramePair, inputs: tuple[FlowResult, torch.Tensor | None, dict[str, float]],
+                     sec: dict[str, float]) -> tuple[FlowResult, torch.Tensor | None]:
+        """The flow and scores of :meth:`inputs` (their seconds added to ``sec``), ignored pixels made
+        uninformative."""
+        flow, semantic, input_sec = inputs
+        sec.update(input_sec)
+        ignore = pair.meta.get("ignore_pixels")
+        if ignore is not None:
+            flow, semantic = _without(ignore, flow, semantic)
+        return flow, semantic
+
+    def timed_motion(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None, carried: Carried,
+                     motion_track: MotionTrack | None, sec: dict[str, float]) -> MotionEstimate:
+        """:meth:`motion_for` started from what is carried in, its seconds in ``sec["motion"]``."""
+        t0 = time.perf_counter()
+        motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio, motion_track)
+        sec["motion"] = time.perf_counter() - t0
+        return motion
+
+    def at_full_size(self, res: PipelineResult) -> PipelineResult:
+        """``res`` of a pair whose bottom rows were cut off (:meth:`prepare`) at the frame's size."""
+        pair = res.pair
         full = pair.meta.get("full_pair", pair)
-        try:
-            res = self._run(pair, state, sec, start, motion_track)
-        except Exception:
-            if state is not None:
-                state.drop()  # the next pair starts cold
-            raise
         if pair is not full:
             # The outputs keep the frame's size: the rows cut off get no stixel (no depth).
             res.pair = full
@@ -338,32 +371,10 @@ class Pipeline:
         sec["inputs"] = time.perf_counter() - t_in
         return flow, semantic, sec
 
-    def _run(self, pair: FramePair, state: StreamState | None, sec: dict[str, float], start: float,
-             motion_track: MotionTrack | None) -> PipelineResult:
-        carried = state.carried(pair) if state is not None else Carried()
-        ready = state.take_inputs(pair) if state is not None else None
-        flow, semantic, input_sec = ready if ready is not None else self.inputs(pair, carried)
-        sec.update(input_sec)
-        ignore = pair.meta.get("ignore_pixels")
-        if ignore is not None:
-            flow, semantic = _without(ignore, flow, semantic)
-        if ready is not None:
-            # Computed ahead, while the last pair was solved: counted in this pair's wall time all the same.
-            sec["inputs_ahead"] = sec["inputs"]
-            start -= sec["inputs"]
-        if state is not None:
-            # What the next pair's inputs start from is known now (this frame's grey image, flow and
-            # scores); with stream.overlap its flow and semantics start in the background while this
-            # pair's camera motion is estimated and the pair is solved. The motion, which only the
-            # next pair's own motion estimate reads, is kept once it is known.
-            state.update(pair, grey=flow.grey, flow=flow.flow, semantic=semantic, semantic_fresh=carried.semantic is None,
-                         motion=None, carried=carried, flow_result=flow)
-            state.start_next(self.inputs)
-        t0 = time.perf_counter()
-        motion = self.motion_for(pair, flow, semantic, carried.motion, carried.interval_ratio, motion_track)
-        sec["motion"] = time.perf_counter() - t0
-        if state is not None:
-            state.keep_motion(pair, None if motion.degenerate else motion)
+    def solve_pair(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None, motion: MotionEstimate,
+                   sec: dict[str, float], start: float) -> PipelineResult:
+        """The stixels of a pair from its inputs and camera motion: the solver, then the post-processing
+        (movers, object tops), the flags and the SfM baseline; ``sec["wall"]`` counts from ``start``."""
         t0 = time.perf_counter()
         with torch.inference_mode():
             stixels = solve(flow.flow, flow.cov, semantic, self.camera_for(pair, motion), motion.motion, self.prior,
@@ -420,6 +431,34 @@ class Pipeline:
         logger.debug("%s: %d stixels, seconds %s", pair.name, len(stixels), sec)
         return PipelineResult(pair=pair, flow=flow, semantic=semantic, motion=motion, stixels=stixels,
                               sfm_depth=sfm, seconds=sec)
+
+
+def warp_scores(scores: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """Scores of the previous image carried to the current one through the flow.
+
+    Each current pixel ``x`` takes the scores at ``x + f(x)`` in the previous image (bilinear; the
+    border replicated where the flow leaves the image). Bilinear weights are a convex combination, so
+    scores that sum to 1 per pixel still do (to float rounding, ~1e-6).
+
+    Args:
+        scores: (C, H, W) float32 class scores of the previous image.
+        flow: (2, H, W) current -> previous, pixels.
+
+    Returns:
+        (C, H, W) float32 scores of the current image.
+    """
+    C, H, W = scores.shape
+    if tuple(flow.shape) != (2, H, W):
+        raise InputError(f"warp_scores: flow of shape {tuple(flow.shape)} for scores of shape {tuple(scores.shape)}")
+    f = flow.float().numpy()
+    mx = f[0] + np.arange(W, dtype=np.float32)[None, :]
+    my = f[1] + np.arange(H, dtype=np.float32)[:, None]
+    src = np.ascontiguousarray(scores.float().numpy())
+    out = np.empty_like(src)
+    # One plane at a time: no interleaving of the channels (OpenCV remaps at most 4 at once).
+    for c in range(C):
+        cv2.remap(src[c], mx, my, cv2.INTER_LINEAR, dst=out[c], borderMode=cv2.BORDER_REPLICATE)
+    return torch.from_numpy(out)
 
 
 #: Flow variance (pixels^2) given to ignored pixels: far past any motion or solver gate, so they weigh nothing.

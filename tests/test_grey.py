@@ -1,4 +1,4 @@
-"""Grey images (monostixels/inputs/grey.py): kornia's 8-bit conversions give OpenCV's values for every colour,
+"""Grey images (monostixels/core/grey.py): kornia's 8-bit conversions give OpenCV's values for every colour,
 and the flow colour map (torchvision's flow_to_image) keeps its scale."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.inputs.grey import to_gray, to_gray_u8
+from monostixels.core.grey import to_gray, to_gray_u8
 
 
 def _every_colour() -> np.ndarray:

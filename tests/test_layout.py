@@ -1,4 +1,5 @@
-"""The package's layout keeps data flowing one way: the product path never imports ``monostixels.eval``."""
+"""The package's layout keeps data flowing one way: layers that import only from the layers below them, no
+import cycle, and the product path never imports ``monostixels.eval``."""
 from __future__ import annotations
 
 import ast
@@ -50,30 +51,132 @@ def test_product_path_does_not_import_eval(path: Path):
 
 
 def test_the_sfm_baseline_lives_in_the_product_path():
-    assert (PACKAGE / "post" / "sfm.py").is_file() and not (PACKAGE / "eval" / "sfm.py").exists()
+    # The pipeline computes the SfM baseline (`eval` and `demo` show it): its triangulation is product code.
+    defines = [_module_name(f) for f in sorted(PACKAGE.rglob("*.py"))
+               if any(isinstance(n, ast.FunctionDef) and n.name == "triangulate" for n in ast.walk(ast.parse(f.read_text())))]
+    assert defines and not [m for m in defines if m.startswith("monostixels.eval")], defines
 
 
-#: Sub-packages by stage, in the order data flows through them (README, "Layout"), and some of their modules.
-_STAGES = {
-    "inputs": ("flow", "semantic", "motion", "static_regions"),
-    "core": ("geometry", "classes", "energy", "columns", "solver", "stixels", "_dp_cpp"),
-    "post": ("movers", "boundaries", "sfm"),
-    "sequence": ("runner", "stream", "tracking"),
-    "output": ("viz", "bev", "scene3d", "viewer", "io"),
-}
-#: The only modules at the top: the per-pair computation, the entry points, the config groups' schemas
-#: (they gather every stage's settings) and private helpers.
-_TOP = {"__init__", "pipeline", "cli", "batch", "config_schema", "_checks", "_cpu", "_paths", "_pools", "_threads",
-        "_torchvision"}
+#: The package's layers, lowest first (README, "Layout"): a module imports only from its own layer and the
+#: layers before it. Each layer: its name in the README's layout block and the sub-packages or top-level
+#: modules (without ``.py``; ``__init__`` is the package's own) it holds.
+_LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("_*.py", ("__init__", "_checks", "_config", "_paths", "_pools", "_threads", "_torchvision")),
+    ("core/", ("core", "_cpu")),  # _cpu reports the solver kernel's build beside the CPU's
+    ("data/", ("data",)),
+    ("inputs/", ("inputs",)),
+    ("post/", ("post",)),
+    ("pipeline.py", ("pipeline",)),
+    ("sequence/", ("sequence",)),
+    ("output/", ("output",)),
+    ("eval/", ("eval",)),
+    ("batch.py", ("batch",)),
+    ("config_schema.py", ("config_schema",)),  # it gathers the settings of every layer below
+    ("cli.py", ("cli",)),
+)
 
 
-def test_modules_sit_in_the_sub_package_of_their_stage():
-    for stage, modules in _STAGES.items():
-        for m in modules:
-            assert (PACKAGE / stage / f"{m}.py").is_file(), f"{stage}/{m}.py"
-    assert (PACKAGE / "core" / "csrc" / "column_dp.cpp").is_file()
-    top = {f.stem for f in PACKAGE.glob("*.py")}
-    assert top == _TOP, f"modules at the top of the package that belong to a stage: {sorted(top - _TOP)}"
+def _module_name(path: Path, root: Path = PACKAGE.parent) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph(package: Path = PACKAGE) -> dict[str, dict[str, int]]:
+    """{module: {module of the package it imports: first line}} of every module under ``package``. An
+    imported name counts as its module; imports inside functions and TYPE_CHECKING blocks count too."""
+    files = {_module_name(f, package.parent): f for f in sorted(package.rglob("*.py"))}
+    graph: dict[str, dict[str, int]] = {}
+    for name, path in files.items():
+        edges: dict[str, int] = {}
+        for line, imported in sorted(_imported_modules(path, package.parent)):
+            while imported and imported not in files:
+                imported = imported.rpartition(".")[0]
+            if imported and imported != name:
+                edges.setdefault(imported, line)
+        graph[name] = edges
+    return graph
+
+
+def _layer(module: str) -> int:
+    """Index in :data:`_LAYERS` of a module of the package (``monostixels.core.solver``: core's)."""
+    parts = module.split(".")
+    key = parts[1] if len(parts) > 1 else "__init__"
+    found = [i for i, (_, members) in enumerate(_LAYERS) if key in members]
+    assert found, f"{module} is in no layer: add it to _LAYERS (tests/test_layout.py) and to the README's layout"
+    return found[0]
+
+
+def _cycle(graph: dict[str, dict[str, int]]) -> list[str] | None:
+    """One import cycle of ``graph``, as the modules along it (the first again at the end), or None."""
+    state: dict[str, int] = {}  # 1: on the path being walked, 2: done
+    path: list[str] = []
+
+    def visit(m: str) -> list[str] | None:
+        state[m] = 1
+        path.append(m)
+        for n in sorted(graph.get(m, {})):
+            if state.get(n) == 1:
+                return path[path.index(n):] + [n]
+            if n not in state and (found := visit(n)):
+                return found
+        path.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(graph):
+        if m not in state and (found := visit(m)):
+            return found
+    return None
+
+
+def test_the_graph_sees_imports_inside_functions_and_type_checking_blocks(tmp_path):
+    pkg = tmp_path / "monostixels"
+    (pkg / "core").mkdir(parents=True)
+    (pkg / "post").mkdir()
+    for f in ("__init__.py", "core/__init__.py", "post/__init__.py", "post/boundaries.py"):
+        (pkg / f).write_text("")
+    (pkg / "core" / "solver.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ..post import boundaries\n"
+        "def f():\n    from monostixels.post.boundaries import REFINE\n")
+    graph = _import_graph(pkg)
+    assert graph["monostixels.core.solver"] == {"monostixels.post": 3, "monostixels.post.boundaries": 3}
+    assert _layer("monostixels.core.solver") < _layer("monostixels.post.boundaries")
+    assert _cycle({"a": {"b": 1}, "b": {"c": 1}, "c": {"a": 1}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b": 1}, "b": {}}) is None
+
+
+def test_every_module_sits_in_a_layer():
+    for module in _import_graph():
+        _layer(module)
+
+
+def test_no_import_runs_against_the_layers():
+    against = [f"{m} (line {line}) imports {n}" for m, edges in sorted(_import_graph().items())
+               for n, line in sorted(edges.items()) if _layer(n) > _layer(m)]
+    layers = [name for name, _ in _LAYERS]
+    assert not against, f"imports from a higher layer (layers, lowest first: {layers}):\n" + "\n".join(against)
+
+
+def test_the_package_has_no_import_cycle():
+    cycle = _cycle(_import_graph())
+    assert cycle is None, f"import cycle: {' -> '.join(cycle or [])}"
+
+
+def test_the_per_pair_pipeline_imports_nothing_of_the_sequence_layer():
+    # The sequence layer owns what is carried between frames; the pipeline computes a pair from what it is given.
+    graph = _import_graph()
+    assert not [m for m in graph["monostixels.pipeline"] if m.split(".")[:2] == ["monostixels", "sequence"]]
+
+
+def test_the_readme_states_the_layers_in_order():
+    text = (PACKAGE.parent / "README.md").read_text()
+    block = text[text.index("## Layout"):]
+    block = block[block.index("```") + 3:]
+    block = block[:block.index("```")]
+    # Each layer starts a line of the block (after its indent), lowest first.
+    heads = [ln.split()[0] for ln in block.splitlines() if ln.strip()]
+    layers = [name for name, _ in _LAYERS]
+    assert [h for h in heads if h in layers] == layers, heads
 
 
 #: Most lines of one module of the package: past it a module holds more than one concern.

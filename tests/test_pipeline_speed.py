@@ -536,10 +536,10 @@ def test_one_partition_median_equals_numpy():
 
 
 def test_ground_ransac_at_once_equals_the_loop_it_replaced():
-    # _fit_ground fits and scores its 300 hypotheses at once; the loop below is the algorithm as it was
+    # fit_ground fits and scores its 300 hypotheses at once; the loop below is the algorithm as it was
     # (one lstsq and one score a hypothesis). Same draws, same winner, same fit and inliers, and the
     # generator left where the loop left it, on planes with outliers, a tilt limit and a few pixels.
-    from monostixels.inputs.ground import _fit_ground, _tilt_deg
+    from monostixels.inputs.ground import fit_ground, tilt_deg
 
     def loop(A, b, thr, rng, n_g, max_tilt, hypotheses=300):
         N = len(A) // 2
@@ -548,7 +548,7 @@ def test_ground_ransac_at_once_equals_the_loop_it_replaced():
             idx = rng.choice(N, size=2, replace=False)
             rows = np.r_[idx, idx + N]
             m, *_ = np.linalg.lstsq(A[rows], b[rows], rcond=None)
-            if _tilt_deg(m, n_g) > max_tilt:
+            if tilt_deg(m, n_g) > max_tilt:
                 continue
             count = int((np.hypot(A[:N] @ m - b[:N], A[N:] @ m - b[N:]) < thr).sum())
             if count > best_count:
@@ -573,14 +573,14 @@ def test_ground_ransac_at_once_equals_the_loop_it_replaced():
         bad = g.random(N) < outliers
         b[np.r_[bad, bad]] += g.normal(scale=20.0, size=2 * int(bad.sum()))
         r1, r2 = np.random.default_rng(5), np.random.default_rng(5)
-        m1, inl1 = _fit_ground(A, b, 0.5, r1, n_g=n_g, max_tilt=max_tilt)
+        m1, inl1 = fit_ground(A, b, 0.5, r1, n_g=n_g, max_tilt=max_tilt)
         m2, inl2 = loop(A, b, 0.5, r2, n_g, max_tilt)
         assert np.array_equal(m1, m2) and np.array_equal(inl1, inl2), (N, outliers, max_tilt)
         assert r1.integers(1 << 30) == r2.integers(1 << 30)
 
 
 def test_max_eigenvalue_test_matches_eigvalsh():
-    from monostixels.inputs.motion import _max_eigenvalue_at_most
+    from monostixels.inputs.epipolar import max_eigenvalue_at_most
 
     rng = np.random.default_rng(4)
     A = rng.normal(size=(5000, 2, 2)) * rng.choice([0.3, 1.0, 3.0], size=(5000, 1, 1))
@@ -590,7 +590,7 @@ def test_max_eigenvalue_test_matches_eigvalsh():
                      [[2.5, 1.5], [1.5, 2.5]], [[2.5, 1.5001], [1.5001, 2.5]]], dtype=np.float32)
     cov = np.concatenate([cov, edge])
     lam = torch.linalg.eigvalsh(torch.from_numpy(cov).double()).numpy()[:, -1]
-    got = _max_eigenvalue_at_most(cov, 4.0)
+    got = max_eigenvalue_at_most(cov, 4.0)
     assert np.array_equal(got, lam <= 4.0)
     assert got[-7:].tolist() == [True, True, True, False, True, True, False]
     assert 0.2 < got.mean() < 0.8  # both outcomes exercised

@@ -14,8 +14,8 @@ from onnx import numpy_helper
 from monostixels import _cpu
 from monostixels._checks import InputError
 from monostixels.inputs import semantic
-from monostixels.inputs.quantize import SAFE_WEIGHT_MAX, can_saturate, int8_weight_max, quantize_fcn8s_onnx
-from monostixels.inputs.semantic import OnnxSegmenter, _fcn8s_segmenter
+from monostixels.inputs.quantize import SAFE_WEIGHT_MAX, can_saturate, int8_weight_max
+from monostixels.inputs.semantic import OnnxSegmenter, _fcn8s_segmenter, quantize_fcn8s_onnx
 from monostixels.pipeline import load_config
 
 REPO = Path(__file__).resolve().parents[1]

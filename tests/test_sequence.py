@@ -430,14 +430,14 @@ def test_a_failed_pair_is_not_a_later_pairs_partner():
           "flow=gt", "semantic=gt", "motion=gt"]
     cfg = load_config(ov)
     runner = SequenceRunner(cfg)
-    run = runner.pipeline.run
+    motion_for = runner.pipeline.motion_for
 
-    def failing(pair, state=None, motion_track=None):
+    def failing(pair, *args, **kwargs):
         if pair.name.endswith("_002"):
             raise MotionEstimationError(f"{pair.name}: camera motion could not be estimated (test)")
-        return run(pair, state=state, motion_track=motion_track)
+        return motion_for(pair, *args, **kwargs)
 
-    runner.pipeline.run = failing
+    runner.pipeline.motion_for = failing
     steps = list(runner.run(make_source(cfg)))
     assert steps[1].result is None and "test" in steps[1].error  # frame 2
     # 0.3 m a frame, keyframes at 0.5 m: frame 4 would pair with frame 2 (2 back); it reaches frame 1 instead.
@@ -448,8 +448,8 @@ def test_a_failed_pair_is_not_a_later_pairs_partner():
     assert steps[3].result.stixels.track_id.max() >= 0
     # Where every earlier frame of the window failed, the sequence starts again with the frame before.
     runner = SequenceRunner(load_config(ov + ["keyframes.window=1"]))
-    run = runner.pipeline.run
-    runner.pipeline.run = failing
+    motion_for = runner.pipeline.motion_for
+    runner.pipeline.motion_for = failing
     steps = list(runner.run(make_source(cfg)))
     assert steps[2].result.stixels.pair_info["frames_back"] == 1
     # ... its world is the frame before (frame 2), 0.3 m back, not frame 0.

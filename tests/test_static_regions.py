@@ -9,8 +9,8 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.synthetic import render_pair
-from monostixels.inputs.static_regions import (STILL_WINDOW, apply_ignore_mask, find_static_region, spread_samples,
-                                               still_pixels)
+from monostixels.data.static_regions import (STILL_WINDOW, apply_ignore_mask, find_static_region, spread_samples,
+                                              still_pixels)
 
 #: Rows of the painted bonnet at the bottom of a quarter-size render (94 rows), its top edge curved.
 _BONNET_MIN, _BONNET_MAX = 10, 16

@@ -1,6 +1,6 @@
 """Write the INT8 copy of our real-image FCN-8s (``semantic=fcn8s_int8``, the net of ``preset=fast``).
 
-Static quantization of the convolutions (:func:`monostixels.inputs.quantize.quantize_fcn8s_onnx`),
+Static quantization of the convolutions (:func:`monostixels.inputs.semantic.quantize_fcn8s_onnx`),
 calibrated on every 12th CamVid train image (``conf/quantize_semantic.yaml``). About half the float
 net's time on a CPU with 8-bit dot products; its accuracy beside the float net: models/MODEL_CARD.md.
 
@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig
 
 from monostixels._checks import InputError, one_line_errors
-from monostixels.inputs.quantize import quantize_fcn8s_onnx
+from monostixels.inputs.semantic import quantize_fcn8s_onnx
 
 logger = logging.getLogger(__name__)
 

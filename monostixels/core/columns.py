@@ -14,7 +14,7 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import Any, Sequence
 
 import torch
 
@@ -30,9 +30,7 @@ from monostixels.core.geometry import (
     solve_dynamic_dof,
     solve_static_dof,
 )
-
-if TYPE_CHECKING:
-    from monostixels.core.solver import SolverConfig
+from monostixels.core.solver_config import SolverConfig
 
 __all__ = ["ColumnProblem", "prepare_columns", "beyond_horizon"]
 

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from monostixels._checks import InputError, check_number, config_params
+from monostixels._config import load_config
 
 __all__ = [
     "GRAVITY_TOLERANCE_M",
@@ -150,8 +151,6 @@ def load_config_group(group: str, name: str) -> dict[str, Any]:
 @lru_cache(maxsize=None)
 def _composed_group(group: str, name: str) -> dict[str, Any]:
     from omegaconf import OmegaConf
-
-    from monostixels.pipeline import load_config  # (composes the package config; imports this module)
 
     try:
         cfg = load_config([f"{group}={name}"])

@@ -1,6 +1,11 @@
-"""The frame-pair type every data source yields and every command consumes."""
+"""The frame-pair type every data source yields and every command consumes, and the keyframe settings.
+
+The keyframe settings (:class:`KeyframeParams`, used by :mod:`monostixels.sequence.runner`) live here
+because a live source sizes its buffer of frames by how far back a pair may reach.
+"""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -9,7 +14,7 @@ import torch
 from monostixels._checks import InputError, check_finite_fast, check_same_size, check_shape
 from monostixels.core.geometry import Camera, Motion
 
-__all__ = ["GroundTruth", "FramePair", "PreviousFrame", "FOLDER_FPS"]
+__all__ = ["GroundTruth", "FramePair", "PreviousFrame", "KeyframeParams", "FOLDER_FPS"]
 
 #: Frame rate (Hz) of a folder of images that states none (``data=frames``' ``data.fps``): KITTI's 10 Hz.
 FOLDER_FPS = 10.0
@@ -61,6 +66,41 @@ class PreviousFrame:
     dt: float
     motion: Motion | None
     name: str
+
+
+@dataclass
+class KeyframeParams:
+    """Keyframe choice: the schema of the config group ``keyframes`` (monostixels.config_schema).
+
+    Attributes:
+        min_distance_m: the least driven distance between the two frames of a pair (metres; 0 = always
+            the previous frame). The paper's: 0.5 m.
+        window: earlier frames considered (>= 1).
+        chain_flow: a pair reaching back past the previous frame takes its flow chained through the
+            frames between (each frame's flow to the one before, kept by the stream, composed and then
+            refined on the pair: :func:`monostixels.inputs.flow.chained_flow`); False: the flow is computed
+            on the pair directly.
+        standing_max_s: a standing camera pairs with the oldest frame of the window at most this long
+            ago (seconds; the movers' velocity is averaged over the pair, and should not lag behind the
+            TTC warnings it feeds, ``ttc.warn_s`` 2 s by default).
+    """
+
+    min_distance_m: float = 0.5
+    window: int = 10
+    chain_flow: bool = True
+    standing_max_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        v = self.min_distance_m
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+            raise InputError(f"keyframes.min_distance_m: a distance >= 0 metres, got {v!r}")
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise InputError(f"keyframes.window: an integer >= 1 (earlier frames considered), got {self.window!r}")
+        if not isinstance(self.chain_flow, bool):
+            raise InputError(f"keyframes.chain_flow: true or false, got {self.chain_flow!r}")
+        v = self.standing_max_s
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            raise InputError(f"keyframes.standing_max_s: a time > 0 seconds, got {v!r}")
 
 
 @dataclass

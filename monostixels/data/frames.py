@@ -63,7 +63,7 @@ from monostixels.data._io import (
     require_dir,
 )
 from monostixels.data._lens import lens_camera, working_size
-from monostixels.inputs.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
+from monostixels.data.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
 from monostixels.data.base import FOLDER_FPS, FramePair, GroundTruth
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 
@@ -101,7 +101,7 @@ class FramesSource(LazySource):
         poses: optional poses file (see the module docstring).
         mask: optional mask image, non-zero = ignore (see the module docstring), or ``auto``: a static
             region at the bottom found from images spread over the folder (a bonnet,
-            :mod:`monostixels.inputs.static_regions`).
+            :mod:`monostixels.data.static_regions`).
 
     Raises:
         InputError: missing root, empty folder, neither an intrinsics file nor ``hfov_deg``, a malformed
@@ -233,7 +233,7 @@ class FramesSource(LazySource):
 
     def _sample(self, images: list[Path], step: int) -> list[list[np.ndarray]]:
         """Runs of images ``step`` apart, spread over the whole folder
-        (:func:`~monostixels.inputs.static_regions.spread_samples`; BGR, undistorted and resized), for the static
+        (:func:`~monostixels.data.static_regions.spread_samples`; BGR, undistorted and resized), for the static
         region search; unreadable ones and ones of another size than the first readable one are left out (the
         pairs report them)."""
         used = images[::step]

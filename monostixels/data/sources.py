@@ -17,9 +17,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, List, Mapping, Optional, Sequence, Union
 
 from monostixels._checks import InputError, config_params, is_unset, option_params
-from monostixels.data.base import FOLDER_FPS, FramePair
+from monostixels.data.base import FOLDER_FPS, FramePair, KeyframeParams
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
-from monostixels.inputs.static_regions import AUTO_MASK
+from monostixels.data.static_regions import AUTO_MASK
 
 __all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
            "KittiRawDataConfig", "DdadDataConfig", "FramesDataConfig", "VideoDataConfig", "CamVidDataConfig",
@@ -178,7 +178,7 @@ class FramesDataConfig:
         poses: camera-to-world poses (a line per image: 12 or 16 numbers, or an image number and 12), the
             ground-truth motion; None = no motion (estimate it with ``motion=mono``).
         mask: pixels to ignore: ``auto`` (a still region at the bottom, a bonnet, found from the first
-            images: :mod:`monostixels.inputs.static_regions`), a mask image of the images' size (PNG;
+            images: :mod:`monostixels.data.static_regions`), a mask image of the images' size (PNG;
             non-zero = ignore), undistorted with them, or None (every pixel).
     """
 
@@ -346,7 +346,7 @@ def _resize(value: Any) -> Any:
 
 
 def _mask(value: str | None) -> str | Path | None:
-    """``data.mask``: None, ``auto`` (found from the frames: :mod:`monostixels.inputs.static_regions`) or an image file."""
+    """``data.mask``: None, ``auto`` (found from the frames: :mod:`monostixels.data.static_regions`) or an image file."""
     if value is None:
         return None
     return AUTO_MASK if value.strip().lower() == AUTO_MASK else Path(value)
@@ -420,8 +420,6 @@ def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | 
         # A live source keeps as many frames as keyframe pairs may reach back.
         window = 10
         if data is not cfg:
-            from monostixels.sequence.runner import KeyframeParams  # (it imports the pipeline)
-
             window = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes").window
         return _video(params, camera, window)
     return _FACTORIES[name](params, camera)

@@ -45,7 +45,7 @@ from monostixels.data._io import LazySource, UnreadableFrame, limit_frames, requ
 from monostixels.data._lens import AUTO_PIXELS, intrinsics_from_hfov, lens_camera, working_size
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
-from monostixels.inputs.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
+from monostixels.data.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
 
 __all__ = ["VideoSource", "LiveVideoSource", "intrinsics_from_hfov", "is_live_path", "AUTO_PIXELS"]
 
@@ -80,7 +80,7 @@ class VideoSource(LazySource):
         pitch: camera pitch (radians, positive = looking down).
         mask: an image of the stored frame size, non-zero = ignore (see the module docstring), ``auto``
             (a static region at the bottom found from frames spread over the used range: a bonnet,
-            :mod:`monostixels.inputs.static_regions`), or None.
+            :mod:`monostixels.data.static_regions`), or None.
 
     Raises:
         InputError: missing file, a file OpenCV cannot decode, fewer than two frames in the chosen
@@ -153,7 +153,7 @@ class VideoSource(LazySource):
 
     def _sample_frames(self, used: list[int]) -> list[list[np.ndarray]]:
         """Runs of used frames, spread over the whole used range
-        (:func:`~monostixels.inputs.static_regions.spread_samples`; BGR, undistorted and resized), for the static
+        (:func:`~monostixels.data.static_regions.spread_samples`; BGR, undistorted and resized), for the static
         region search; undecodable ones are left out."""
         min_gap = max(1, round(AUTO_SPACING_S * self.fps / self.step)) if self.fps else 1
         runs: list[list[np.ndarray]] = []

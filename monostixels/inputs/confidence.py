@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from monostixels._checks import InputError, check_finite_fast, check_shape
-from monostixels.inputs.grey import to_gray  # the structure tensor's grey image; named here as before
+from monostixels.core.grey import to_gray  # the structure tensor's grey image; named here as before
 
 __all__ = [
     "ConfidenceParams",

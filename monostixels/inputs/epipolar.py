@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from monostixels.inputs.ground import _rays
+from monostixels.inputs.ground import rays
 
-__all__: list[str] = []
+__all__ = ["fit_rotation", "max_eigenvalue_at_most", "sampson", "skew", "refine_pose", "cheirality_sign"]
 
 
 def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -18,10 +18,10 @@ def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
     return x[:, :2] / x[:, 2:3]
 
 
-def _fit_rotation(K: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, iters: int = 4) -> tuple[np.ndarray, np.ndarray]:
+def fit_rotation(K: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, iters: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Best rotation-only motion (trimmed Procrustes on unit rays); returns R and pixel residuals (N,)."""
-    a = _rays(K, p_cur)
-    b = _rays(K, p_prev)
+    a = rays(K, p_cur)
+    b = rays(K, p_prev)
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     b /= np.linalg.norm(b, axis=1, keepdims=True)
     use = np.ones(len(a), dtype=bool)
@@ -34,7 +34,7 @@ def _fit_rotation(K: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, iters: i
     return R, res
 
 
-def _max_eigenvalue_at_most(cov: np.ndarray, bound: float) -> np.ndarray:
+def max_eigenvalue_at_most(cov: np.ndarray, bound: float) -> np.ndarray:
     """Mask (N,): the largest eigenvalue of each symmetric (N, 2, 2) matrix is <= ``bound``.
 
     ``bound I - C`` positive semi-definite: both diagonal entries and the determinant >= 0
@@ -48,7 +48,7 @@ def _max_eigenvalue_at_most(cov: np.ndarray, bound: float) -> np.ndarray:
     return (pa >= 0) & (pd >= 0) & (pa * pd >= b * b)
 
 
-def _sampson(E: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def sampson(E: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Sampson distance (N,) of ray pairs (z = 1) under ``b^T E a = 0``, in normalised units."""
     Ea = a @ E.T
     Etb = b @ E
@@ -57,11 +57,11 @@ def _sampson(E: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return num / np.sqrt(np.maximum(den, 1e-30))
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
+def skew(t: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
 
 
-def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
+def refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """Nonlinear refinement of ``(R, t̂)`` minimising the Sampson distance (soft-L1) over ray pairs."""
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
@@ -77,13 +77,13 @@ def _refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_s
 
     def fun(x: np.ndarray) -> np.ndarray:
         Rx, tx = unpack(x)
-        return _sampson(_skew(tx) @ Rx, a, b)
+        return sampson(skew(tx) @ Rx, a, b)
 
     sol = least_squares(fun, np.zeros(5), loss="soft_l1", f_scale=f_scale, method="trf", x_scale="jac")
     return unpack(sol.x)
 
 
-def _cheirality_sign(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+def cheirality_sign(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     """+1 if ``(R, t)`` puts more of the ray pairs (current ``a``, previous ``b``, (N, 3)) in front of both
     cameras than ``(R, -t)``, else -1. Depths from ``λ_a R a + t = λ_b b``: ``λ_a = -(b × t)·(b × Ra) /
     |b × Ra|²``, ``λ_b = (Ra × t)·(Ra × b) / |Ra × b|²`` (both change sign with ``t``)."""

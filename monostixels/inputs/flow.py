@@ -59,7 +59,7 @@ from monostixels.data.base import FramePair
 from monostixels.inputs.confidence import ConfidenceParams, fb_consistency_error, flow_covariance
 from monostixels.inputs.flow_config import (DeepFlowConfig, DisFlowConfig, ImageFlowConfig, RaftFlowConfig, flow_name,
                                             flow_params)
-from monostixels.inputs.grey import to_gray_u8
+from monostixels.core.grey import to_gray_u8
 
 __all__ = [
     "FLOW_BACKENDS",

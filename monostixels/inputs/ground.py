@@ -3,20 +3,19 @@
 Used by :func:`monostixels.inputs.motion.estimate_mono` for the metric scale of the camera's
 translation (steps 4a and 4c of that module's docstring):
 
-- :func:`_ground_candidates`: pixels whose viewing ray meets the configured ground ahead;
-- :func:`_ground_system` and :func:`_fit_ground`: the ground homography ``K (R + t̂ m^T) K^-1`` is
+- :func:`ground_candidates`: pixels whose viewing ray meets the configured ground ahead;
+- :func:`ground_system` and :func:`fit_ground`: the ground homography ``K (R + t̂ m^T) K^-1`` is
   linear in ``m = (s / h) n``; RANSAC and least squares over the flow of those pixels;
-- :func:`_photometric_ground`: the previous image warped onto the current one by the ground
+- :func:`photometric_ground`: the previous image warped onto the current one by the ground
   homography, its metric length and road normal searched for the least median grey difference
   (a 1-D grid over the length, then a pattern search), with the grid's candidates evaluated in
-  threads; :func:`_photometric_inputs` prepares its grey images and pixels.
+  threads; :func:`photometric_inputs` prepares its grey images and pixels.
 
 Convention (docs/conventions.md, section 2): ``X_prev = R X_cur + t``; pixels ``(u, v)``, metres.
 """
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -24,27 +23,25 @@ import torch
 
 from monostixels._pools import helper_pool
 from monostixels.inputs.confidence import to_gray
-
-if TYPE_CHECKING:
-    from monostixels.inputs.motion import MonoParams
+from monostixels.inputs.motion_base import MonoParams
 
 #: Semantic class id of road (classes.CLASS_NAMES): the plane the mounting height refers to.
-_ROAD_CLASS = 0
+ROAD_CLASS = 0
 
 
-def _rays(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def rays(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Viewing rays (N, 3) with z = 1 of pixels (N, 2)."""
     return np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(K).T
 
 
-def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndarray, prm: MonoParams,
+def ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndarray, prm: MonoParams,
                        lateral: bool = True) -> np.ndarray:
     """Mask (N,) of pixels whose ray meets the reference ground ahead within the road region.
 
     ``lateral=False`` drops the corridor of ``ground_half_width``: with semantic road labels the
     road pixels are known wherever they are, and a vehicle ahead can block the corridor.
     """
-    r = _rays(K, pts)
+    r = rays(K, pts)
     rn = r @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = np.where(rn > 1e-6, height / rn, np.inf)  # X = lam r on the ground n^T X = h
@@ -53,14 +50,14 @@ def _ground_candidates(K: np.ndarray, n: np.ndarray, height: float, pts: np.ndar
     return near & (np.abs(X[:, 0]) < prm.ground_half_width) if lateral else near
 
 
-def _ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Linear equations ``A m = b`` (2N, 3), (2N,) of ground pixels for ``H = K (R + t m^T) K^-1``.
 
     With ``y = K^-1 x``, ``a = K R y``, ``c = K t``: ``H x = a + c (m^T y)`` and ``x_prev × H x = 0``
     give ``(u' c_3 - c_1) y^T m = a_1 - u' a_3`` and the same in ``v'``; dividing by ``a_3``
     (≈ the third coordinate of ``H x``) makes the residuals close to pixels.
     """
-    y = _rays(K, p_cur)
+    y = rays(K, p_cur)
     a = y @ (K @ R).T
     c = K @ t
     up, vp = p_prev[:, 0], p_prev[:, 1]
@@ -70,7 +67,7 @@ def _ground_system(K: np.ndarray, R: np.ndarray, t: np.ndarray, p_cur: np.ndarra
     return A, b
 
 
-def _tilt_deg(m: np.ndarray, n_g: np.ndarray) -> float:
+def tilt_deg(m: np.ndarray, n_g: np.ndarray) -> float:
     """Angle (degrees) between the plane vector ``m`` and the unit normal ``n_g``."""
     q = float(np.linalg.norm(m))
     return math.degrees(math.acos(np.clip(float(m @ n_g) / max(q, 1e-30), -1.0, 1.0)))
@@ -80,7 +77,7 @@ def _tilt_deg(m: np.ndarray, n_g: np.ndarray) -> float:
 _RANSAC_CHUNK = 65536
 
 
-def _fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator, hypotheses: int = 300,
+def fit_ground(A: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator, hypotheses: int = 300,
                 n_g: np.ndarray | None = None, max_tilt: float = 180.0) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC (2 pixels = 4 equations per hypothesis) + least squares of ``A m = b``; returns m and inliers (N,).
 
@@ -143,7 +140,7 @@ _WARM_GRID_STRIDE = 4
 _WARM_GRID_HALF_WIDTH = 3
 #: Least ratio of the refined to the grid contrast that the pattern search is taken to reach (a bound with
 #: a margin): a warm grid contrast above ``photometric_sharp / 0.7`` is not refined.
-_PATTERN_MAX_GAIN = 0.7
+PATTERN_MAX_GAIN = 0.7
 
 
 #: Most threads of the photometric search: its grid is 96 costs, its pattern search asks for two at
@@ -156,35 +153,35 @@ _MAX_PHOTOMETRIC_WORKERS = 4
 #: either sign (the shared highway clip, 6 of 40 pairs), a real one with 44-52 % (the KITTI traffic drive's
 #: frames 1-7). Chosen between those two clips; the synthetic renders and KITTI drives 0023 / 0028 never
 #: reverse. docs/experiments.md, "Camera motion on unseen footage".
-_ROAD_SIGN_SHARE = 0.25
-#: Most road vectors of that vote (:func:`_road_sign_votes`).
+ROAD_SIGN_SHARE = 0.25
+#: Most road vectors of that vote (:func:`road_sign_votes`).
 _SIGN_VECTORS = 2000
 
-def _road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, R: np.ndarray,
+def road_sign_votes(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, R: np.ndarray,
                      t: np.ndarray, p_cur: np.ndarray, p_prev: np.ndarray, base: np.ndarray,
                      lateral: bool) -> tuple[int, int, int] | None:
     """The road's vectors that a plane explains with the translation ``t`` and with ``-t``, and how many it has.
 
-    The ground's flow is linear in ``m = (s / h) n`` (:func:`_ground_system`); reversing ``t`` reverses
+    The ground's flow is linear in ``m = (s / h) n`` (:func:`ground_system`); reversing ``t`` reverses
     ``m``. Each sign gets the RANSAC of the ground fit, its hypotheses within ``ground_max_tilt`` of the
     downward normal ``n_g``: the count of road vectors (``base`` & the ground ahead) within
     ``ground_threshold`` pixels of the best plane, or 0 where the fit leaves that cone. None with fewer than
     ``min_points`` road vectors. Each fit draws from its own generator (``params.seed``), so that the
     estimator's own stream is the same with or without this test.
     """
-    gidx = np.nonzero(base & _ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
+    gidx = np.nonzero(base & ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
     if len(gidx) < params.min_points:
         return None
     n_road = len(gidx)
     # A vote needs no more than _SIGN_VECTORS evenly spread vectors (the RANSAC's scoring is most of its time).
     gidx = gidx[:: -(-n_road // _SIGN_VECTORS)]
-    A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
+    A, bb = ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
     votes = []
     for sign in (1.0, -1.0):
         # Under -t the plane vector of the same flow is -m: the fit of -A (A is linear in t).
-        m, ginl = _fit_ground(sign * A, bb, params.ground_threshold, np.random.default_rng(params.seed), n_g=n_g,
+        m, ginl = fit_ground(sign * A, bb, params.ground_threshold, np.random.default_rng(params.seed), n_g=n_g,
                               max_tilt=params.ground_max_tilt)
-        votes.append(int(ginl.sum()) if float(np.linalg.norm(m)) > 0 and _tilt_deg(m, n_g) <= params.ground_max_tilt else 0)
+        votes.append(int(ginl.sum()) if float(np.linalg.norm(m)) > 0 and tilt_deg(m, n_g) <= params.ground_max_tilt else 0)
     # Counted in the road's vectors (scaled up from the ones voting).
     return votes[0] * n_road // len(gidx), votes[1] * n_road // len(gidx), n_road
 
@@ -260,7 +257,7 @@ def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return cv2.remap(img, mu.reshape(rows, cols), mv.reshape(rows, cols), cv2.INTER_LINEAR).reshape(-1)[:n]
 
 
-def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
+def photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.ndarray, t_unit: np.ndarray,
                         n_g: np.ndarray, height: float, pts: np.ndarray, max_tilt: float,
                         start: tuple[float, np.ndarray] | None = None,
                         unsharp: float = math.inf) -> tuple[float, np.ndarray, float] | None:
@@ -286,7 +283,7 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
         ``(s, n (3,), contrast)``, contrast = best cost / median cost over the 1-D grid (lower is
         clearer), or None without a clear minimum.
     """
-    y = _rays(K, pts)
+    y = rays(K, pts)
     a = y @ (K @ R).T
     c = K @ t_unit
     H, W = cur.shape
@@ -311,7 +308,7 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
         if key in cost_cache:
             return cost_cache[key]
         n = normal(x)
-        if _tilt_deg(n, n_g) > max_tilt:
+        if tilt_deg(n, n_g) > max_tilt:
             cost_cache[key] = math.inf
             return math.inf
         nkey = n.tobytes()
@@ -427,11 +424,11 @@ def _photometric_ground(cur: np.ndarray, prev: np.ndarray, K: np.ndarray, R: np.
     return math.exp(x[0]), normal(x), float(best / np.median(costs[finite]))
 
 
-def _photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: np.ndarray | None, K: np.ndarray,
+def photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: np.ndarray | None, K: np.ndarray,
                         n_g: np.ndarray, height: float, params: MonoParams,
                         rng: np.random.Generator,
                         ignore: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The grey images (current, previous) and ground pixels (N, 2) of :func:`_photometric_ground`.
+    """The grey images (current, previous) and ground pixels (N, 2) of :func:`photometric_ground`.
 
     The pixels are every second pixel that is road (``road_scores``: (10, H, W) class scores)
     or, without them, every second pixel of the road region ahead, less the ``ignore`` (H, W) pixels;
@@ -440,12 +437,12 @@ def _photometric_inputs(images: tuple[torch.Tensor, torch.Tensor], road_scores: 
     """
     H, W = images[0].shape[-2:]
     if road_scores is not None:
-        dense_2 = np.argmax(road_scores[:, ::2, ::2], axis=0) == _ROAD_CLASS
+        dense_2 = np.argmax(road_scores[:, ::2, ::2], axis=0) == ROAD_CLASS
     else:
         dense_2 = np.ones(((H + 1) // 2, (W + 1) // 2), dtype=bool)
     vv, uu = np.nonzero(dense_2)  # every second pixel
     pts = np.c_[uu * 2, vv * 2].astype(np.float64)
-    pts = pts[_ground_candidates(K, n_g, height, pts, params, lateral=road_scores is None)]
+    pts = pts[ground_candidates(K, n_g, height, pts, params, lateral=road_scores is None)]
     if ignore is not None:
         pts = pts[~ignore[pts[:, 1].astype(np.int64), pts[:, 0].astype(np.int64)]]
     if len(pts) > params.photometric_pixels:

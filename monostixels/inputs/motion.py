@@ -27,7 +27,7 @@ Backends (``cfg.name``):
      (Sampson distance, soft-L1 loss).
      The sign of ``t`` then comes from the road where its flow says it clearly: the road's plane lies
      below the camera (normal pointing down) under the true direction and above it under the reversed
-     one (:func:`~monostixels.inputs.ground._road_sign_votes`). The cheirality test counts every
+     one (:func:`~monostixels.inputs.ground.road_sign_votes`). The cheirality test counts every
      likely-static vector, and a truck beside the camera that the semantic net calls a building and
      that pulls ahead outvotes the scene; the road does not move.
   4. Metric scale from the ground: ground pixels (semantic road where given, else the road
@@ -77,12 +77,11 @@ from concurrent.futures import wait
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
-from omegaconf import MISSING
 
 from monostixels._pools import helper_pool
 from monostixels._checks import InputError, check_finite, check_shape, config_params
@@ -90,12 +89,15 @@ from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SK
 from monostixels.data._io import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion, angle_deg
-from monostixels.inputs.ground import (_PATTERN_MAX_GAIN, _ROAD_CLASS, _fit_ground, _ground_candidates, _ground_system,
-                                       _photometric_ground, _photometric_inputs, _rays, _road_sign_votes, _tilt_deg,
-                                       _ROAD_SIGN_SHARE)
-from monostixels.inputs.epipolar import (_cheirality_sign, _fit_rotation, _max_eigenvalue_at_most, _refine_pose,
-                                         _sampson, _skew)
+from monostixels.inputs.ground import (PATTERN_MAX_GAIN, ROAD_CLASS, fit_ground, ground_candidates, ground_system,
+                                       photometric_ground, photometric_inputs, rays, road_sign_votes, tilt_deg,
+                                       ROAD_SIGN_SHARE)
+from monostixels.inputs.epipolar import (cheirality_sign, fit_rotation, max_eigenvalue_at_most, refine_pose,
+                                         sampson, skew)
+from monostixels.inputs.motion_base import (MIN_TRANSLATION_M, MOTION_BACKENDS, MOTION_KINDS, NO_METRIC_MOTION,
+                                            FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate)
 from monostixels.inputs.motion_scene import scene_scale, with_scene_scale
+from monostixels.inputs.motion_track import MonoMotionConfig, motion_params
 from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
 
 __all__ = [
@@ -117,142 +119,15 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-MOTION_BACKENDS = ("gt", "file", "mono")
-#: What a camera-motion estimate knows (:attr:`MotionEstimate.kind`). Only ``standing`` lets the movers
-#: treat every flow vector as object motion; ``scale_unknown`` and ``unknown`` call nothing moving.
-MOTION_KINDS = ("metric", "standing", "scale_unknown", "unknown")
-#: The kinds without a metric camera motion (no movers, no TTC, no pose).
-NO_METRIC_MOTION = ("scale_unknown", "unknown")
-#: Below this camera translation (metres) a known motion (gt / file) counts as standing still:
-#: 1 mm moves a point 5 m away by ~0.15 px at KITTI focal length — no usable parallax.
-MIN_TRANSLATION_M = 1e-3
-
-
-@dataclass
-class MotionEstimate:
-    """Result of a camera-motion backend.
-
-    Attributes:
-        motion: ``X_prev = R X_cur + t`` (metres); for a degenerate pair ``R`` is estimated and
-            ``t = 0``; None when it cannot be determined at all.
-        degenerate: standing still / pure rotation: translation direction and scale unknown.
-        reason: human-readable ("ok", "no translation: median parallax 0.2 px", ...).
-        inlier_ratio: fraction of the used flow vectors consistent with the estimate (1 for gt/file).
-        ground_normal: (3,) float64 unit normal of the road plane fitted for the metric scale
-            (current camera, pointing down), or None (gt/file, or no fit).
-        kind: which of :data:`MOTION_KINDS` the estimate is: ``metric`` (rotation and metric
-            translation), ``standing`` (no translation: standing still or turning on the spot;
-            ``degenerate``), ``scale_unknown`` (rotation and translation direction known, its metric
-            length not: ``unit_motion``) or ``unknown`` (nothing known about the camera).
-        unit_motion: ``scale_unknown``: the rotation and the unit translation direction; else None.
-        scale_from: where a metric translation's length came from: ``given`` (gt / file),
-            ``photometric`` (the road's image alignment), ``road_marks`` (the alignment of the road's marks
-            and the travel direction, :mod:`~monostixels.inputs.road_marks`), ``ground_flow`` (the road's flow vectors),
-            ``sequence`` (the recent pairs' speed, :class:`~monostixels.inputs.motion_track.MotionTrack`), ``scene``
-            (static objects standing on the ground, :mod:`~monostixels.inputs.motion_scene`); None otherwise.
-        scale_std: the relative uncertainty (std of ``log |t|``) of a metric translation's length: 0 for a
-            given motion, the sequence filter's (:class:`~monostixels.inputs.motion_track.MotionTrack`) over a
-            sequence, the settings' ``scale_meas_std`` for a single pair; None without a metric translation.
-    """
-
-    motion: Motion | None
-    degenerate: bool
-    reason: str
-    inlier_ratio: float
-    ground_normal: torch.Tensor | None = None
-    kind: str = "metric"
-    unit_motion: Motion | None = None
-    scale_from: str | None = None
-    scale_std: float | None = None
-
-
-@dataclass
-class MonoParams:
-    """Parameters of the ``mono`` estimator (keys of the ``motion`` config group's option ``mono``;
-    its schema is :class:`~monostixels.inputs.motion_track.MonoMotionConfig`).
-
-    Attributes:
-        step: stride (pixels) of the grid of flow vectors used.
-        max_points: at most this many vectors (random subset, seeded) for the essential matrix.
-        max_flow_sigma: vectors whose flow standard deviation (sqrt of the largest covariance
-            eigenvalue, pixels) exceeds this are not used.
-        ransac_threshold: RANSAC inlier threshold of the essential matrix (pixels).
-        ransac_confidence: RANSAC confidence.
-        min_parallax: median residual (pixels) of the rotation-only fit below which the pair
-            counts as degenerate (no translation).
-        min_points: fewest usable flow vectors (and ground vectors) for an estimate.
-        ground_max_distance: ground region ahead of the car (no semantics), metres along z.
-        ground_half_width: half width of that region, metres.
-        ground_threshold: inlier threshold of the ground-plane fit (pixels).
-        ground_max_tilt: largest angle (degrees) between the fitted and the configured ground normal.
-        photometric_scale: scale and road normal from the images (step 4a) when they are given;
-            the flow of the ground (step 4b) is then the fallback.
-        photometric_pixels: at most this many ground pixels (seeded subset) in that search.
-        photometric_sharp: the photometric estimate is taken first when its minimum is this sharp
-            (best / median cost over the scale grid); a weaker one only when the flow gives no plane.
-        scene_scale: the scene model's length of ``t`` (static objects' ground contacts,
-            :mod:`monostixels.inputs.motion_scene`), with semantic scores: checked against the road's (where the
-            two disagree the pair's scale is uncertain) and taken where the road gives none.
-        kerb_height: how far sidewalks and verges lie above the road (m), for the scene model's contacts on them.
-        road_marks: without a sharp photometric minimum, the scale and travel direction from the road's
-            marks (:mod:`monostixels.inputs.road_marks`) where the flow of the ground gives none or
-            one well short of theirs (:data:`FLOW_SHORT_RATIO`).
-        seed: RNG seed of the subsampling and RANSAC.
-    """
-
-    step: int = 4
-    max_points: int = 4000
-    max_flow_sigma: float = 2.0
-    ransac_threshold: float = 0.5
-    ransac_confidence: float = 0.999
-    min_parallax: float = 1.0
-    min_points: int = 50
-    ground_max_distance: float = 25.0
-    ground_half_width: float = 2.5
-    ground_threshold: float = 0.5
-    ground_max_tilt: float = 10.0
-    photometric_scale: bool = True
-    photometric_pixels: int = 40000
-    photometric_sharp: float = 0.3
-    road_marks: bool = True
-    scene_scale: bool = True
-    kerb_height: float = 0.15
-    seed: int = 0
-
 
 def _mono_params(cfg: Any) -> MonoParams:
     """The estimator's settings of the ``motion`` config node (``motion=mono``; its schema
     :class:`~monostixels.inputs.motion_track.MonoMotionConfig` holds them)."""
-    from monostixels.inputs.motion_track import MonoMotionConfig  # (that module imports this one)
-
     return config_params(MonoMotionConfig, cfg, "motion")
 
 
 # ----------------------------------------------------------------------------------------------
 # gt / file
-
-
-@dataclass
-class GtMotionConfig:
-    """``motion=gt``: the data source's ground-truth camera motion (``pair.motion``); no settings."""
-
-    name: str = "gt"
-
-
-@dataclass
-class FileMotionConfig:
-    """``motion=file``: the camera motion from a KITTI-style poses file.
-
-    Attributes:
-        path: the poses file (mandatory): per line 12 numbers (3x4 row-major ``T_w_cam``) or a frame number
-            and 12 numbers; the frames are those of the data source (meta ``frame_index`` / ``frame_index_prev``).
-        offset: position (metres) of the image camera in the posed camera's frame (same orientation); KITTI's
-            camera 2 against camera-0 poses: ``[P_rect_02[0,3] / fx, 0, 0]`` ~ ``[0.06, 0, 0]``. None = none.
-    """
-
-    name: str = "file"
-    path: str = MISSING
-    offset: Optional[List[float]] = None
 
 
 def _gt_motion(pair: FramePair) -> MotionEstimate:
@@ -339,11 +214,11 @@ FLOW_NEAR_PREDICTION = 0.8
 
 def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray, t: np.ndarray, n_g: np.ndarray,
                           head: str, pixels: str, inlier_ratio: float, note: str = "") -> MotionEstimate:
-    """The estimate from a :func:`_photometric_ground` result; ``head``, ``pixels``, ``note`` word its reason."""
+    """The estimate from a :func:`photometric_ground` result; ``head``, ``pixels``, ``note`` word its reason."""
     scale, normal, contrast = found
     motion = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(scale * t))
     reason = (f"{head}, scale photometric from {pixels}, contrast {contrast:.2f}, "
-              f"normal tilt {_tilt_deg(normal, n_g):.1f} deg)")
+              f"normal tilt {tilt_deg(normal, n_g):.1f} deg)")
     if note:
         reason += f" ({note})"
     return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(normal),
@@ -394,10 +269,10 @@ def estimate_mono(
             by ``interval_ratio``, this pair's interval over its) replaces the essential matrix's
             RANSAC when its Sampson inliers make at least 90 % of its own inlier ratio (then refined
             as RANSAC's would be), and the photometric search starts from its scale and road normal
-            (see :func:`_photometric_ground`). Where either test fails, that step runs from scratch.
+            (see :func:`photometric_ground`). Where either test fails, that step runs from scratch.
             None: from scratch.
         interval_ratio: see ``prior``.
-        ignore: (H, W) bool pixels to leave out (a bonnet, :mod:`monostixels.inputs.static_regions`), or None.
+        ignore: (H, W) bool pixels to leave out (a bonnet, :mod:`monostixels.data.static_regions`), or None.
 
     Returns:
         A :class:`MotionEstimate` (metres).
@@ -427,7 +302,7 @@ def estimate_mono(
     f = flow_np[:, vs, us].astype(np.float64).T  # N x 2; gathered before the (exact) conversion
     ok = np.ones(len(us), dtype=bool) if ignore_np is None else ~ignore_np[vs, us]
     if cov is not None:
-        ok &= _max_eigenvalue_at_most(cov.detach().cpu().numpy()[vs, us], params.max_flow_sigma**2)
+        ok &= max_eigenvalue_at_most(cov.detach().cpu().numpy()[vs, us], params.max_flow_sigma**2)
     labels = None
     if semantic is not None:
         # Class argmax where it is read: on the vector grid and on every second pixel (the
@@ -447,11 +322,11 @@ def estimate_mono(
     idx = np.nonzero(ok)[0]
     if len(idx) > params.max_points:
         idx = np.sort(rng.choice(idx, size=params.max_points, replace=False))
-    road = labels is not None and (labels[idx] == _ROAD_CLASS).sum() >= params.min_points
+    road = labels is not None and (labels[idx] == ROAD_CLASS).sum() >= params.min_points
     photometric = images is not None and params.photometric_scale
     # The photometric search's inputs need no flow: made in a second thread during steps 2-3
     # (single-threaded). ``rng`` is that thread's alone until it is joined: steps 2-3 draw nothing.
-    prep = (helper_pool("photometric-inputs").submit(_photometric_inputs, images, sem_np if road else None, Kn, n_g,
+    prep = (helper_pool("photometric-inputs").submit(photometric_inputs, images, sem_np if road else None, Kn, n_g,
                                                      height, params, rng, ignore_np)
             if photometric else None)
     try:
@@ -533,12 +408,12 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                        H: int, W: int, ok: np.ndarray, labels: np.ndarray | None, idx: np.ndarray, p_cur: np.ndarray,
                        p_prev: np.ndarray, road: bool, prep: Any, pred: _Prediction | None = None) -> MotionEstimate:
     """Steps 2-4 of :func:`estimate_mono` on the grid of usable vectors (``ok``, the subset ``idx``);
-    ``prep``: the future of :func:`_photometric_inputs`, or None without the photometric search;
+    ``prep``: the future of :func:`photometric_inputs`, or None without the photometric search;
     ``pred``: a stream's prediction (:func:`_prediction`) to start from, or None."""
     pc, pp = p_cur[idx], p_prev[idx]
 
     # 2. Degeneracy: does a rotation alone explain the flow?
-    R0, res0 = _fit_rotation(Kn, pc, pp)
+    R0, res0 = fit_rotation(Kn, pc, pp)
     parallax = float(np.median(res0))
     if parallax < params.min_parallax:
         still = float(np.median(np.linalg.norm(pp - pc, axis=1))) < params.min_parallax
@@ -549,17 +424,17 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                               kind="standing")
 
     # 3. Essential matrix (points1 = current, points2 = previous: X_prev = R X_cur + t).
-    a_all, b_all = _rays(Kn, pc), _rays(Kn, pp)
+    a_all, b_all = rays(Kn, pc), rays(Kn, pp)
     f_scale = params.ransac_threshold / Kn[0, 0]  # pixels -> normalised image units
     warm = False
     if pred is not None:
         # A stream's prediction in place of RANSAC where it explains as many vectors as the last pair did.
-        inl = np.abs(_sampson(_skew(pred.t_unit) @ pred.R, a_all, b_all)) < _WARM_SEED_FACTOR * f_scale
+        inl = np.abs(sampson(skew(pred.t_unit) @ pred.R, a_all, b_all)) < _WARM_SEED_FACTOR * f_scale
         warm = inl.sum() >= params.min_points and inl.mean() >= _WARM_MIN_INLIER_SHARE * pred.inlier_ratio
         # The epipolar constraint holds for -t as well: the sign is the one that puts the points in front
         # of both cameras (recoverPose's cheirality test), the prediction's where it does (a camera that
         # reverses does not).
-        R, t = pred.R, pred.t_unit * _cheirality_sign(pred.R, pred.t_unit, a_all[inl], b_all[inl])
+        R, t = pred.R, pred.t_unit * cheirality_sign(pred.R, pred.t_unit, a_all[inl], b_all[inl])
     if not warm:
         try:
             E, mask = cv2.findEssentialMat(pc, pp, Kn, method=cv2.RANSAC, prob=params.ransac_confidence,
@@ -582,8 +457,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     # Refine, then re-select inliers with the refined model (the RANSAC set is from a 5-point
     # hypothesis and misses good vectors), and refine once more on them.
     for _ in range(2):
-        R, t = _refine_pose(R, t, a_all[inl], b_all[inl], f_scale=f_scale)
-        inl = np.abs(_sampson(_skew(t) @ R, a_all, b_all)) < f_scale
+        R, t = refine_pose(R, t, a_all[inl], b_all[inl], f_scale=f_scale)
+        inl = np.abs(sampson(skew(t) @ R, a_all, b_all)) < f_scale
         if inl.sum() < params.min_points:
             return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement",
                                   float(inl.mean()), kind="unknown")
@@ -594,10 +469,10 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     # semantic net calls a building and that pulls ahead outvotes the scene behind it, and t comes out
     # reversed (docs/experiments.md, "Camera motion on unseen footage"). The road cannot move and lies
     # below the camera: its plane under +t has the normal pointing down, under -t up.
-    road_votes = _road_sign_votes(Kn, n_g, height, params, R, t, p_cur, p_prev,
-                                  ((labels == _ROAD_CLASS) & ok) if road else ok, lateral=not road)
+    road_votes = road_sign_votes(Kn, n_g, height, params, R, t, p_cur, p_prev,
+                                  ((labels == ROAD_CLASS) & ok) if road else ok, lateral=not road)
     flipped = (road_votes is not None and road_votes[1] > road_votes[0]
-               and road_votes[1] >= _ROAD_SIGN_SHARE * road_votes[2])
+               and road_votes[1] >= ROAD_SIGN_SHARE * road_votes[2])
     if flipped:
         t = -t
     # 4. Metric scale (and road normal) from the ground.
@@ -621,8 +496,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                 start = (pred.scale, pred.normal)
             # Warm, a grid minimum far from sharp is not refined: the pattern search lowers the contrast by
             # too little to bring it from above sharp / 0.7 to sharp.
-            found = _photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt, start,
-                                        unsharp=params.photometric_sharp / _PATTERN_MAX_GAIN)
+            found = photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt, start,
+                                        unsharp=params.photometric_sharp / PATTERN_MAX_GAIN)
             refine_weak = start is not None
         if found is None:
             failures.append(f"photometric: no clear minimum over {pixels})")
@@ -647,16 +522,16 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
 
     # The flow of the ground: the corridor ahead first; with road labels, the whole road if a
     # vehicle blocks the corridor.
-    base = ((labels == _ROAD_CLASS) & ok) if road else ok
+    base = ((labels == ROAD_CLASS) & ok) if road else ok
     for lateral in ((True, False) if road else (True,)):
-        gidx = np.nonzero(base & _ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
+        gidx = np.nonzero(base & ground_candidates(Kn, n_g, height, p_cur, params, lateral=lateral))[0]
         if len(gidx) < params.min_points:
             failures.append(f"{len(gidx)} ground vectors ({src}) < {params.min_points}")
             continue
-        A, bb = _ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
-        m, ginl = _fit_ground(A, bb, params.ground_threshold, rng, n_g=n_g, max_tilt=params.ground_max_tilt)
+        A, bb = ground_system(Kn, R, t, p_cur[gidx], p_prev[gidx])
+        m, ginl = fit_ground(A, bb, params.ground_threshold, rng, n_g=n_g, max_tilt=params.ground_max_tilt)
         q = float(np.linalg.norm(m))
-        tilt = _tilt_deg(m, n_g)
+        tilt = tilt_deg(m, n_g)
         if q > 0 and tilt <= params.ground_max_tilt and ginl.sum() >= params.min_points:
             break
         if ginl.sum() < params.min_points:
@@ -668,7 +543,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             return _road_marks_estimate(marks, R, t, head, pixels, inlier_ratio, "; ".join(failures))
         if found is not None:  # a weak photometric minimum is still better than none
             if refine_weak:  # warm, it may not have been refined: the search from scratch
-                found = _photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt) or found
+                found = photometric_ground(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, params.ground_max_tilt) or found
             return _photometric_estimate(found, R, t, n_g, head, pixels, inlier_ratio, note="; ".join(failures))
         # The camera moves and its direction is known; only the length of t is not (a sequence may supply it).
         unit = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(np.ascontiguousarray(t)))
@@ -709,8 +584,6 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
     Returns:
         A :class:`MotionEstimate`.
     """
-    from monostixels.inputs.motion_track import motion_params  # (that module imports this one)
-
     name = getattr(cfg, "name", "") if not hasattr(cfg, "keys") else str(cfg.get("name", ""))
     if name not in MOTION_BACKENDS:
         raise InputError(f"motion.name: unknown motion backend {name!r}, expected one of {MOTION_BACKENDS}")

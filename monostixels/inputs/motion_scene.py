@@ -20,16 +20,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from monostixels.core.classes import CLASS_NAMES, CLASS_TYPE, GROUND, STATIC_OBJECT
 from monostixels.core.geometry import Motion
-
-if TYPE_CHECKING:  # (that module imports this one)
-    from monostixels.inputs.motion import MotionEstimate
+from monostixels.inputs.motion_base import MotionEstimate
 
 __all__ = ["SceneScale", "scene_scale", "with_scene_scale"]
 

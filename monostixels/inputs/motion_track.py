@@ -19,7 +19,7 @@ import torch
 from monostixels._checks import InputError, is_unset, option_params
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion
-from monostixels.inputs.motion import FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate
+from monostixels.inputs.motion_base import FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate
 
 __all__ = ["MOTION_SCHEMAS", "MonoMotionConfig", "MotionTrack", "MotionTrackParams", "motion_params"]
 

@@ -2,7 +2,7 @@
 
 At highway speed the near road moves tens of pixels between frames and most of it is textureless asphalt:
 the flow there collapses towards zero, and the photometric search over all road pixels
-(:func:`monostixels.inputs.ground._photometric_ground`) finds asphalt matching itself best unwarped.
+(:func:`monostixels.inputs.ground.photometric_ground`) finds asphalt matching itself best unwarped.
 What fixes the length of a forward translation on a road is the image gradient *along* the epipolar
 lines (the ends of lane dashes, joints, shadows' edges): a mark parallel to the direction of travel
 (a solid lane line) looks the same at every scale and only tells the direction. So this search:

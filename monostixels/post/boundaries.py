@@ -25,12 +25,11 @@ import torch
 
 from monostixels._checks import InputError, check_shape
 from monostixels.core.classes import DYNAMIC_OBJECT, NUM_CLASSES, SKY, STATIC_OBJECT
+from monostixels.core.solver_config import REFINE_OBJECTS
 from monostixels.core.stixels import StixelWorld
 
 __all__ = ["REFINE_OBJECTS", "row_class_cost", "refine_object_tops"]
 
-#: ``solver.top_refine_objects``: whose tops move.
-REFINE_OBJECTS = {"dynamic": (DYNAMIC_OBJECT,), "all": (STATIC_OBJECT, DYNAMIC_OBJECT)}
 
 
 def row_class_cost(scores: torch.Tensor, column_width: int, alpha_L: float) -> torch.Tensor:

@@ -27,9 +27,9 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
 
 Everything carried from frame to frame lives here: the kept frames and their poses, the speed the
 keyframes read, the stream's reused work (:class:`~monostixels.sequence.stream.StreamState`), the monocular
-scale's speed prior (:class:`~monostixels.inputs.motion_track.MotionTrack`, handed to each
-:meth:`Pipeline.run <monostixels.pipeline.Pipeline.run>`) and the tracks. The pipeline itself keeps
-nothing between pairs.
+scale's speed prior (:class:`~monostixels.inputs.motion_track.MotionTrack`, handed to each pair's camera
+motion) and the tracks. The pipeline itself keeps nothing between pairs: the stream runs its steps on each
+pair (:meth:`~monostixels.sequence.stream.StreamState.run_pair`).
 
 Independent pairs (KITTI 2015, synthetic pairs) pass through with single-pair velocities and TTC.
 
@@ -52,54 +52,19 @@ from monostixels._checks import InputError, config_params
 from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
-from monostixels.data.base import FramePair, PreviousFrame
+from monostixels.data.base import FramePair, KeyframeParams, PreviousFrame
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.inputs.motion_track import motion_params
-from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult, motion_track_for
+from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
+from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamState
 from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
                                    time_to_collision)
 
-__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
+__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix", "motion_track_for"]
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class KeyframeParams:
-    """Keyframe choice: the schema of the config group ``keyframes`` (monostixels.config_schema).
-
-    Attributes:
-        min_distance_m: the least driven distance between the two frames of a pair (metres; 0 = always
-            the previous frame). The paper's: 0.5 m.
-        window: earlier frames considered (>= 1).
-        chain_flow: a pair reaching back past the previous frame takes its flow chained through the
-            frames between (each frame's flow to the one before, kept by the stream, composed and then
-            refined on the pair: :func:`monostixels.inputs.flow.chained_flow`); False: the flow is computed
-            on the pair directly.
-        standing_max_s: a standing camera pairs with the oldest frame of the window at most this long
-            ago (seconds; the movers' velocity is averaged over the pair, and should not lag behind the
-            TTC warnings it feeds, ``ttc.warn_s`` 2 s by default).
-    """
-
-    min_distance_m: float = 0.5
-    window: int = 10
-    chain_flow: bool = True
-    standing_max_s: float = 2.0
-
-    def __post_init__(self) -> None:
-        v = self.min_distance_m
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-            raise InputError(f"keyframes.min_distance_m: a distance >= 0 metres, got {v!r}")
-        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
-            raise InputError(f"keyframes.window: an integer >= 1 (earlier frames considered), got {self.window!r}")
-        if not isinstance(self.chain_flow, bool):
-            raise InputError(f"keyframes.chain_flow: true or false, got {self.chain_flow!r}")
-        v = self.standing_max_s
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-            raise InputError(f"keyframes.standing_max_s: a time > 0 seconds, got {v!r}")
 
 
 def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams, speed_mps: float | None,
@@ -142,6 +107,15 @@ def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams,
         if recent:
             return recent[-1][0].back, recent[-1][1]
     return candidates[0].back, dist[0]
+
+
+def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
+    """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
+    with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
+    motion = motion_params(cfg.motion)
+    if isinstance(motion, MonoMotionConfig) and motion.sequence_prior:
+        return MotionTrack(motion)
+    return None
 
 
 def motion_matrix(motion: Motion) -> torch.Tensor:
@@ -269,7 +243,7 @@ class SequenceRunner:
     # ------------------------------------------------------------------ one frame
     def _solve(self, index: int, pair: FramePair, back: int | None, driven: float | None) -> SequenceStep:
         try:
-            res = self.pipeline.run(pair, state=self.stream, motion_track=self.motion_track)
+            res = self.stream.run_pair(self.pipeline, pair, self.motion_track)
         except MotionEstimationError as err:
             self.reset() if back is None else None
             return SequenceStep(index, pair, None, str(err))

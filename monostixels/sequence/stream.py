@@ -1,9 +1,10 @@
 """The stream state: work carried from one frame of a sequence to the next (config group ``stream``).
 
 A :class:`StreamState` lives beside the keyframes and tracks of a
-:class:`~monostixels.sequence.SequenceRunner` (one object per stream, reset with it) and is handed to
-:meth:`monostixels.pipeline.Pipeline.run` with every pair. It keeps what the last solved pair computed
-for its *current* frame, which becomes the *previous* frame of the next pair:
+:class:`~monostixels.sequence.SequenceRunner` (one object per stream, reset with it) and runs the
+steps of the per-pair :class:`~monostixels.pipeline.Pipeline` on every pair (:meth:`StreamState.run_pair`),
+which itself keeps nothing. It keeps what the last solved pair computed for its *current* frame, which
+becomes the *previous* frame of the next pair:
 
 - per frame (the last few): its 8-bit grey image (the flow backends' input), so that a frame is not
   converted twice, and its semantic scores: with ``stream.semantic_every = k`` the net runs on every
@@ -23,14 +24,14 @@ through the frames between (:func:`monostixels.inputs.flow.chained_flow`).
 A pair is continued when its earlier frame (``meta["frame_prev"]``) is a kept frame of the same
 ``meta["sequence"]`` (and image size) and it comes after the last pair; keyframe pairs that reach two
 frames back are continued too. Any other pair (independent pairs, the first pair of a clip, a pair
-after a failed one) starts cold, exactly as :meth:`Pipeline.run` without a state.
+after a failed one) starts cold, exactly as :meth:`Pipeline.run` on its own.
 
 With ``stream.overlap`` the state also overlaps consecutive pairs: the sequence layer reads its source
 through :meth:`StreamState.lookahead`, and once a pair's flow and semantics are known (all the next
 pair's start from), :meth:`StreamState.start_next` reads the next pair (the next frame, paired as far
 back as this one) and computes its flow and semantics in a second thread while this pair's camera
 motion is estimated and the pair is solved (the motion, kept by :meth:`StreamState.keep_motion`, is read
-by the next pair's own motion estimate only); the pipeline takes them
+by the next pair's own motion estimate only); the pair takes them
 (:meth:`StreamState.take_inputs`) if that is the pair asked for next and the state has not changed
 since, else computes them itself. The results are the same either way.
 
@@ -45,13 +46,14 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
 
-import cv2
 import numpy as np
 import torch
 
 from monostixels._checks import InputError, config_params
-from monostixels.inputs.static_regions import crop_ignored
+from monostixels.data.static_regions import crop_ignored
 from monostixels.data.base import FramePair
+from monostixels.inputs.motion_track import MotionTrack
+from monostixels.pipeline import Carried, Chain, Pipeline, PipelineResult, warp_scores
 
 __all__ = ["StreamParams", "StreamState", "Carried", "Chain", "warp_scores"]
 
@@ -90,49 +92,6 @@ class StreamParams:
         k = self.semantic_every
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise InputError(f"stream.semantic_every: a whole number >= 1 (1 = the net on every frame), got {k!r}")
-
-
-@dataclass
-class Carried:
-    """What the stream hands to a pair (fields None where nothing is carried).
-
-    Attributes:
-        grey_prev: (H, W) uint8 grey of the pair's previous image.
-        flow_init: (H, W, 2) float32 start of the flow, pixels (current -> previous).
-        semantic: (10, H, W) scores of the pair's previous frame, to carry through the flow; None = run the net.
-        motion: the last pair's camera-motion estimate (:class:`~monostixels.inputs.motion.MotionEstimate`).
-        interval_ratio: this pair's time interval over the last pair's (1 where unknown).
-    """
-
-    grey_prev: np.ndarray | None = None
-    flow_init: np.ndarray | None = None
-    semantic: torch.Tensor | None = None
-    motion: Any = None
-    interval_ratio: float = 1.0
-    chain: "Chain | None" = None
-
-    @property
-    def anything(self) -> bool:
-        """Whether anything is carried (else the pair runs exactly as on its own)."""
-        return any(x is not None for x in (self.grey_prev, self.flow_init, self.semantic, self.motion, self.chain))
-
-
-@dataclass
-class Chain:
-    """What a keyframe pair's flow is chained through (:func:`monostixels.inputs.flow.chained_flow`).
-
-    Attributes:
-        last_image: (3, H, W) image of the stream's last frame ``L`` (between the pair's two frames).
-        last_grey: (H, W) uint8 grey of it, or None.
-        prev_grey: (H, W) uint8 grey of the pair's earlier frame where the stream kept it, or None.
-        steps: the kept flows from ``L`` back to the pair's earlier frame, newest first: (flow from a frame
-            to the frame before it, flow back or None), (H, W, 2) float32 pixels.
-    """
-
-    last_image: torch.Tensor
-    last_grey: np.ndarray | None
-    steps: list[tuple[np.ndarray, np.ndarray | None]]
-    prev_grey: np.ndarray | None = None
 
 
 @dataclass
@@ -256,6 +215,46 @@ class StreamState:
             raise out[2]
         self.ahead += 1
         return out[1]
+
+    # ------------------------------------------------------------------ one pair
+    def run_pair(self, pipeline: Pipeline, pair: FramePair, motion_track: MotionTrack | None = None
+                 ) -> PipelineResult:
+        """Run ``pipeline``'s steps on ``pair``, a pair of this stream: what the last pair of the stream
+        computed for this pair's previous frame (grey image, flow, semantic scores, camera motion, as the
+        config group ``stream`` says) is carried in, and this pair's is kept; with ``stream.overlap`` the
+        next pair's flow and semantics start while this pair's camera motion is estimated and it is
+        solved. A pair that does not continue the stream runs as :meth:`Pipeline.run` on its own.
+
+        Args:
+            pipeline: the per-pair pipeline.
+            pair: the frame pair.
+            motion_track: the sequence's prior on the camera's speed
+                (:meth:`~monostixels.pipeline.Pipeline.motion_for`), or None.
+        """
+        pair, sec, start = pipeline.prepare(pair)
+        try:
+            carried = self.carried(pair)
+            ready = self.take_inputs(pair)
+            flow, semantic = pipeline.given_inputs(pair, ready if ready is not None else pipeline.inputs(pair, carried),
+                                                   sec)
+            if ready is not None:
+                # Computed ahead, while the last pair was solved: counted in this pair's wall time all the same.
+                sec["inputs_ahead"] = sec["inputs"]
+                start -= sec["inputs"]
+            # What the next pair's inputs start from is known now (this frame's grey image, flow and
+            # scores); with stream.overlap its flow and semantics start in the background while this
+            # pair's camera motion is estimated and the pair is solved. The motion, which only the
+            # next pair's own motion estimate reads, is kept once it is known.
+            self.update(pair, grey=flow.grey, flow=flow.flow, semantic=semantic, semantic_fresh=carried.semantic is None,
+                        motion=None, carried=carried, flow_result=flow)
+            self.start_next(pipeline.inputs)
+            motion = pipeline.timed_motion(pair, flow, semantic, carried, motion_track, sec)
+            self.keep_motion(pair, None if motion.degenerate else motion)
+            res = pipeline.solve_pair(pair, flow, semantic, motion, sec, start)
+        except Exception:
+            self.drop()  # the next pair starts cold
+            raise
+        return pipeline.at_full_size(res)
 
     # ------------------------------------------------------------------ before a pair
     def _continues(self, pair: FramePair) -> bool:
@@ -391,34 +390,6 @@ def _step_of(pair: FramePair, flow: Any, last: Any) -> tuple[tuple[np.ndarray, n
     if flow.backend != "gt" and (last is None or prev == last):
         return (_hwc(flow.flow), _hwc(flow.backward)), prev
     return None, None
-
-
-def warp_scores(scores: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """Scores of the previous image carried to the current one through the flow.
-
-    Each current pixel ``x`` takes the scores at ``x + f(x)`` in the previous image (bilinear; the
-    border replicated where the flow leaves the image). Bilinear weights are a convex combination, so
-    scores that sum to 1 per pixel still do (to float rounding, ~1e-6).
-
-    Args:
-        scores: (C, H, W) float32 class scores of the previous image.
-        flow: (2, H, W) current -> previous, pixels.
-
-    Returns:
-        (C, H, W) float32 scores of the current image.
-    """
-    C, H, W = scores.shape
-    if tuple(flow.shape) != (2, H, W):
-        raise InputError(f"warp_scores: flow of shape {tuple(flow.shape)} for scores of shape {tuple(scores.shape)}")
-    f = flow.float().numpy()
-    mx = f[0] + np.arange(W, dtype=np.float32)[None, :]
-    my = f[1] + np.arange(H, dtype=np.float32)[:, None]
-    src = np.ascontiguousarray(scores.float().numpy())
-    out = np.empty_like(src)
-    # One plane at a time: no interleaving of the channels (OpenCV remaps at most 4 at once).
-    for c in range(C):
-        cv2.remap(src[c], mx, my, cv2.INTER_LINEAR, dst=out[c], borderMode=cv2.BORDER_REPLICATE)
-    return torch.from_numpy(out)
 
 
 class _Lookahead:

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.inputs.grey import to_gray, to_gray_u8
+from monostixels.core.grey import to_gray, to_gray_u8
 
 __all__ = ["AUTO_MASK", "AUTO_BURSTS", "AUTO_BURST", "AUTO_SPACING_S", "spread_samples", "still_pixels",
            "find_static_region", "with_static_region", "IgnoreMask", "apply_ignore_mask", "crop_ignored"]
