@@ -88,6 +88,11 @@ def test_an_uncertain_scale_leaves_only_the_movers_that_break_the_epipolar_const
     assert float(unsure.motion[1].norm()) == 0.0 and unsure.flags["static_checked"] == 3
     # Their depths stay the scene model's: the flow's static depth scales with the uncertain length.
     assert torch.equal(unsure.inverse_depth, st.inverse_depth)
+    # The same decisions where the uncertain length is 20x short (every static depth triangulates to 0.5 m,
+    # under the check's depth range): whether a flow fits the epipolar geometry does not depend on the length.
+    short = Motion(MOTION.R, MOTION.t / 20.0)
+    unsure_short = check_movers(st, flow, short, params=MoverCheckParams(), scale_known=False)
+    assert torch.equal(unsure_short.type, unsure.type) and unsure_short.flags["static_checked"] == 3
 
 
 # A camera with a KITTI-like focal length, so that a depth difference shows as rows at the ground contact.

@@ -79,7 +79,8 @@ class MoverCheckParams:
         contact_sliver_rows: a stixel on an object at most this many rows tall that stands on a
             ground stixel stands on that ground for the contact test (0 = off).
         min_pixels: fewest pixels with a valid triangulation for a decision.
-        min_depth, max_depth: triangulated depths outside this range (metres) do not vote.
+        min_depth, max_depth: triangulated depths outside this range (metres) do not vote (where the length of
+            the camera motion is known: else every depth in front of the camera votes).
 
     The defaults are the shipped check (the schema of the config group ``movers``); the purely
     geometric check is ``keep_classes=()``, ``max_dynamic_residual_ratio=inf``,
@@ -162,7 +163,13 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         z = triangulate_points(K, R, t, uu, vv, fu, fv)[0].to(flow.dtype if flow.is_floating_point() else torch.float32).double()
     else:
         z = point_depth[vi, ui].double()
-    ok = torch.isfinite(z) & (z >= prm.min_depth) & (z <= prm.max_depth)
+    if scale_known:
+        ok = torch.isfinite(z) & (z >= prm.min_depth) & (z <= prm.max_depth)
+    else:
+        # The depths scale with the very length that is uncertain: a range in metres would refuse a whole
+        # static scene seen through a length 20x short (DAD 487's held 0.1 m/s), and leave it moving. The
+        # static plane's residual does not depend on the length; only "in front of the camera" does not either.
+        ok = torch.isfinite(z) & (z > 0)
     n_ok = torch.bincount(sid[ok], minlength=S)
     n_all = stixels.normals().double()[dyn]  # S x 3
     rays = pixel_rays(K, uu[ok], vv[ok])
