@@ -1,4 +1,5 @@
-"""The frame-pair type every data source yields and every command consumes, and the keyframe settings.
+"""The frame-pair type every data source yields and every command consumes, what a source must and may
+provide (:class:`SequenceSource`, :class:`SequentialSource`, :class:`LiveSource`), and the keyframe settings.
 
 The keyframe settings (:class:`KeyframeParams`, used by :mod:`monostixels.sequence.runner`) live here
 because a live source sizes its buffer of frames by how far back a pair may reach.
@@ -6,15 +7,17 @@ because a live source sizes its buffer of frames by how far back a pair may reac
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
 from monostixels._checks import InputError, check_finite_fast, check_same_size, check_shape
 from monostixels.core.geometry import Camera, Motion
 
-__all__ = ["GroundTruth", "FramePair", "PreviousFrame", "KeyframeParams", "FOLDER_FPS"]
+__all__ = ["GroundTruth", "FramePair", "PreviousFrame", "KeyframeParams", "FOLDER_FPS", "SequenceSource",
+           "SequentialSource", "LiveSource", "Source"]
 
 #: Frame rate (Hz) of a folder of images that states none (``data=frames``' ``data.fps``): KITTI's 10 Hz.
 FOLDER_FPS = 10.0
@@ -145,3 +148,76 @@ class FramePair:
     def size(self) -> tuple[int, int]:
         """(H, W) in pixels."""
         return int(self.image.shape[-2]), int(self.image.shape[-1])
+
+
+# ---------------------------------------------------------------------------------------------- sources
+# What the sequence layer (monostixels.sequence), the writers (monostixels.output.writers) and eval ask
+# of a data source. The capabilities are protocols checked with isinstance, so that a source of one's
+# own reads here, in one place, what it must and may provide.
+
+
+@runtime_checkable
+class SequenceSource(Protocol):
+    """A recorded source: every source must provide these (``Sequence[FramePair]`` does).
+
+    Pairs are read on access, in any order; a pair that cannot be made raises
+    :class:`monostixels.data._io.PairSkipped` (warned about and skipped by the sequence layer).
+
+    Optional attributes, read where present: ``fps`` (frames per second of the recording: videos'
+    frame rate, velocities), ``step`` (recorded frames per frame offered), ``skipped_frames`` and
+    ``restarts`` (labels of unreadable frames and of frames where a sequence started again: ``run``'s
+    summary).
+    """
+
+    def __len__(self) -> int:
+        """Number of frame pairs."""
+        ...
+
+    def __getitem__(self, index: int) -> FramePair:
+        """Pair ``index``: its current frame with the frame before it."""
+        ...
+
+
+@runtime_checkable
+class SequentialSource(Protocol):
+    """A source whose pairs are frames of clips (videos, drives): keyframes, tracks, TTC and
+    ``stream.overlap`` run on them. Without these methods every pair is solved on its own."""
+
+    def __getitem__(self, index: int) -> FramePair:
+        ...
+
+    def sequence_key(self, index: int) -> str | None:
+        """The clip pair ``index`` belongs to (pairs of one clip come in time order); None for an
+        independent pair."""
+        ...
+
+    def previous_frames(self, index: int, window: int) -> list[PreviousFrame]:
+        """Earlier frames pair ``index``'s current frame can be paired with, 1 to ``window`` frames back
+        (nearest first), without reading images."""
+        ...
+
+    def pair_back(self, index: int, back: int) -> FramePair:
+        """Pair ``index``'s current frame with the frame ``back`` frames earlier (1: pair ``index``)."""
+        ...
+
+
+@runtime_checkable
+class LiveSource(SequentialSource, Protocol):
+    """A source of frames as they come (a camera, a URL, ``data.realtime``): no length; the sequence
+    layer takes the pairs' indices from :meth:`indices`, and reads only pairs of frames still kept."""
+
+    def indices(self) -> Iterator[int]:
+        """Pair indices as frames arrive (blocking until each does); stops the reading when done."""
+        ...
+
+    def summary(self) -> dict[str, Any]:
+        """Which frames were processed and dropped (``run``'s ``stream.json``, docs/conventions.md)."""
+        ...
+
+    def close(self) -> None:
+        """Stop reading (a source never iterated)."""
+        ...
+
+
+#: Any data source: recorded (with a length) or live (frames as they come).
+Source = SequenceSource | LiveSource

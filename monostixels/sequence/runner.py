@@ -52,7 +52,7 @@ from monostixels._checks import InputError, config_params
 from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
-from monostixels.data.base import FramePair, KeyframeParams, PreviousFrame
+from monostixels.data.base import FramePair, KeyframeParams, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
@@ -180,9 +180,9 @@ class SequenceRunner:
         self.stream.reset()
 
     # ------------------------------------------------------------------ driving a source
-    def run(self, source: Sequence[FramePair], progress: Any = None) -> Iterator[SequenceStep]:
+    def run(self, source: Source, progress: Any = None) -> Iterator[SequenceStep]:
         """Process every pair of ``source`` in order; yields one :class:`SequenceStep` per pair."""
-        sequential = hasattr(source, "sequence_key") and hasattr(source, "pair_back")
+        sequential = isinstance(source, SequentialSource)
         read = self.stream.lookahead(source)  # stream.overlap: the next pair read (and its inputs started) ahead
         if read is source:
             yield from self._run(source, sequential, progress)
@@ -194,7 +194,7 @@ class SequenceRunner:
     def _run(self, source: Any, sequential: bool, progress: Any) -> Iterator[SequenceStep]:
         # A live source (a camera: monostixels.data.video.LiveVideoSource) has no length: it yields its
         # pairs' indices as frames arrive.
-        for i in (source.indices() if hasattr(source, "indices") else range(len(source))):
+        for i in (source.indices() if isinstance(source, LiveSource) else range(len(source))):
             key = source.sequence_key(i) if sequential else None
             try:
                 if key is None:

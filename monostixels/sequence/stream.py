@@ -51,7 +51,7 @@ import torch
 
 from monostixels._checks import InputError, config_params
 from monostixels.data.static_regions import crop_ignored
-from monostixels.data.base import FramePair
+from monostixels.data.base import FramePair, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.inputs.motion_track import MotionTrack
 from monostixels.pipeline import Carried, Chain, Pipeline, PipelineResult, warp_scores
 
@@ -158,11 +158,11 @@ class StreamState:
         self.ahead = 0
 
     # ------------------------------------------------------------------ overlap (stream.overlap)
-    def lookahead(self, source: Any) -> Any:
+    def lookahead(self, source: Source) -> Source:
         """``source`` as the sequence layer should read it: with ``stream.overlap``, a view that reads the
         next pair ahead (its images, then its flow and semantics, see :meth:`start_next`); a live source
         (frames as they come) or a source of independent pairs as it is."""
-        if not self.params.overlap or hasattr(source, "indices") or not hasattr(source, "pair_back"):
+        if not self.params.overlap or isinstance(source, LiveSource) or not isinstance(source, SequentialSource):
             self._lookahead = None
             return source
         self._lookahead = _Lookahead(source)
@@ -400,7 +400,7 @@ class _Lookahead:
     the inputs of), else read as usual.
     """
 
-    def __init__(self, source: Any) -> None:
+    def __init__(self, source: SequentialSource) -> None:
         self._source = source
         self._next: tuple[int, int] | None = None
         self.pending: tuple[tuple[int, int], Future] | None = None
@@ -415,6 +415,12 @@ class _Lookahead:
 
     def __getitem__(self, index: int) -> FramePair:
         return self._get(index, 1)
+
+    def sequence_key(self, index: int) -> str | None:
+        return self._source.sequence_key(index)
+
+    def previous_frames(self, index: int, window: int) -> list[PreviousFrame]:
+        return self._source.previous_frames(index, window)
 
     def pair_back(self, index: int, back: int) -> FramePair:
         return self._get(index, int(back))
