@@ -32,6 +32,7 @@ import torch
 from monostixels._checks import InputError, config_params
 from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.data.base import LiveSource, Source
+from monostixels.inputs.motion_base import NO_METRIC_MOTION, MotionKind
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
 
 __all__ = ["Frame", "Writer", "write_sequence", "Pictures", "FramePictures", "FrameFiles", "video_fps", "Videos",
@@ -245,9 +246,7 @@ def camera_report(flags: list[dict[str, Any]], height: float) -> dict[str, Any]:
     let the road say, the median height it implies (``height_fit_m``, else None) over ``height_fits`` pairs; the
     camera speed of the moving metric pairs (``speed_mps``: ``median``, ``min``, ``max`` m/s and ``pairs``, else
     None) and the pairs whose scale was too uncertain to tell movers (``scale_uncertain``)."""
-    from monostixels.inputs.motion import NO_METRIC_MOTION
-
-    kinds = [f.get("camera_motion", "metric") for f in flags]
+    kinds = [f.get("camera_motion", MotionKind.METRIC) for f in flags]
     metric = sum(k not in NO_METRIC_MOTION for k in kinds)
     sources: dict[str, int] = {}
     for f in flags:
@@ -315,7 +314,7 @@ class RunSummary(Writer):
         st = frame.result.stixels
         info = st.pair_info or {}
         speed = (info["driven_m"] / info["dt_s"] if info.get("driven_m") is not None and info.get("dt_s")
-                 and st.flags.get("camera_motion") == "metric" else None)
+                 and st.flags.get("camera_motion") == MotionKind.METRIC else None)
         self.camera.append({**st.flags, "speed_mps": speed})
 
     def close(self, error: BaseException | None = None) -> None:
