@@ -301,7 +301,7 @@ class Pipeline:
         uninformative."""
         flow, semantic, input_sec = inputs
         sec.update(input_sec)
-        ignore = pair.meta.get("ignore_pixels")
+        ignore = pair.info.ignore_pixels
         if ignore is not None:
             flow, semantic = _without(ignore, flow, semantic)
         return flow, semantic

@@ -41,12 +41,13 @@ MOTION_KEYS = ("rot_err_deg", "trans_dir_err_deg", "trans_dir_err_xz_deg", "scal
 
 
 def frame_interval(pair: FramePair, default: float) -> float:
-    """Seconds between the two frames of ``pair``: ``meta["dt"]``, else the difference of
-    ``meta["timestamp"]`` and ``meta["timestamp_prev"]`` (numbers in microseconds as DDAD writes
+    """Seconds between the two frames of ``pair``: ``info.dt``, else the difference of
+    ``info.timestamp`` and ``info.timestamp_prev`` (numbers in microseconds as DDAD writes
     them, or ISO-8601), else ``default``."""
-    if pair.meta.get("dt"):
-        return float(pair.meta["dt"])
-    a, b = pair.meta.get("timestamp"), pair.meta.get("timestamp_prev")
+    info = pair.info
+    if info.dt:
+        return float(info.dt)
+    a, b = info.timestamp, info.timestamp_prev
     if a is not None and b is not None:
         try:
             d = (float(a) - float(b)) * 1e-6
@@ -193,7 +194,7 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
             continue
         st = res.stixels
         if sequential:
-            seq = pair.meta.get("sequence")
+            seq = pair.info.sequence
             gt_motion = None
             if last_frame is not None and last_frame[0] == seq:
                 cands = source.previous_frames(step.index, 1)

@@ -601,7 +601,7 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
     return estimate_mono(
         pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, params, semantic,
         images=(pair.image, pair.image_prev), prior=prior, interval_ratio=interval_ratio,
-        ignore=pair.meta.get("ignore_pixels"),
+        ignore=pair.info.ignore_pixels,
     )
 
 
@@ -619,7 +619,7 @@ def implied_height(pair: FramePair, flow: Any, mono_cfg: Any, semantic: torch.Te
         return None
     est = estimate_mono(pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov,
                         _mono_params(mono_cfg), semantic, images=(pair.image, pair.image_prev),
-                        ignore=pair.meta.get("ignore_pixels"))
+                        ignore=pair.info.ignore_pixels)
     if est.motion is None or est.degenerate or est.scale_from not in ROAD_SCALES:
         return None
     if angle_deg(est.motion.t.double(), given.t.double()) > 10.0:
