@@ -215,13 +215,14 @@ def _run(cfg: DictConfig) -> None:
     from tqdm import tqdm
 
     from monostixels._checks import InputError
+    from monostixels.data.base import LiveSource
     from monostixels.data.sources import data_params
     from monostixels.output.writers import run_writers, write_sequence
     from monostixels.pipeline import Pipeline
     from monostixels.sequence import SequenceRunner
 
     src = _source(cfg)
-    live = hasattr(src, "indices")  # a camera, a URL or data.realtime: frames as they come, no length
+    live = isinstance(src, LiveSource)  # a camera, a URL or data.realtime: frames as they come, no length
     if not live and len(src) == 0:
         raise InputError(f"data source {cfg.data.name!r} (root {getattr(data_params(cfg.data), 'root', None)}) "
                          f"has no frame pairs")

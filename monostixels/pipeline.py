@@ -37,7 +37,8 @@ from monostixels.post.sfm import triangulate
 from monostixels.core.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
 from monostixels.inputs.flow_config import flow_params
-from monostixels.inputs.motion import NO_METRIC_MOTION, MotionEstimate, estimate_motion, implied_height
+from monostixels.inputs.motion import (NO_METRIC_MOTION, MotionEstimate, MotionKind, ScaleFrom, estimate_motion,
+                                      implied_height)
 from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
 from monostixels.inputs.semantic import estimate_semantics, semantic_params
 from monostixels.post.movers import MoverCheckParams, check_movers, settle_receding, static_only
@@ -244,7 +245,7 @@ class Pipeline:
             est = MotionEstimate(
                 motion=Motion(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)),
                 degenerate=True, reason=est.reason, inlier_ratio=est.inlier_ratio,
-                kind=est.kind if est.kind in NO_METRIC_MOTION else "unknown", unit_motion=est.unit_motion,
+                kind=est.kind if est.kind in NO_METRIC_MOTION else MotionKind.UNKNOWN, unit_motion=est.unit_motion,
             )
         return est
 
@@ -252,7 +253,7 @@ class Pipeline:
         """Whether a metric motion's length is too uncertain to tell movers and warn of collisions:
         its ``scale_std`` above ``motion.max_scale_std`` (docs/conventions.md, section 4.4)."""
         bound = getattr(self.motion_cfg, "max_scale_std", None)
-        return (motion.kind == "metric" and motion.scale_std is not None and bound is not None
+        return (motion.kind == MotionKind.METRIC and motion.scale_std is not None and bound is not None
                 and motion.scale_std > bound)
 
     def camera_for(self, pair: FramePair, motion: MotionEstimate) -> Camera:
@@ -300,7 +301,7 @@ class Pipeline:
         uninformative."""
         flow, semantic, input_sec = inputs
         sec.update(input_sec)
-        ignore = pair.meta.get("ignore_pixels")
+        ignore = pair.info.ignore_pixels
         if ignore is not None:
             flow, semantic = _without(ignore, flow, semantic)
         return flow, semantic
@@ -396,7 +397,7 @@ class Pipeline:
                                          self.solver_cfg.top_refine_depth_ratio, float(self.prior.alpha_L),
                                          self.solver_cfg.top_refine_objects)
             sec["tops"] = time.perf_counter() - t0
-        if self.report_height and motion.scale_from == "given" and not motion.degenerate:
+        if self.report_height and motion.scale_from == ScaleFrom.GIVEN and not motion.degenerate:
             # A metric motion from elsewhere (gt / file): the camera height the road implies beside the setting.
             h_fit = implied_height(pair, flow, self._mono_cfg, semantic, motion.motion)
             if h_fit is not None:
@@ -404,10 +405,11 @@ class Pipeline:
         if motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: the flow cannot tell an object's motion from the camera's.
             stixels = static_only(stixels)
-        stixels.flags["camera_motion"] = motion.kind
+        # The flags hold the plain strings (stixels.json, docs/conventions.md).
+        stixels.flags["camera_motion"] = motion.kind.value
         if motion.scale_from is not None:
-            stixels.flags["scale_from"] = motion.scale_from
-        if motion.scale_std is not None and motion.kind == "metric":
+            stixels.flags["scale_from"] = motion.scale_from.value
+        if motion.scale_std is not None and motion.kind == MotionKind.METRIC:
             stixels.flags["scale_std"] = round(float(motion.scale_std), 4)
             stixels.flags["scale_uncertain"] = uncertain
         if motion.degenerate and not stixels.flags.get("degenerate_motion"):

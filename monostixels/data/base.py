@@ -1,4 +1,5 @@
-"""The frame-pair type every data source yields and every command consumes, and the keyframe settings.
+"""The frame-pair type every data source yields and every command consumes, what a source must and may
+provide (:class:`SequenceSource`, :class:`SequentialSource`, :class:`LiveSource`), and the keyframe settings.
 
 The keyframe settings (:class:`KeyframeParams`, used by :mod:`monostixels.sequence.runner`) live here
 because a live source sizes its buffer of frames by how far back a pair may reach.
@@ -6,15 +7,17 @@ because a live source sizes its buffer of frames by how far back a pair may reac
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Iterator
+from dataclasses import dataclass, field, fields
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
 from monostixels._checks import InputError, check_finite_fast, check_same_size, check_shape
 from monostixels.core.geometry import Camera, Motion
 
-__all__ = ["GroundTruth", "FramePair", "PreviousFrame", "KeyframeParams", "FOLDER_FPS"]
+__all__ = ["GroundTruth", "FrameInfo", "FramePair", "PreviousFrame", "KeyframeParams", "FOLDER_FPS", "SequenceSource",
+           "SequentialSource", "LiveSource", "Source"]
 
 #: Frame rate (Hz) of a folder of images that states none (``data=frames``' ``data.fps``): KITTI's 10 Hz.
 FOLDER_FPS = 10.0
@@ -103,6 +106,48 @@ class KeyframeParams:
             raise InputError(f"keyframes.standing_max_s: a time > 0 seconds, got {v!r}")
 
 
+@dataclass(frozen=True)
+class FrameInfo:
+    """The keys of :attr:`FramePair.meta` that the pipeline and the sequence layer read, typed: a view of
+    ``meta`` (:attr:`FramePair.info`), which stays where sources write them. None = the source does not say.
+
+    Attributes:
+        sequence: the clip the pair belongs to (:meth:`SequentialSource.sequence_key`); pairs of one clip
+            come in time order.
+        frame: the source's number of the current frame (raw frame, video frame, clip frame).
+        frame_prev: the source's number of the earlier frame (``frame - back`` frames of ``data.step``).
+        name_prev: a stable identifier of the earlier frame.
+        back: how many of the source's frames the earlier frame lies back (1: the previous one; more: a
+            keyframe pair, or a pair across unreadable frames).
+        dt: seconds between the two frames.
+        time_s: the current frame's time in its recording (seconds).
+        timestamp, timestamp_prev: the two frames' timestamps as the source writes them (DDAD: microseconds).
+        ignore_mask: (H, W) bool, True = pixels to ignore (``data.mask``, pixels undistortion leaves empty).
+        ignore_pixels: (H, W) bool, the part of ``ignore_mask`` left once a bonnet's rows are cut off
+            (:func:`monostixels.data.static_regions.crop_ignored`), or None.
+    """
+
+    sequence: str | None = None
+    frame: int | None = None
+    frame_prev: int | None = None
+    name_prev: str | None = None
+    back: int | None = None
+    dt: float | None = None
+    time_s: float | None = None
+    timestamp: Any = None
+    timestamp_prev: Any = None
+    ignore_mask: torch.Tensor | None = None
+    ignore_pixels: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, meta: dict[str, Any]) -> FrameInfo:
+        """The view of ``meta`` (values as the source wrote them)."""
+        return cls(**{k: meta.get(k) for k in _INFO_KEYS})
+
+
+_INFO_KEYS = tuple(f.name for f in fields(FrameInfo))
+
+
 @dataclass
 class FramePair:
     """A current image, the previous image, the camera and (when known) the camera motion.
@@ -114,10 +159,10 @@ class FramePair:
         motion: camera motion ``X_prev = R X_cur + t`` (ground truth or from a poses file), or None.
         gt: ground truth, fields absent where the source lacks them.
         name: a stable identifier (file stem, ``synthetic_000003``...).
-        meta: anything else a source wants to pass on (seed, timestamps). Keys with a fixed meaning:
-            ``"ignore_mask"``: (H, W) torch bool, True = pixels to ignore (the user's ``data.mask``, and
-            pixels that undistortion leaves without a source; ``data=video`` / ``data=frames``), at the
-            image's size; absent = use every pixel.
+        meta: anything else a source wants to pass on (seed, timestamps). The keys with a fixed meaning
+            are the fields of :class:`FrameInfo`, read through :attr:`info`; ``"ignore_mask"``: (H, W) torch
+            bool, True = pixels to ignore (the user's ``data.mask``, and pixels that undistortion leaves
+            without a source; ``data=video`` / ``data=frames``), at the image's size; absent = use every pixel.
     """
 
     image: torch.Tensor
@@ -135,13 +180,91 @@ class FramePair:
         check_finite_fast(self.image, "image")
         if self.gt.depth is not None:
             check_same_size(self.gt.depth, self.image, "gt.depth", "image")
-        ignore = self.meta.get("ignore_mask")
+        ignore = self.info.ignore_mask
         if ignore is not None:
             check_shape(ignore, list(self.image.shape[-2:]), f"{self.name or 'frame'}: meta['ignore_mask']")
             if ignore.dtype != torch.bool:
                 raise InputError(f"{self.name or 'frame'}: meta['ignore_mask'] must be a bool tensor, got {ignore.dtype}")
 
     @property
+    def info(self) -> FrameInfo:
+        """The keys of :attr:`meta` with a fixed meaning, typed (a view: write to ``meta``)."""
+        return FrameInfo.of(self.meta)
+
+    @property
     def size(self) -> tuple[int, int]:
         """(H, W) in pixels."""
         return int(self.image.shape[-2]), int(self.image.shape[-1])
+
+
+# ---------------------------------------------------------------------------------------------- sources
+# What the sequence layer (monostixels.sequence), the writers (monostixels.output.writers) and eval ask
+# of a data source. The capabilities are protocols checked with isinstance, so that a source of one's
+# own reads here, in one place, what it must and may provide.
+
+
+@runtime_checkable
+class SequenceSource(Protocol):
+    """A recorded source: every source must provide these (``Sequence[FramePair]`` does).
+
+    Pairs are read on access, in any order; a pair that cannot be made raises
+    :class:`monostixels.data._io.PairSkipped` (warned about and skipped by the sequence layer).
+
+    Optional attributes, read where present: ``fps`` (frames per second of the recording: videos'
+    frame rate, velocities), ``step`` (recorded frames per frame offered), ``skipped_frames`` and
+    ``restarts`` (labels of unreadable frames and of frames where a sequence started again: ``run``'s
+    summary).
+    """
+
+    def __len__(self) -> int:
+        """Number of frame pairs."""
+        ...
+
+    def __getitem__(self, index: int) -> FramePair:
+        """Pair ``index``: its current frame with the frame before it."""
+        ...
+
+
+@runtime_checkable
+class SequentialSource(Protocol):
+    """A source whose pairs are frames of clips (videos, drives): keyframes, tracks, TTC and
+    ``stream.overlap`` run on them. Without these methods every pair is solved on its own."""
+
+    def __getitem__(self, index: int) -> FramePair:
+        ...
+
+    def sequence_key(self, index: int) -> str | None:
+        """The clip pair ``index`` belongs to (pairs of one clip come in time order); None for an
+        independent pair."""
+        ...
+
+    def previous_frames(self, index: int, window: int) -> list[PreviousFrame]:
+        """Earlier frames pair ``index``'s current frame can be paired with, 1 to ``window`` frames back
+        (nearest first), without reading images."""
+        ...
+
+    def pair_back(self, index: int, back: int) -> FramePair:
+        """Pair ``index``'s current frame with the frame ``back`` frames earlier (1: pair ``index``)."""
+        ...
+
+
+@runtime_checkable
+class LiveSource(SequentialSource, Protocol):
+    """A source of frames as they come (a camera, a URL, ``data.realtime``): no length; the sequence
+    layer takes the pairs' indices from :meth:`indices`, and reads only pairs of frames still kept."""
+
+    def indices(self) -> Iterator[int]:
+        """Pair indices as frames arrive (blocking until each does); stops the reading when done."""
+        ...
+
+    def summary(self) -> dict[str, Any]:
+        """Which frames were processed and dropped (``run``'s ``stream.json``, docs/conventions.md)."""
+        ...
+
+    def close(self) -> None:
+        """Stop reading (a source never iterated)."""
+        ...
+
+
+#: Any data source: recorded (with a length) or live (frames as they come).
+Source = SequenceSource | LiveSource

@@ -14,10 +14,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 from dataclasses import dataclass
-from typing import Any, Callable, List, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, List, Mapping, Optional, Union
 
 from monostixels._checks import InputError, config_params, is_unset, option_params
-from monostixels.data.base import FOLDER_FPS, FramePair, KeyframeParams
+from monostixels.data.base import FOLDER_FPS, KeyframeParams, Source
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.data.static_regions import AUTO_MASK
 
@@ -281,7 +281,7 @@ def camera_mount(data: Any, camera: Any) -> tuple[float, float]:
     return float(cam.height if height is None else height), float(cam.pitch)
 
 
-def _synthetic(data: SyntheticDataConfig, camera: Any) -> Sequence[FramePair]:
+def _synthetic(data: SyntheticDataConfig, camera: Any) -> Source:
     from monostixels.data.synthetic import SyntheticSequenceSource, SyntheticSource  # imported lazily
 
     length, speed = data.sequence_length, data.ego_speed_mps
@@ -295,7 +295,7 @@ def _synthetic(data: SyntheticDataConfig, camera: Any) -> Sequence[FramePair]:
                                    ego_speed=speed)
 
 
-def _kitti2015(data: Kitti2015DataConfig, camera: Any) -> Sequence[FramePair]:
+def _kitti2015(data: Kitti2015DataConfig, camera: Any) -> Source:
     from monostixels.data.kitti2015 import Kitti2015Source
 
     height, pitch = camera_mount(data, camera)
@@ -305,7 +305,7 @@ def _kitti2015(data: Kitti2015DataConfig, camera: Any) -> Sequence[FramePair]:
     )
 
 
-def _kitti_raw(data: KittiRawDataConfig, camera: Any) -> Sequence[FramePair]:
+def _kitti_raw(data: KittiRawDataConfig, camera: Any) -> Source:
     from monostixels.data.kitti_raw import KittiRawSource
 
     height, pitch = camera_mount(data, camera)
@@ -315,7 +315,7 @@ def _kitti_raw(data: KittiRawDataConfig, camera: Any) -> Sequence[FramePair]:
     )
 
 
-def _ddad(data: DdadDataConfig, camera: Any) -> Sequence[FramePair]:
+def _ddad(data: DdadDataConfig, camera: Any) -> Source:
     from monostixels.data.ddad import DDADSource
 
     return DDADSource(
@@ -325,7 +325,7 @@ def _ddad(data: DdadDataConfig, camera: Any) -> Sequence[FramePair]:
     )
 
 
-def _frames_folder(data: FramesDataConfig, camera: Any) -> Sequence[FramePair]:
+def _frames_folder(data: FramesDataConfig, camera: Any) -> Source:
     from monostixels.data.frames import FramesSource
 
     height, pitch = camera_mount(data, camera)
@@ -352,7 +352,7 @@ def _mask(value: str | None) -> str | Path | None:
     return AUTO_MASK if value.strip().lower() == AUTO_MASK else Path(value)
 
 
-def _video(data: VideoDataConfig, camera: Any, window: int = 10) -> Sequence[FramePair]:
+def _video(data: VideoDataConfig, camera: Any, window: int = 10) -> Source:
     from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
 
     height, pitch = camera_mount(data, camera)
@@ -363,11 +363,11 @@ def _video(data: VideoDataConfig, camera: Any, window: int = 10) -> Sequence[Fra
     )
     if data.realtime or is_live_path(data.path):
         # Frames as they come: a camera index, a URL, or a file read at its frame rate (data.realtime).
-        return LiveVideoSource(data.path, realtime=data.realtime, window=window, **common)  # type: ignore[return-value]
+        return LiveVideoSource(data.path, realtime=data.realtime, window=window, **common)
     return VideoSource(data.path, **common)
 
 
-def _camvid(data: CamVidDataConfig, camera: Any) -> Sequence[FramePair]:
+def _camvid(data: CamVidDataConfig, camera: Any) -> Source:
     # Single labelled images: no previous frame, no camera. `monostixels eval` scores them
     # through monostixels.eval.semantic instead of this factory.
     raise InputError(
@@ -376,7 +376,7 @@ def _camvid(data: CamVidDataConfig, camera: Any) -> Sequence[FramePair]:
     )
 
 
-_FACTORIES: dict[str, Callable[[Any, Any], Sequence[FramePair]]] = {
+_FACTORIES: dict[str, Callable[[Any, Any], Source]] = {
     "synthetic": _synthetic,
     "kitti2015": _kitti2015,
     "kitti_raw": _kitti_raw,
@@ -389,7 +389,7 @@ _FACTORIES: dict[str, Callable[[Any, Any], Sequence[FramePair]]] = {
 SOURCE_NAMES: tuple[str, ...] = tuple(_FACTORIES)
 
 
-def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | None = None) -> Sequence[FramePair]:
+def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | None = None) -> Source:
     """Build the data source named by ``cfg.name``.
 
     Args:
@@ -398,7 +398,9 @@ def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | 
         camera: the ``camera`` config group (``height`` metres, ``pitch`` radians); optional.
 
     Returns:
-        A sequence of :class:`FramePair` (``len`` and indexing; images are read on access).
+        A :class:`~monostixels.data.base.SequenceSource` of :class:`FramePair` (``len`` and indexing; images
+        are read on access), or, for a camera, a URL or ``data.realtime``, a
+        :class:`~monostixels.data.base.LiveSource` (frames as they come).
 
     Raises:
         InputError: unknown ``name``, or any bad input of the chosen source (missing root, files,

@@ -273,7 +273,7 @@ def crop_ignored(pair: Any) -> Any:
     cut below, the principal point does not move). A pair without a mask, or one cropped already, is
     returned as it is.
     """
-    mask = pair.meta.get("ignore_mask")
+    mask = pair.info.ignore_mask
     if mask is None:
         return pair
     split = apply_ignore_mask(torch.as_tensor(mask), pair.size)

@@ -6,7 +6,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import torch
@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from monostixels._checks import config_params
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.data.base import FramePair
+from monostixels.data.base import FramePair, SequenceSource, SequentialSource
 from monostixels.eval.metrics import (
     DepthAccumulator,
     SemanticAccumulator,
@@ -41,12 +41,13 @@ MOTION_KEYS = ("rot_err_deg", "trans_dir_err_deg", "trans_dir_err_xz_deg", "scal
 
 
 def frame_interval(pair: FramePair, default: float) -> float:
-    """Seconds between the two frames of ``pair``: ``meta["dt"]``, else the difference of
-    ``meta["timestamp"]`` and ``meta["timestamp_prev"]`` (numbers in microseconds as DDAD writes
+    """Seconds between the two frames of ``pair``: ``info.dt``, else the difference of
+    ``info.timestamp`` and ``info.timestamp_prev`` (numbers in microseconds as DDAD writes
     them, or ISO-8601), else ``default``."""
-    if pair.meta.get("dt"):
-        return float(pair.meta["dt"])
-    a, b = pair.meta.get("timestamp"), pair.meta.get("timestamp_prev")
+    info = pair.info
+    if info.dt:
+        return float(info.dt)
+    a, b = info.timestamp, info.timestamp_prev
     if a is not None and b is not None:
         try:
             d = (float(a) - float(b)) * 1e-6
@@ -116,7 +117,7 @@ def write_report(report: dict, path: str | Path) -> Path:
     return path
 
 
-def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, progress: bool = True,
+def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress: bool = True,
              on_result: Any = None) -> dict:
     """Run the pipeline on every pair of ``source`` and build the report (docs/conventions.md, 4.5).
 
@@ -140,7 +141,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
     pipe = runner.pipeline
     flow_name, motion_name, semantic_name = pipe.flow_cfg.name, pipe.motion_cfg.name, pipe.semantic_cfg.name
     temporal = TemporalAccumulator(lo, hi)
-    sequential = hasattr(source, "sequence_key") and len(source) > 0 and source.sequence_key(0) is not None
+    sequential = isinstance(source, SequentialSource) and len(source) > 0 and source.sequence_key(0) is not None
     last_frame: tuple[Any, str, torch.Tensor | None] | None = None  # sequence, name, pose of the last frame
     acc = {m: {s: DepthAccumulator(min_depth=lo, max_depth=hi) for s in SPLITS} for m in ("monostixels", "sfm")}
     n_stixels: list[int] = []
@@ -193,7 +194,7 @@ def evaluate(cfg: DictConfig, source: Iterable[FramePair], *, dataset: str, prog
             continue
         st = res.stixels
         if sequential:
-            seq = pair.meta.get("sequence")
+            seq = pair.info.sequence
             gt_motion = None
             if last_frame is not None and last_frame[0] == seq:
                 cands = source.previous_frames(step.index, 1)

@@ -95,13 +95,16 @@ from monostixels.inputs.ground import (PATTERN_MAX_GAIN, ROAD_CLASS, fit_ground,
 from monostixels.inputs.epipolar import (cheirality_sign, fit_rotation, max_eigenvalue_at_most, refine_pose,
                                          sampson, skew)
 from monostixels.inputs.motion_base import (MIN_TRANSLATION_M, MOTION_BACKENDS, MOTION_KINDS, NO_METRIC_MOTION,
-                                            FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate)
+                                            ROAD_SCALES, FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate,
+                                            MotionKind, ScaleFrom)
 from monostixels.inputs.motion_scene import scene_scale, with_scene_scale
 from monostixels.inputs.motion_track import MonoMotionConfig, motion_params
 from monostixels.inputs.road_marks import RoadMarksFit, road_marks_scale
 
 __all__ = [
     "MOTION_BACKENDS",
+    "MotionKind",
+    "ScaleFrom",
     "MOTION_KINDS",
     "NO_METRIC_MOTION",
     "MIN_TRANSLATION_M",
@@ -142,8 +145,8 @@ def _known(motion: Motion, what: str) -> MotionEstimate:
     tn = motion.translation_norm
     if tn < MIN_TRANSLATION_M:
         return MotionEstimate(motion, True, f"no translation ({what}): |t| = {tn:.2e} m < {MIN_TRANSLATION_M} m", 1.0,
-                              kind="standing")
-    return MotionEstimate(motion, False, f"ok ({what})", 1.0, scale_from="given", scale_std=0.0)
+                              kind=MotionKind.STANDING)
+    return MotionEstimate(motion, False, f"ok ({what})", 1.0, scale_from=ScaleFrom.GIVEN, scale_std=0.0)
 
 
 @lru_cache(maxsize=8)
@@ -222,7 +225,7 @@ def _photometric_estimate(found: tuple[float, np.ndarray, float], R: np.ndarray,
     if note:
         reason += f" ({note})"
     return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(normal),
-                          scale_from="photometric")
+                          scale_from=ScaleFrom.PHOTOMETRIC)
 
 
 def _road_marks_estimate(fit: RoadMarksFit, R: np.ndarray, t_essential: np.ndarray, head: str, pixels: str,
@@ -236,7 +239,7 @@ def _road_marks_estimate(fit: RoadMarksFit, R: np.ndarray, t_essential: np.ndarr
     if note:
         reason += f" ({note})"
     return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=torch.from_numpy(fit.normal),
-                          scale_from="road_marks")
+                          scale_from=ScaleFrom.ROAD_MARKS)
 
 
 def estimate_mono(
@@ -318,7 +321,7 @@ def estimate_mono(
     ok &= (p_prev[:, 0] >= 0) & (p_prev[:, 0] <= W - 1) & (p_prev[:, 1] >= 0) & (p_prev[:, 1] <= H - 1)
     if ok.sum() < params.min_points:
         return MotionEstimate(None, False, f"too few usable flow vectors: {int(ok.sum())} < {params.min_points}", 0.0,
-                              kind="unknown")
+                              kind=MotionKind.UNKNOWN)
     idx = np.nonzero(ok)[0]
     if len(idx) > params.max_points:
         idx = np.sort(rng.choice(idx, size=params.max_points, replace=False))
@@ -335,7 +338,7 @@ def estimate_mono(
     finally:
         if prep is not None:
             wait([prep])  # its thread draws from ``rng``: done before this estimate returns
-    moving = est.motion if est.kind == "metric" and not est.degenerate else est.unit_motion
+    moving = est.motion if est.kind == MotionKind.METRIC and not est.degenerate else est.unit_motion
     if labels is None or moving is None or float(moving.t.norm()) <= 0 or not params.scene_scale:
         return with_scene_scale(est, None, np.zeros(3), params)
     # The scene model's length of t (static objects stand on the ground): a second source beside the road's.
@@ -421,7 +424,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         inl = float((res0 < params.ransac_threshold * 2).mean())
         reason = f"no translation ({kind}): median parallax {parallax:.2f} px < {params.min_parallax} px"
         return MotionEstimate(Motion(torch.from_numpy(R0), torch.zeros(3, dtype=torch.float64)), True, reason, inl,
-                              kind="standing")
+                              kind=MotionKind.STANDING)
 
     # 3. Essential matrix (points1 = current, points2 = previous: X_prev = R X_cur + t).
     a_all, b_all = rays(Kn, pc), rays(Kn, pp)
@@ -441,18 +444,18 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
                                            threshold=params.ransac_threshold)
             if E is None or E.shape != (3, 3):
                 return MotionEstimate(None, False, "essential matrix: RANSAC found no model", 0.0,
-                                      kind="unknown")
+                                      kind=MotionKind.UNKNOWN)
             _, R, t, mask = cv2.recoverPose(E, pc, pp, Kn, mask=mask.copy())
         except cv2.error as err:
             # The 5-point solver asserts on some near-degenerate samples (a zero leading coefficient in
             # solvePoly): a failed estimate of this pair, not a crash.
             first = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
             return MotionEstimate(None, False, f"essential matrix: OpenCV failed on these vectors ({first})", 0.0,
-                                  kind="unknown")
+                                  kind=MotionKind.UNKNOWN)
         inl = mask.ravel() > 0
         if inl.sum() < params.min_points:
             return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers", float(inl.mean()),
-                                  kind="unknown")
+                                  kind=MotionKind.UNKNOWN)
         t = t.ravel()
     # Refine, then re-select inliers with the refined model (the RANSAC set is from a 5-point
     # hypothesis and misses good vectors), and refine once more on them.
@@ -461,7 +464,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         inl = np.abs(sampson(skew(t) @ R, a_all, b_all)) < f_scale
         if inl.sum() < params.min_points:
             return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement",
-                                  float(inl.mean()), kind="unknown")
+                                  float(inl.mean()), kind=MotionKind.UNKNOWN)
     inlier_ratio = float(inl.mean())
 
     # 3b. The sign of t from the road. The epipolar constraint holds for -t as well, and the cheirality
@@ -548,7 +551,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         # The camera moves and its direction is known; only the length of t is not (a sequence may supply it).
         unit = Motion(torch.from_numpy(np.ascontiguousarray(R)), torch.from_numpy(np.ascontiguousarray(t)))
         return MotionEstimate(None, False, "no metric scale: " + "; ".join(failures), inlier_ratio,
-                              kind="scale_unknown", unit_motion=unit)
+                              kind=MotionKind.SCALE_UNKNOWN, unit_motion=unit)
     scale = height * q
     # Near a stream's prediction the flow is not short: marks could only override it by saying the speed
     # rose by a seventh or more in one interval where the flow says it fell; they are not read then.
@@ -563,7 +566,7 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
     if failures:
         reason += f" ({'; '.join(failures)})"
     normal = torch.from_numpy(np.ascontiguousarray(m / q))
-    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=normal, scale_from="ground_flow")
+    return MotionEstimate(motion, False, reason, inlier_ratio, ground_normal=normal, scale_from=ScaleFrom.GROUND_FLOW)
 
 
 def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor | None = None, *,
@@ -598,7 +601,7 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
     return estimate_mono(
         pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov, params, semantic,
         images=(pair.image, pair.image_prev), prior=prior, interval_ratio=interval_ratio,
-        ignore=pair.meta.get("ignore_pixels"),
+        ignore=pair.info.ignore_pixels,
     )
 
 
@@ -616,8 +619,8 @@ def implied_height(pair: FramePair, flow: Any, mono_cfg: Any, semantic: torch.Te
         return None
     est = estimate_mono(pair.camera.K, pair.camera.height, pair.camera.ground_normal, flow.flow, flow.cov,
                         _mono_params(mono_cfg), semantic, images=(pair.image, pair.image_prev),
-                        ignore=pair.meta.get("ignore_pixels"))
-    if est.motion is None or est.degenerate or est.scale_from not in ("photometric", "road_marks", "ground_flow"):
+                        ignore=pair.info.ignore_pixels)
+    if est.motion is None or est.degenerate or est.scale_from not in ROAD_SCALES:
         return None
     if angle_deg(est.motion.t.double(), given.t.double()) > 10.0:
         return None

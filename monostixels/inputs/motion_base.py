@@ -8,6 +8,7 @@ estimator back; :mod:`monostixels.inputs.motion` exports them too.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 from typing import List, Optional
 
 import torch
@@ -15,15 +16,49 @@ from omegaconf import MISSING
 
 from monostixels.core.geometry import Motion
 
-__all__ = ["MOTION_BACKENDS", "MOTION_KINDS", "NO_METRIC_MOTION", "MIN_TRANSLATION_M", "MotionEstimate", "MonoParams",
-           "GtMotionConfig", "FileMotionConfig"]
+__all__ = ["MOTION_BACKENDS", "MotionKind", "ScaleFrom", "MOTION_KINDS", "NO_METRIC_MOTION", "ROAD_SCALES",
+           "MIN_TRANSLATION_M", "MotionEstimate", "MonoParams", "GtMotionConfig", "FileMotionConfig"]
 
 MOTION_BACKENDS = ("gt", "file", "mono")
-#: What a camera-motion estimate knows (:attr:`MotionEstimate.kind`). Only ``standing`` lets the movers
-#: treat every flow vector as object motion; ``scale_unknown`` and ``unknown`` call nothing moving.
-MOTION_KINDS = ("metric", "standing", "scale_unknown", "unknown")
+
+
+class _Named(str, Enum):
+    """An enum whose members are their strings: equal to them, and written as them (``str``, f-strings,
+    JSON), so that ``stixels.json`` keeps the strings of docs/conventions.md."""
+
+    def __str__(self) -> str:
+        # Python 3.12 formats mixed-in enums with __str__ ("MotionKind.METRIC" by default).
+        return str(self.value)
+
+
+class MotionKind(_Named):
+    """What a camera-motion estimate knows (:attr:`MotionEstimate.kind`, ``flags.camera_motion``). Only
+    ``standing`` lets the movers treat every flow vector as object motion; ``scale_unknown`` and ``unknown``
+    call nothing moving."""
+
+    METRIC = "metric"                # rotation and metric translation
+    STANDING = "standing"            # no translation: standing still or turning on the spot
+    SCALE_UNKNOWN = "scale_unknown"  # rotation and translation direction, not its length
+    UNKNOWN = "unknown"              # nothing known about the camera
+
+
+class ScaleFrom(_Named):
+    """Where a metric translation's length came from (:attr:`MotionEstimate.scale_from`, ``flags.scale_from``)."""
+
+    GIVEN = "given"              # gt / file
+    PHOTOMETRIC = "photometric"  # the road's image alignment
+    ROAD_MARKS = "road_marks"    # the road's marks and the travel direction (monostixels.inputs.road_marks)
+    GROUND_FLOW = "ground_flow"  # the road's flow vectors
+    SEQUENCE = "sequence"        # the recent pairs' speed (monostixels.inputs.motion_track.MotionTrack)
+    SCENE = "scene"              # static objects standing on the ground (monostixels.inputs.motion_scene)
+
+
+#: The kinds, in the order reports list them.
+MOTION_KINDS = tuple(MotionKind)
 #: The kinds without a metric camera motion (no movers, no TTC, no pose).
-NO_METRIC_MOTION = ("scale_unknown", "unknown")
+NO_METRIC_MOTION = (MotionKind.SCALE_UNKNOWN, MotionKind.UNKNOWN)
+#: The scales measured on the road of the pair itself.
+ROAD_SCALES = (ScaleFrom.PHOTOMETRIC, ScaleFrom.ROAD_MARKS, ScaleFrom.GROUND_FLOW)
 #: Below this camera translation (metres) a known motion (gt / file) counts as standing still:
 #: 1 mm moves a point 5 m away by ~0.15 px at KITTI focal length — no usable parallax.
 MIN_TRANSLATION_M = 1e-3
@@ -41,12 +76,12 @@ class MotionEstimate:
         inlier_ratio: fraction of the used flow vectors consistent with the estimate (1 for gt/file).
         ground_normal: (3,) float64 unit normal of the road plane fitted for the metric scale
             (current camera, pointing down), or None (gt/file, or no fit).
-        kind: which of :data:`MOTION_KINDS` the estimate is: ``metric`` (rotation and metric
+        kind: which :class:`MotionKind` the estimate is: ``metric`` (rotation and metric
             translation), ``standing`` (no translation: standing still or turning on the spot;
             ``degenerate``), ``scale_unknown`` (rotation and translation direction known, its metric
             length not: ``unit_motion``) or ``unknown`` (nothing known about the camera).
         unit_motion: ``scale_unknown``: the rotation and the unit translation direction; else None.
-        scale_from: where a metric translation's length came from: ``given`` (gt / file),
+        scale_from: where a metric translation's length came from (:class:`ScaleFrom`): ``given`` (gt / file),
             ``photometric`` (the road's image alignment), ``road_marks`` (the alignment of the road's marks
             and the travel direction, :mod:`~monostixels.inputs.road_marks`), ``ground_flow`` (the road's flow vectors),
             ``sequence`` (the recent pairs' speed, :class:`~monostixels.inputs.motion_track.MotionTrack`), ``scene``
@@ -61,10 +96,16 @@ class MotionEstimate:
     reason: str
     inlier_ratio: float
     ground_normal: torch.Tensor | None = None
-    kind: str = "metric"
+    kind: MotionKind = MotionKind.METRIC
     unit_motion: Motion | None = None
-    scale_from: str | None = None
+    scale_from: ScaleFrom | None = None
     scale_std: float | None = None
+
+    def __post_init__(self) -> None:
+        # Given as strings (tests, callers of old), still typed; an unknown one is a ValueError here.
+        self.kind = MotionKind(self.kind)
+        if self.scale_from is not None:
+            self.scale_from = ScaleFrom(self.scale_from)
 
 
 @dataclass

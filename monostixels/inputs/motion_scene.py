@@ -27,7 +27,7 @@ import torch
 
 from monostixels.core.classes import CLASS_NAMES, CLASS_TYPE, GROUND, STATIC_OBJECT
 from monostixels.core.geometry import Motion
-from monostixels.inputs.motion_base import MotionEstimate
+from monostixels.inputs.motion_base import MotionEstimate, MotionKind, ScaleFrom
 
 __all__ = ["SceneScale", "scene_scale", "with_scene_scale"]
 
@@ -162,17 +162,17 @@ def with_scene_scale(est: MotionEstimate, scene: SceneScale | None, t_unit: np.n
     gate = float(getattr(params, "scale_gate", 2.0))
     bound = float(getattr(params, "max_scale_std", 0.15))
     if scene is None:
-        return est if est.kind != "metric" else dataclasses.replace(est, scale_std=meas)
+        return est if est.kind != MotionKind.METRIC else dataclasses.replace(est, scale_std=meas)
     note = f"scene model: {scene.scale:.3f} m (std {scene.std:.2f}, {scene.columns} contacts)"
-    if est.kind == "metric":
+    if est.kind == MotionKind.METRIC:
         delta = math.log(float(est.motion.t.norm()) / scene.scale)
         std = meas
         if abs(delta) > gate * math.hypot(meas, scene.std):
             std = abs(delta)
             note += f", {delta * 100:+.0f} % from the road's: uncertain"
         return dataclasses.replace(est, reason=f"{est.reason}; {note}", scale_std=std)
-    if est.kind == "scale_unknown" and scene.std <= bound:
+    if est.kind == MotionKind.SCALE_UNKNOWN and scene.std <= bound:
         motion = Motion(est.unit_motion.R, torch.from_numpy(np.ascontiguousarray(t_unit * scene.scale)))
-        return dataclasses.replace(est, motion=motion, kind="metric", unit_motion=None, scale_from="scene",
-                                   scale_std=scene.std, reason=f"{est.reason}; {note}: the length taken from it")
+        return dataclasses.replace(est, motion=motion, kind=MotionKind.METRIC, unit_motion=None,
+                                   scale_from=ScaleFrom.SCENE, scale_std=scene.std, reason=f"{est.reason}; {note}: the length taken from it")
     return dataclasses.replace(est, reason=f"{est.reason}; {note}")

@@ -19,7 +19,8 @@ import torch
 from monostixels._checks import InputError, is_unset, option_params
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion
-from monostixels.inputs.motion_base import FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate
+from monostixels.inputs.motion_base import (FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate, MotionKind,
+                                            ScaleFrom)
 
 __all__ = ["MOTION_SCHEMAS", "MonoMotionConfig", "MotionTrack", "MotionTrackParams", "motion_params"]
 
@@ -104,7 +105,7 @@ class MotionTrack:
     """Steadies the metric scale and the road normal of monocular ego-motion over a sequence.
 
     Scale: the state is the log speed ``log(|t| / dt)`` (dt seconds between the frames,
-    ``meta["dt"]``; 1 per pair when unknown) with its variance. Per pair: predict (constant velocity,
+    ``info.dt``; 1 per pair when unknown) with its variance. Per pair: predict (constant velocity,
     variance grows by ``(speed_process_std dt)^2``), gate the new measurement, update. Only the
     length of ``t`` changes (direction and rotation are the pair's own: with a driving camera's parallax
     they are already steady).
@@ -115,7 +116,7 @@ class MotionTrack:
     radians on the unit sphere). One fit's error moves far ground by ``z / h`` times the angle (0.3
     degrees: 6 % at 20 m), so the filter steadies the ground's depth from frame to frame.
 
-    Pairs continue the track when they come from the same ``meta["sequence"]`` in time order: this
+    Pairs continue the track when they come from the same ``info.sequence`` in time order: this
     pair's current frame after the last one, its earlier frame not after it (a keyframe pair may reach
     back several frames); anything else (another sequence, a jump, a degenerate or failed pair)
     restarts the track.
@@ -145,11 +146,12 @@ class MotionTrack:
         """The estimate of ``pair`` with its scale and road normal filtered by the sequence so far (and the
         state advanced); its ``scale_std`` is the relative uncertainty of the length it reports."""
         prm = self.params
-        seq, cur, prev = pair.meta.get("sequence"), pair.meta.get("frame"), pair.meta.get("frame_prev")
+        info = pair.info
+        seq, cur, prev = info.sequence, info.frame, info.frame_prev
         consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
                        and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
-        dt = float(pair.meta.get("dt") or 1.0)
-        if est.kind == "scale_unknown" and est.unit_motion is not None and consecutive and self._confirmed:
+        dt = float(info.dt or 1.0)
+        if est.kind == MotionKind.SCALE_UNKNOWN and est.unit_motion is not None and consecutive and self._confirmed:
             # Only a confirmed track lends its speed: one pair's length, never corroborated, may be the
             # error (a highway's first pair said 4 m/s at 27 m/s, and was held over 16 pairs).
             if self._held_s + dt <= prm.scale_hold_s:
@@ -194,7 +196,7 @@ class MotionTrack:
                 note = (f"sequence prior: scale {norm:.3f} m is {innov * 100:+.0f} % from the constant-velocity "
                         f"prediction, replaced by {math.exp(x_pred) * dt:.3f} m (uncertain: {std:.2f})")
                 # The length is the sequence's now, not the pair's own measurement.
-                est = dataclasses.replace(est, scale_from="sequence")
+                est = dataclasses.replace(est, scale_from=ScaleFrom.SEQUENCE)
         else:
             k = p_pred / s
             self._x, self._var = x_pred + k * innov, (1 - k) * p_pred
@@ -227,8 +229,8 @@ class MotionTrack:
         note = (f"scale from the sequence: {length:.3f} m ({math.exp(self._x):.1f} m/s, "
                 f"{self._held_s:.2f} s since the last measured scale)")
         logger.debug("%s", note)
-        return dataclasses.replace(est, motion=Motion(R, t_unit / t_unit.norm() * length), kind="metric",
-                                   scale_from="sequence", ground_normal=normal, reason=f"{est.reason}; {note}",
+        return dataclasses.replace(est, motion=Motion(R, t_unit / t_unit.norm() * length), kind=MotionKind.METRIC,
+                                   scale_from=ScaleFrom.SEQUENCE, ground_normal=normal, reason=f"{est.reason}; {note}",
                                    scale_std=math.sqrt(self._var))
 
     def _filter_normal(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:

@@ -28,7 +28,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, IGNORE_LABEL, PALETTE, STATIC_OBJECT, TYPE_PALETTE
 from monostixels.core.geometry import pixel_rays
-from monostixels.inputs.motion import NO_METRIC_MOTION
+from monostixels.inputs.motion import NO_METRIC_MOTION, MotionKind
 from monostixels.core.stixels import neighbours, paint_index_map
 
 __all__ = [
@@ -317,7 +317,7 @@ def frame_notes(stixels: Any) -> list[str]:
     flags = getattr(stixels, "flags", None) or {}
     if flags.get("camera_motion") in NO_METRIC_MOTION:
         # Said first and plainly: the frame shows no movers and raises no collision warning.
-        what = "speed" if flags["camera_motion"] == "scale_unknown" else "motion"
+        what = "speed" if flags["camera_motion"] == MotionKind.SCALE_UNKNOWN else "motion"
         return [f"camera {what} unknown: no movers, no collision warnings; depths from the scene model"]
     if not flags.get("degenerate_motion"):
         return []

@@ -31,6 +31,8 @@ import torch
 
 from monostixels._checks import InputError, config_params
 from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
+from monostixels.data.base import LiveSource, Source
+from monostixels.inputs.motion_base import NO_METRIC_MOTION, MotionKind
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
 
 __all__ = ["Frame", "Writer", "write_sequence", "Pictures", "FramePictures", "FrameFiles", "video_fps", "Videos",
@@ -179,7 +181,7 @@ class FrameFiles(Writer):
 _VIDEO_FPS = 5.0
 
 
-def video_fps(src: Any) -> float:
+def video_fps(src: Source) -> float:
     """The videos' frame rate: the rate of the used frames of a video source, else 5 fps."""
     fps, step = getattr(src, "fps", None), getattr(src, "step", 1)
     return float(fps) / max(int(step), 1) if fps else _VIDEO_FPS
@@ -244,9 +246,7 @@ def camera_report(flags: list[dict[str, Any]], height: float) -> dict[str, Any]:
     let the road say, the median height it implies (``height_fit_m``, else None) over ``height_fits`` pairs; the
     camera speed of the moving metric pairs (``speed_mps``: ``median``, ``min``, ``max`` m/s and ``pairs``, else
     None) and the pairs whose scale was too uncertain to tell movers (``scale_uncertain``)."""
-    from monostixels.inputs.motion import NO_METRIC_MOTION
-
-    kinds = [f.get("camera_motion", "metric") for f in flags]
+    kinds = [f.get("camera_motion", MotionKind.METRIC) for f in flags]
     metric = sum(k not in NO_METRIC_MOTION for k in kinds)
     sources: dict[str, int] = {}
     for f in flags:
@@ -303,7 +303,7 @@ class RunSummary(Writer):
         InputError: no frame pair was made and unreadable frames were skipped.
     """
 
-    def __init__(self, out: Path, src: Any, data_name: str, height: float) -> None:
+    def __init__(self, out: Path, src: Source, data_name: str, height: float) -> None:
         self.out, self.src, self.data_name, self.height = Path(out), src, data_name, height
         self.camera: list[dict[str, Any]] = []  # each pair's flags: its camera-motion kind, scale source, height fit
         self.skipped: list[str] = []
@@ -314,7 +314,7 @@ class RunSummary(Writer):
         st = frame.result.stixels
         info = st.pair_info or {}
         speed = (info["driven_m"] / info["dt_s"] if info.get("driven_m") is not None and info.get("dt_s")
-                 and st.flags.get("camera_motion") == "metric" else None)
+                 and st.flags.get("camera_motion") == MotionKind.METRIC else None)
         self.camera.append({**st.flags, "speed_mps": speed})
 
     def close(self, error: BaseException | None = None) -> None:
@@ -330,7 +330,7 @@ class RunSummary(Writer):
             raise InputError(f"run: no frame pair could be made: {len(skipped)} unreadable frame(s) skipped "
                              f"({listed(skipped)}); a pair needs two readable frames at most "
                              f"{MAX_SKIPPED_FRAMES + 1} frames apart")
-        if hasattr(src, "indices"):
+        if isinstance(src, LiveSource):
             # Which frames were processed (and how many dropped): docs/conventions.md, section 4.3
             # (data.realtime).
             self.stream = out / "stream.json"
@@ -379,7 +379,7 @@ class RunWriters:
         return [f"run: {line}" for line in [*self.summary.lines, last]]
 
 
-def run_writers(cfg: Any, src: Any, out: Path) -> RunWriters:
+def run_writers(cfg: Any, src: Source, out: Path) -> RunWriters:
     """``run``'s writers of source ``src`` into ``out`` (``<outputs>/run``): the per-frame files, the videos (a
     sequence: any video, or more than one pair), the Rerun recording (``output.rerun``) and the summary.
 

@@ -52,7 +52,7 @@ from monostixels._checks import InputError, config_params
 from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._io import PairSkipped
-from monostixels.data.base import FramePair, KeyframeParams, PreviousFrame
+from monostixels.data.base import FramePair, KeyframeParams, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
@@ -180,9 +180,9 @@ class SequenceRunner:
         self.stream.reset()
 
     # ------------------------------------------------------------------ driving a source
-    def run(self, source: Sequence[FramePair], progress: Any = None) -> Iterator[SequenceStep]:
+    def run(self, source: Source, progress: Any = None) -> Iterator[SequenceStep]:
         """Process every pair of ``source`` in order; yields one :class:`SequenceStep` per pair."""
-        sequential = hasattr(source, "sequence_key") and hasattr(source, "pair_back")
+        sequential = isinstance(source, SequentialSource)
         read = self.stream.lookahead(source)  # stream.overlap: the next pair read (and its inputs started) ahead
         if read is source:
             yield from self._run(source, sequential, progress)
@@ -194,7 +194,7 @@ class SequenceRunner:
     def _run(self, source: Any, sequential: bool, progress: Any) -> Iterator[SequenceStep]:
         # A live source (a camera: monostixels.data.video.LiveVideoSource) has no length: it yields its
         # pairs' indices as frames arrive.
-        for i in (source.indices() if hasattr(source, "indices") else range(len(source))):
+        for i in (source.indices() if isinstance(source, LiveSource) else range(len(source))):
             key = source.sequence_key(i) if sequential else None
             try:
                 if key is None:
@@ -248,7 +248,7 @@ class SequenceRunner:
             self.reset() if back is None else None
             return SequenceStep(index, pair, None, str(err))
         pair = res.pair  # the frame pair at its full size (a stream reading ahead may have cut a bonnet off)
-        dt = float(pair.meta.get("dt") or (self.default_dt * (back or 1)))
+        dt = float(pair.info.dt or (self.default_dt * (back or 1)))
         sequence = back is not None
         if res.motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: no pose to chain, nothing to track, no time to collision.
@@ -284,17 +284,18 @@ class SequenceRunner:
         st = res.stixels
         # Frames are known by the source's frame numbers (raw frame, video frame, clip frame), so that a
         # keyframe pair finds its earlier frame whatever the source skipped.
-        frame_no = int(pair.meta.get("frame", self.count))
+        info = pair.info
+        frame_no = int(info.frame if info.frame is not None else self.count)
         self.count += 1
         T_prev_cur = motion_matrix(res.motion.motion)
         prev = None
-        if sequence and "frame_prev" in pair.meta:
-            prev = self.frames.get(int(pair.meta["frame_prev"]))
-        if prev is None and sequence and "frame_prev" in pair.meta and not self.frames:
+        if sequence and info.frame_prev is not None:
+            prev = self.frames.get(int(info.frame_prev))
+        if prev is None and sequence and info.frame_prev is not None and not self.frames:
             # The sequence's first pair: its earlier frame is the world (a later keyframe pair may pair
             # with that frame too, and must see it at the same pose).
-            prev = _Frame(str(pair.meta.get("name_prev", "")), 0.0, torch.eye(4, dtype=torch.float64))
-            self.frames[int(pair.meta["frame_prev"])] = prev
+            prev = _Frame(str(info.name_prev or ""), 0.0, torch.eye(4, dtype=torch.float64))
+            self.frames[int(info.frame_prev)] = prev
         if prev is not None:
             pose = prev.pose @ T_prev_cur
             time = prev.time + dt
@@ -311,7 +312,7 @@ class SequenceRunner:
             flow_last = None
             if res.flow.step is not None:
                 flow_last = res.flow.step[0]
-            elif last_no is not None and pair.meta.get("frame_prev") == last_no:
+            elif last_no is not None and pair.info.frame_prev == last_no:
                 flow_last = res.flow.flow
             out = self.tracks.update(
                 st, frame=frame_no, time=time, pose=pose, dt_pair=dt,
@@ -379,7 +380,7 @@ def _pair_info(pair: FramePair, back: int | None, dt: float, driven_m: float | N
                keyframe_m: float | None) -> dict[str, Any]:
     """``StixelWorld.pair_info`` of a solved pair: its frames, how far back, seconds and metres driven (None
     where the camera motion is unknown) and the keyframe distance it was chosen by."""
-    return {"current": pair.name, "previous": pair.meta.get("name_prev", ""),
+    return {"current": pair.name, "previous": pair.info.name_prev or "",
             "frames_back": int(back) if back is not None else 1, "dt_s": dt,
             "driven_m": driven_m, "keyframe_distance_m": keyframe_m}
 

@@ -21,8 +21,8 @@ With :attr:`StreamState.chain_frames` (set by the sequence layer from ``keyframe
 ways; a keyframe pair reaching past the last frame gets them (:class:`Chain`) and its flow is chained
 through the frames between (:func:`monostixels.inputs.flow.chained_flow`).
 
-A pair is continued when its earlier frame (``meta["frame_prev"]``) is a kept frame of the same
-``meta["sequence"]`` (and image size) and it comes after the last pair; keyframe pairs that reach two
+A pair is continued when its earlier frame (``info.frame_prev``) is a kept frame of the same
+``info.sequence`` (and image size) and it comes after the last pair; keyframe pairs that reach two
 frames back are continued too. Any other pair (independent pairs, the first pair of a clip, a pair
 after a failed one) starts cold, exactly as :meth:`Pipeline.run` on its own.
 
@@ -51,7 +51,7 @@ import torch
 
 from monostixels._checks import InputError, config_params
 from monostixels.data.static_regions import crop_ignored
-from monostixels.data.base import FramePair
+from monostixels.data.base import FramePair, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.inputs.motion_track import MotionTrack
 from monostixels.pipeline import Carried, Chain, Pipeline, PipelineResult, warp_scores
 
@@ -158,11 +158,11 @@ class StreamState:
         self.ahead = 0
 
     # ------------------------------------------------------------------ overlap (stream.overlap)
-    def lookahead(self, source: Any) -> Any:
+    def lookahead(self, source: Source) -> Source:
         """``source`` as the sequence layer should read it: with ``stream.overlap``, a view that reads the
         next pair ahead (its images, then its flow and semantics, see :meth:`start_next`); a live source
         (frames as they come) or a source of independent pairs as it is."""
-        if not self.params.overlap or hasattr(source, "indices") or not hasattr(source, "pair_back"):
+        if not self.params.overlap or isinstance(source, LiveSource) or not isinstance(source, SequentialSource):
             self._lookahead = None
             return source
         self._lookahead = _Lookahead(source)
@@ -258,14 +258,16 @@ class StreamState:
 
     # ------------------------------------------------------------------ before a pair
     def _continues(self, pair: FramePair) -> bool:
-        seq, cur, prev = (pair.meta.get(k) for k in ("sequence", "frame", "frame_prev"))
+        info = pair.info
+        seq, cur, prev = info.sequence, info.frame, info.frame_prev
         return (seq is not None and cur is not None and prev is not None and self._last is not None
                 and self._key == (seq, tuple(pair.size)) and prev in self._frames and prev < cur
                 and self._last.frame < cur)
 
     def _chain(self, pair: FramePair) -> Chain | None:
         """The kept flows from the last frame back to ``pair``'s earlier frame, where they reach it."""
-        seq, cur, prev = (pair.meta.get(k) for k in ("sequence", "frame", "frame_prev"))
+        info = pair.info
+        seq, cur, prev = info.sequence, info.frame, info.frame_prev
         last = self._last
         if (self.chain_frames < 1 or last is None or seq is None or cur is None or prev is None
                 or self._key != (seq, tuple(pair.size)) or not prev < last.frame < cur):
@@ -293,8 +295,8 @@ class StreamState:
             return Carried(chain=chain)
         last = self._last
         assert last is not None
-        prev = self._frames[pair.meta["frame_prev"]]
-        dt = pair.meta.get("dt")
+        prev = self._frames[pair.info.frame_prev]
+        dt = pair.info.dt
         ratio = float(dt) / last.dt if dt and last.dt else 1.0
         p = self.params
         init = None
@@ -325,7 +327,7 @@ class StreamState:
             flow_result: its :class:`~monostixels.inputs.flow.FlowResult` (with :attr:`chain_frames`: the
                 flows between its current frame and the one before, kept for later chains).
         """
-        seq, frame = pair.meta.get("sequence"), pair.meta.get("frame")
+        seq, frame = pair.info.sequence, pair.info.frame
         if seq is None or frame is None:
             self.reset()  # an independent pair: nothing to carry
             return
@@ -343,19 +345,20 @@ class StreamState:
         with self._lock:
             last = self._last
             if (self.params.motion_warm_start and last is not None and self._key is not None
-                    and self._key[0] == pair.meta.get("sequence") and last.frame == pair.meta.get("frame")):
+                    and self._key[0] == pair.info.sequence and last.frame == pair.info.frame):
                 last.motion = motion
 
     def _update(self, pair: FramePair, grey: np.ndarray | None, flow: torch.Tensor | None,
                 semantic: torch.Tensor | None, semantic_fresh: bool, motion: Any, carried: Carried,
                 flow_result: Any) -> None:
-        frame = pair.meta["frame"]
+        info = pair.info
+        frame = info.frame
         last = self._last.frame if self._last is not None else None
         self._generation += 1
         self.continued += int(carried.anything)
         self.cold += int(not carried.anything)
         p = self.params
-        prev = self._frames.get(pair.meta.get("frame_prev"))
+        prev = self._frames.get(info.frame_prev)
         age = 0 if semantic_fresh or prev is None else prev.semantic_age + 1
         kept = _Frame(grey=grey, semantic=semantic if p.semantic_every > 1 else None, semantic_age=age)
         if self.chain_frames > 0 and flow_result is not None:
@@ -364,7 +367,7 @@ class StreamState:
         self._frames[frame] = kept
         for f in sorted(self._frames)[:-max(_HISTORY_FRAMES, self.chain_frames + 1)]:
             del self._frames[f]
-        dt = pair.meta.get("dt")
+        dt = info.dt
         keep_flow = p.flow_init and flow is not None
         self._last = _Pair(frame=frame, dt=float(dt) if dt else None,
                            flow=np.ascontiguousarray(flow.permute(1, 2, 0).numpy()) if keep_flow else None,
@@ -386,7 +389,7 @@ def _step_of(pair: FramePair, flow: Any, last: Any) -> tuple[tuple[np.ndarray, n
     them as its own flows (a ground-truth flow none: nothing to chain). Else none."""
     if flow.step is not None:
         return (_hwc(flow.step[0]), _hwc(flow.step[1])), last
-    prev = pair.meta.get("frame_prev")
+    prev = pair.info.frame_prev
     if flow.backend != "gt" and (last is None or prev == last):
         return (_hwc(flow.flow), _hwc(flow.backward)), prev
     return None, None
@@ -400,7 +403,7 @@ class _Lookahead:
     the inputs of), else read as usual.
     """
 
-    def __init__(self, source: Any) -> None:
+    def __init__(self, source: SequentialSource) -> None:
         self._source = source
         self._next: tuple[int, int] | None = None
         self.pending: tuple[tuple[int, int], Future] | None = None
@@ -415,6 +418,12 @@ class _Lookahead:
 
     def __getitem__(self, index: int) -> FramePair:
         return self._get(index, 1)
+
+    def sequence_key(self, index: int) -> str | None:
+        return self._source.sequence_key(index)
+
+    def previous_frames(self, index: int, window: int) -> list[PreviousFrame]:
+        return self._source.previous_frames(index, window)
 
     def pair_back(self, index: int, back: int) -> FramePair:
         return self._get(index, int(back))
