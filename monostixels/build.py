@@ -31,7 +31,7 @@ from monostixels._checks import config_params
 from monostixels.data.sources import make_source
 from monostixels.output.viewer import OutputConfig
 from monostixels.output.writers import RunWriters, run_writers
-from monostixels.pipeline import EvalConfig, Pipeline, PipelineSettings
+from monostixels.pipeline import Pipeline
 from monostixels.sequence.runner import SequenceRunner, SequenceSettings
 
 __all__ = ["Purpose", "Settings", "Built", "parse_settings", "build_source", "build_pipeline", "build_runner", "build"]
@@ -46,18 +46,11 @@ class Purpose(Enum):
 
 @dataclass(frozen=True)
 class Settings:
-    """The composed config parsed once: the sequence layer's settings (with the pipeline's) and ``output``."""
+    """The composed config parsed once: the sequence layer's settings (``sequence.pipeline``: the pipeline's,
+    ``sequence.pipeline.eval``: the ``eval`` group) and ``output``."""
 
     sequence: SequenceSettings
     output: OutputConfig
-
-    @property
-    def pipeline(self) -> PipelineSettings:
-        return self.sequence.pipeline
-
-    @property
-    def eval(self) -> EvalConfig:
-        return self.sequence.pipeline.eval
 
 
 def parse_settings(cfg: Any) -> Settings:
@@ -78,7 +71,7 @@ def build_pipeline(settings: Settings | Any, purpose: Purpose, *, overlap: bool 
     scores it against its own ground truth (None: the purpose's choice)."""
     settings = parse_settings(settings)
     run = purpose is Purpose.RUN
-    return Pipeline(settings.pipeline, allow_motion_failure=run, sfm=not run if sfm is None else sfm,
+    return Pipeline(settings.sequence.pipeline, allow_motion_failure=run, sfm=not run if sfm is None else sfm,
                     overlap=overlap, report_height=run)
 
 
@@ -115,5 +108,5 @@ def build(cfg: Any, purpose: Purpose, *, source: Any = None, out: Path | None = 
     src = build_source(cfg) if source is None else source
     settings = parse_settings(cfg)
     runner = build_runner(settings, purpose, overlap=overlap, sfm=sfm)
-    writers = None if out is None else run_writers(cfg, src, out, ev=settings.eval, output=settings.output)
+    writers = None if out is None else run_writers(cfg, src, out, ev=settings.sequence.pipeline.eval, output=settings.output)
     return Built(settings, src, runner, writers)

@@ -48,7 +48,7 @@ def demo(cfg: DictConfig) -> float:
                 cfg.motion.name)
     settings = parse_settings(cfg)
     res = build_pipeline(settings, Purpose.EVAL).run(pair)
-    ev = settings.eval
+    ev = settings.sequence.pipeline.eval
     files = DemoFiles(out, ev.colormap_min_depth, ev.colormap_max_depth)
     files.write(Frame(0, pair, res))
     files.close()
