@@ -312,9 +312,9 @@ def config_error(error: BaseException, group: str = "") -> InputError:
             kind = m.group(1) or m.group(2)
             what = {"Float": "a number", "Integer": "an integer", "Boolean": "true or false", "bool": "true or false"}.get(kind, kind)
             return InputError(f"{name}: expected {what}, got {value!r}")
-        m = re.match(r"Invalid value '.*', expected one of \[(.*)\]", msg)
-        if m:  # a Choice field (an Enum of names)
-            return InputError(f"{name}: expected one of {m.group(1)}, got {_plain(value)!r}")
+        held = getattr(getattr(error, "child_node", None), "_value", lambda: None)()
+        if isinstance(held, Enum):  # a Choice field: a name that is none of its members, or no name at all
+            return InputError(f"{name}: expected one of {', '.join(type(held).__members__)}, got {_plain(value)!r}")
         if "is not Optional" in msg:
             return InputError(f"{name}: expected a value, got null")
         if "is not a ListConfig, list or tuple" in msg:
