@@ -67,12 +67,12 @@ import torch
 from tqdm import tqdm
 
 from benchmarks.dashcam import _DILATE_PX, _MOVER_CLASSES, _referee, false_movers
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError
+from monostixels.build import Purpose, build_runner
 from monostixels.core.classes import DYNAMIC_OBJECT
 from monostixels.data.sources import make_source
 from monostixels.eval.metrics import DepthAccumulator
-from monostixels.pipeline import EvalConfig, Pipeline, load_config
-from monostixels.sequence import SequenceRunner
+from monostixels.pipeline import load_config
 from monostixels.sequence.runner import SequenceStep
 
 __all__ = ["Clip", "CLIPS", "CITY_KINDS", "FrameScore", "discover_clips", "warnings_off_referee", "summarize",
@@ -298,10 +298,11 @@ def measure(clip: Clip, data: Path, extra: list[str], referee: str | None = None
     """Run one clip and score it (module docstring); the clip's JSON entry."""
     with tempfile.TemporaryDirectory() as tmp:
         cfg, src, overrides, lidar_dir = _open(clip, data, extra, Path(tmp))
-        runner = SequenceRunner(cfg, Pipeline(cfg, allow_motion_failure=True, sfm=clip.lidar))
+        # As `monostixels run` builds it, with the SfM baseline where the clip has LiDAR to score it against.
+        runner = build_runner(cfg, Purpose.RUN, sfm=clip.lidar)
         classes = _referee(referee)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _DILATE_PX + 1, 2 * _DILATE_PX + 1))
-        ev = config_params(EvalConfig, cfg.get("eval"), "eval")
+        ev = runner.pipeline.eval_cfg
         acc = {m: DepthAccumulator(min_depth=ev.min_depth, max_depth=ev.max_depth) for m in ("monostixels", "sfm")}
         frames: list[FrameScore] = []
         for step in tqdm(runner.run(src), total=len(src), desc=clip.name, unit="pair"):

@@ -39,10 +39,9 @@ import torch
 from tqdm import tqdm
 
 from monostixels.core.classes import DYNAMIC_OBJECT
-from monostixels.data.sources import make_source
+from monostixels.build import Purpose, build
 from monostixels.inputs.motion import NO_METRIC_MOTION
-from monostixels.pipeline import Pipeline, load_config
-from monostixels.sequence import SequenceRunner
+from monostixels.pipeline import load_config
 
 __all__ = ["false_movers", "measure", "main"]
 
@@ -90,8 +89,8 @@ def false_movers(moving: np.ndarray, referee: np.ndarray, kernel: np.ndarray) ->
 def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
     """Run the clip of ``overrides`` and score it (module docstring); returns the JSON report."""
     cfg = load_config(["data=video", "preset=fast", *overrides])
-    src = make_source(cfg.data, cfg.camera)
-    runner = SequenceRunner(cfg, Pipeline(cfg, allow_motion_failure=True, sfm=False))
+    built = build(cfg, Purpose.RUN)  # as `monostixels run` builds it
+    src, runner = built.source, built.runner
     classes = _referee(referee)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _DILATE_PX + 1, 2 * _DILATE_PX + 1))
     rows: list[dict[str, Any]] = []

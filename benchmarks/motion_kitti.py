@@ -21,7 +21,8 @@ import numpy as np
 from monostixels.data.sources import make_source
 from monostixels.inputs.flow import estimate_flow
 from monostixels.eval.metrics import motion_errors
-from monostixels.pipeline import Pipeline, load_config
+from monostixels.build import Purpose, build_pipeline
+from monostixels.pipeline import load_config
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -36,11 +37,11 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     cfg = load_config(["data=kitti_raw", f"data.root={args.root}", f"flow={args.flow}", f"semantic={args.semantic}",
                        "motion=mono", f"motion.sequence_prior={str(not args.no_sequence_prior).lower()}"])
-    pipe = Pipeline(cfg)
+    pipe = build_pipeline(cfg, Purpose.EVAL)
     from monostixels.inputs.semantic import estimate_semantics
     from monostixels.sequence.runner import motion_track_for
 
-    track = motion_track_for(cfg)  # the sequence layer's speed prior over the drive's pairs
+    track = motion_track_for(cfg.motion)  # the sequence layer's speed prior over the drive's pairs
 
     rows = []
     for pair in make_source(cfg):

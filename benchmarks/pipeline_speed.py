@@ -64,10 +64,10 @@ import torch  # noqa: E402
 
 from monostixels import cli  # noqa: E402
 from monostixels import pipeline as pipeline_mod  # noqa: E402
-from monostixels.pipeline import Pipeline, load_config  # noqa: E402
+from monostixels.build import Purpose, build  # noqa: E402
+from monostixels.pipeline import load_config  # noqa: E402
 from monostixels._threads import available_cores, set_threads, spinning  # noqa: E402
 from monostixels._cpu import runtime_report  # noqa: E402
-from monostixels.sequence import SequenceRunner  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 #: The shared development frames (../shared/data beside the checkout): a labelled drive and a LiDAR
@@ -179,9 +179,8 @@ def time_preset(preset: str, sources: list[tuple[str, list[str]]], sets: list[st
     cfg, size, running = None, [], {}
     for root, data in sources:
         cfg = load_config([*data, *overrides])
-        src = cli._source(cfg)
-        pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, overlap=overlap)  # as `monostixels run` builds it
-        runner = SequenceRunner(cfg, pipe)
+        built = build(cfg, Purpose.RUN, overlap=overlap)  # as `monostixels run` builds it
+        src, runner, pipe = built.source, built.runner, built.pipeline
         last, cpu_last, main_last, waited_last = clock(), time.process_time(), time.thread_time(), 0.0
         for k, step in enumerate(runner.run(src)):
             res = step.result

@@ -51,7 +51,8 @@ import numpy as np
 from tqdm import tqdm
 
 from monostixels import cli
-from monostixels.pipeline import Pipeline, load_config
+from monostixels.build import Purpose, build_runner, build_source
+from monostixels.pipeline import load_config
 from monostixels.sequence import SequenceRunner
 
 logger = logging.getLogger("soak")
@@ -156,9 +157,9 @@ def run_soak(cfg: Any, frames: int | None = None, progress: bool = True,
     ``checkpoint`` is called with the record so far every ``every`` steps (a long soak that must be
     stopped still leaves its numbers).
     """
-    src = cli._source(cfg)
-    pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False)
-    runner = SequenceRunner(cfg, pipe)
+    src = build_source(cfg)
+    runner = build_runner(cfg, Purpose.RUN)  # as `monostixels run` builds it
+    pipe = runner.pipeline
     rec = SoakRecord()
     live = hasattr(src, "indices")
     bar = tqdm(total=None if live else len(src), desc="soak", unit="frame", disable=not progress, mininterval=2.0)

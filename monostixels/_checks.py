@@ -9,13 +9,37 @@ import functools
 import re
 import sys
 from dataclasses import fields
+from enum import Enum
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 
 __all__ = ["InputError", "MIN_FRAME_SIZE", "check_frame_size", "check_number", "numeric_text_error", "one_line_errors", "check_shape", "check_finite", "check_finite_fast", "check_image_pair",
-           "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error"]
+           "check_rotation", "check_same_size", "config_params", "option_params", "is_unset", "config_error", "Choice",
+           "choice"]
+
+
+class Choice(str, Enum):
+    """A setting that is one of a few names: a schema field of such a type (its members' names are the values
+    users type, ``flow.precision=int8``) makes OmegaConf refuse any other value when the config is composed or
+    read (:func:`config_params`), so the code needs no check of its own. A member is its string: it compares,
+    hashes, prints and serialises as its value."""
+
+    __hash__ = str.__hash__
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+def choice(name: str, values: str, module: str) -> type[Choice]:
+    """The :class:`Choice` ``name`` of the space-separated ``values``, each member named as its value (OmegaConf
+    reads a value by its member's name). ``module``: the defining module's ``__name__``, where pickling (a
+    batch's Ray tasks) finds the type."""
+    return Choice(name, [(v, v) for v in values.split()], module=module)  # type: ignore[return-value]
 
 
 class InputError(ValueError):
@@ -288,6 +312,9 @@ def config_error(error: BaseException, group: str = "") -> InputError:
             kind = m.group(1) or m.group(2)
             what = {"Float": "a number", "Integer": "an integer", "Boolean": "true or false", "bool": "true or false"}.get(kind, kind)
             return InputError(f"{name}: expected {what}, got {value!r}")
+        held = getattr(getattr(error, "child_node", None), "_value", lambda: None)()
+        if isinstance(held, Enum):  # a Choice field: a name that is none of its members, or no name at all
+            return InputError(f"{name}: expected one of {', '.join(type(held).__members__)}, got {_plain(value)!r}")
         if "is not Optional" in msg:
             return InputError(f"{name}: expected a value, got null")
         if "is not a ListConfig, list or tuple" in msg:

@@ -211,9 +211,7 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
     """
     from omegaconf import OmegaConf
 
-    from monostixels.data.sources import make_source
-    from monostixels.pipeline import Pipeline
-    from monostixels.sequence import SequenceRunner
+    from monostixels.build import Purpose, build, build_source
 
     logging.getLogger("monostixels").setLevel(str(cfg.get("log_level", "INFO")))
     set_threads(max(1, int(threads)))  # the clip's CPUs: torch, OpenCV and ONNX Runtime alike
@@ -224,11 +222,11 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
     try:
         conf = OmegaConf.create(cfg)
         conf.data = clip_data_config(conf.data, clip)
-        src = make_source(conf)
+        src = build_source(conf)
         if len(src) == 0:
             raise InputError(f"{clip.path}: no frame pairs")
-        # The same frames, pairs, tracks and TTC as `monostixels run` (keyframes and the stream state).
-        runner = SequenceRunner(conf, Pipeline(conf, allow_motion_failure=True, sfm=False))
+        # Built as `monostixels run` builds it (monostixels.build): the same frames, pairs, tracks and TTC.
+        runner = build(conf, Purpose.RUN, source=src).runner
         rows = StixelRows(getattr(src, "fps", None))
         write_sequence(runner.run(src), [rows])
         frames = rows.frames

@@ -191,9 +191,9 @@ def _hydra_main() -> None:
 
 # ------------------------------------------------------------------------------------------------
 def _source(cfg: DictConfig):
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
 
-    return make_source(cfg)
+    return build_source(cfg)
 
 
 def _calibrate(cfg: DictConfig) -> float:
@@ -215,24 +215,21 @@ def _run(cfg: DictConfig) -> None:
     from tqdm import tqdm
 
     from monostixels._checks import InputError
+    from monostixels.build import Purpose, build, build_source
     from monostixels.data.base import LiveSource
     from monostixels.data.sources import data_params
-    from monostixels.output.writers import run_writers, write_sequence
-    from monostixels.pipeline import Pipeline
-    from monostixels.sequence import SequenceRunner
+    from monostixels.output.writers import write_sequence
 
-    src = _source(cfg)
+    src = build_source(cfg)
     live = isinstance(src, LiveSource)  # a camera, a URL or data.realtime: frames as they come, no length
     if not live and len(src) == 0:
         raise InputError(f"data source {cfg.data.name!r} (root {getattr(data_params(cfg.data), 'root', None)}) "
                          f"has no frame pairs")
-    # The SfM baseline is for eval/demo only; with a given motion the camera height the road implies is reported.
-    pipe = Pipeline(cfg, allow_motion_failure=True, sfm=False, report_height=True)
-    runner = SequenceRunner(cfg, pipe)  # keyframes, tracks and TTC on sequences
-    writers = run_writers(cfg, src, Path(cfg.outputs) / "run")
+    # The product build (monostixels.build): keyframes, tracks and TTC on sequences, no SfM baseline.
+    built = build(cfg, Purpose.RUN, source=src, out=Path(cfg.outputs) / "run")
     with tqdm(total=None if live else len(src), desc="run", unit="frame") as bar:
-        frames = write_sequence(runner.run(src, progress=bar), writers.all)
-    for line in writers.report(frames):
+        frames = write_sequence(built.runner.run(src, progress=bar), built.writers.all)
+    for line in built.writers.report(frames):
         print(line)
 
 

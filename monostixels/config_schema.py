@@ -5,7 +5,9 @@ whose options differ in their keys) one per option, chosen by the option's ``nam
 there, and every YAML option of the group (conf/<group>/*.yaml) lists its schema first in its defaults
 list (``defaults: [base_<group or name>, _self_]``, or another option of the group), then chooses or
 overrides values. Hydra then refuses an unknown key or a value of the wrong type when it composes the
-config (``movers.no_such_key=1``, ``solver.cell_rows=abc``, ``data.hfov_deg=wide``), and the code takes the
+config (``movers.no_such_key=1``, ``solver.cell_rows=abc``, ``data.hfov_deg=wide``) or a name that is none of
+a setting's choices (a :class:`monostixels._checks.Choice` field: ``flow.preset``, ``flow.matches_preset``,
+``flow.size``, ``flow.runtime``, ``flow.precision``, ``semantic.runtime``), and the code takes the
 settings as the dataclass (:func:`monostixels._checks.config_params`, or
 :func:`monostixels._checks.option_params` by ``name``), also from a plain dict or a config rebuilt from one.
 

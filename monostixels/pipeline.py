@@ -46,8 +46,8 @@ from monostixels.core.solver import SolverConfig, solve
 from monostixels.data.static_regions import crop_ignored
 from monostixels.core.stixels import StixelWorld
 
-__all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Carried", "Chain", "Pipeline", "warp_scores",
-           "load_config"]
+__all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Carried", "Chain", "PipelineSettings", "Pipeline",
+           "warp_scores", "load_config"]
 
 logger = logging.getLogger(__name__)
 
@@ -167,11 +167,51 @@ class Chain:
     prev_grey: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class PipelineSettings:
+    """What a :class:`Pipeline` reads of the composed config, each group parsed once into its schema's dataclass
+    (monostixels.config_schema): :meth:`from_config`. The builder (:mod:`monostixels.build`) parses them once
+    and hands them down; a pipeline made from a config parses them itself.
+
+    Attributes:
+        flow, semantic, motion: the input groups' settings (the dataclass of the chosen option).
+        eval: the ``eval`` group (the SfM baseline's guard, the frame interval, the colour maps).
+        prior: the ``prior`` group with the semantic option's ``prior_overrides`` applied.
+        solver, movers: the ``solver`` and ``movers`` groups.
+        threads: the thread budget (``threads``: ``auto`` or a count).
+    """
+
+    flow: Any
+    semantic: Any
+    motion: Any
+    eval: EvalConfig
+    prior: PriorConfig
+    solver: SolverConfig
+    movers: MoverCheckParams
+    threads: Any = "auto"
+
+    @staticmethod
+    def from_config(cfg: Any) -> "PipelineSettings":
+        """The settings of the composed config ``cfg`` (a DictConfig, or a plain dict of one)."""
+        semantic = semantic_params(cfg["semantic"])
+        prior = config_params(PriorConfig, cfg.get("prior"), "prior")
+        # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
+        # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
+        overrides = getattr(semantic, "prior_overrides", None)
+        if overrides:
+            prior = config_params(PriorConfig, {**dataclasses.asdict(prior), **overrides}, "semantic.prior_overrides")
+        return PipelineSettings(
+            flow=flow_params(cfg["flow"]), semantic=semantic, motion=motion_params(cfg["motion"]),
+            eval=config_params(EvalConfig, cfg.get("eval"), "eval"), prior=prior,
+            solver=config_params(SolverConfig, cfg.get("solver"), "solver"),
+            movers=config_params(MoverCheckParams, cfg.get("movers"), "movers"), threads=cfg.get("threads", "auto"))
+
+
 class Pipeline:
     """Frame pair -> stixels, configured by the Hydra config (groups flow, semantic, motion, prior, solver).
 
     Args:
-        cfg: the composed config (see :func:`load_config`).
+        cfg: the composed config (see :func:`load_config`), or its settings parsed once (:class:`PipelineSettings`).
         allow_motion_failure: see :meth:`motion_for`.
         sfm: also triangulate the SfM baseline (``eval``, ``demo``); ``run`` does not read it.
         report_height: with a metric motion from elsewhere (``motion=gt`` / ``file``), also estimate the camera
@@ -183,9 +223,11 @@ class Pipeline:
             time, which overlap, and ``seconds["wall"]`` the pair's.
     """
 
-    def __init__(self, cfg: DictConfig, *, allow_motion_failure: bool = False, sfm: bool = True,
+    def __init__(self, cfg: DictConfig | PipelineSettings, *, allow_motion_failure: bool = False, sfm: bool = True,
                  overlap: bool = True, report_height: bool = False) -> None:
         self.cfg = cfg
+        settings = cfg if isinstance(cfg, PipelineSettings) else PipelineSettings.from_config(cfg)
+        self.settings = settings
         self.report_height = report_height
         # The monocular estimator's own settings, for the camera height the road implies beside a given motion.
         self._mono_cfg = config_params(MonoMotionConfig, load_config_group("motion", "mono"), "motion") \
@@ -193,25 +235,18 @@ class Pipeline:
         self.sfm = sfm
         self.overlap = overlap
         # The config's thread budget, unless the command line (or a library user) already set one.
-        ensure_threads(cfg.get("threads", "auto"))
+        ensure_threads(settings.threads)
         # Overlapped, the flow runs in its own thread beside the semantic net (and the last pair's solve),
         # which keep a core busy: OpenCV's pool gets the rest (monostixels._threads.set_opencv_threads).
         set_opencv_threads(max(1, threads() - 1) if overlap else None)
-        # The settings of the input groups, read once (the dataclasses of monostixels.config_schema).
-        self.flow_cfg = flow_params(cfg.flow)
-        self.semantic_cfg = semantic_params(cfg.semantic)
-        self.motion_cfg = motion_params(cfg.motion)
-        self.eval_cfg = config_params(EvalConfig, cfg.get("eval"), "eval")
-        prior = config_params(PriorConfig, cfg.get("prior"), "prior")
-        # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
-        # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
-        overrides = getattr(self.semantic_cfg, "prior_overrides", None)
-        if overrides:
-            prior = config_params(PriorConfig, {**dataclasses.asdict(prior), **overrides}, "semantic.prior_overrides")
-        self.prior = prior.params()
+        self.flow_cfg = settings.flow
+        self.semantic_cfg = settings.semantic
+        self.motion_cfg = settings.motion
+        self.eval_cfg = settings.eval
+        self.prior = settings.prior.params()
         self.allow_motion_failure = allow_motion_failure
-        self.solver_cfg = config_params(SolverConfig, cfg.get("solver"), "solver")
-        self.mover_check = config_params(MoverCheckParams, cfg.get("movers"), "movers")
+        self.solver_cfg = settings.solver
+        self.mover_check = settings.movers
 
     def motion_for(self, pair: FramePair, flow: FlowResult, semantic: torch.Tensor | None,
                    prior: MotionEstimate | None = None, interval_ratio: float = 1.0,

@@ -69,6 +69,7 @@ _LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("pipeline.py", ("pipeline",)),
     ("sequence/", ("sequence",)),
     ("output/", ("output",)),
+    ("build.py", ("build",)),  # the source, runner and writers of a command, from the config parsed once
     ("eval/", ("eval",)),
     ("batch.py", ("batch",)),
     ("config_schema.py", ("config_schema",)),  # it gathers the settings of every layer below

@@ -30,11 +30,11 @@ def demo(cfg: DictConfig) -> float:
     """`monostixels demo`: the pipeline and the SfM baseline on one built-in synthetic pair, their depth error
     printed and the pictures written under ``<outputs>/demo`` (docs/conventions.md, section 4.2); returns the
     stixels' total energy."""
-    from monostixels._checks import InputError, config_params
+    from monostixels._checks import InputError
+    from monostixels.build import Purpose, build_pipeline, parse_settings
     from monostixels.data.sources import SyntheticDataConfig, data_params
     from monostixels.data.synthetic import SyntheticSource
     from monostixels.eval.metrics import depth_metrics
-    from monostixels.pipeline import EvalConfig, Pipeline
 
     out = Path(cfg.outputs) / "demo"
     data = data_params(cfg.data)
@@ -47,8 +47,9 @@ def demo(cfg: DictConfig) -> float:
                 # fcn8s and fcn8s_synthetic share the backend name: say which model runs.
                 semantic_label(cfg),
                 cfg.motion.name)
-    res = Pipeline(cfg).run(pair)
-    ev = config_params(EvalConfig, cfg.eval, "eval")
+    settings = parse_settings(cfg)
+    res = build_pipeline(settings, Purpose.EVAL).run(pair)
+    ev = settings.sequence.pipeline.eval
     files = DemoFiles(out, ev.colormap_min_depth, ev.colormap_max_depth)
     files.write(Frame(0, pair, res))
     files.close()

@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from monostixels._checks import config_params
+from monostixels.build import Purpose, build_runner
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data.base import FramePair, SequenceSource, SequentialSource
 from monostixels.eval.metrics import (
@@ -25,9 +25,7 @@ from monostixels.eval.metrics import (
     stixel_compactness,
 )
 from monostixels.inputs.flow import flow_metrics
-from monostixels.pipeline import EvalConfig
 from monostixels.eval.temporal import TemporalAccumulator
-from monostixels.sequence import SequenceRunner
 from monostixels.core.stixels import StixelWorld
 
 __all__ = ["evaluate", "predicted_bottoms", "moving_stixel_mask", "frame_interval", "write_report", "SPLITS", "MOTION_KEYS"]
@@ -122,7 +120,8 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
     """Run the pipeline on every pair of ``source`` and build the report (docs/conventions.md, 4.5).
 
     Args:
-        cfg: composed config (flow, semantic, motion, prior, solver, eval groups).
+        cfg: composed config (flow, semantic, motion, prior, solver, eval groups), or its settings parsed once
+            (:func:`monostixels.build.parse_settings`); the runner is the evaluation's build (monostixels.build).
         source: frame pairs (a data source).
         dataset: the report's ``dataset`` name.
         progress: show a progress bar over frames.
@@ -134,8 +133,8 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
         invalid) and listed under ``failed_frames``. Frames the source could not read are skipped (their
         pairs are not scored) and counted under ``skipped_frames``.
     """
-    runner = SequenceRunner(cfg)
-    ev = config_params(EvalConfig, cfg.get("eval"), "eval")
+    runner = build_runner(cfg, Purpose.EVAL)
+    ev = runner.pipeline.eval_cfg
     lo, hi = ev.min_depth, ev.max_depth
     # An input that is the ground truth itself (flow=gt, ...) is not scored against it.
     pipe = runner.pipeline

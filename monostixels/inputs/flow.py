@@ -301,10 +301,7 @@ def _deepflow(cur: torch.Tensor, prev: torch.Tensor, cfg: DeepFlowConfig,
     if matches == "none":
         f = _at_scale(variational, a, b, scale)
     elif matches == "dis":
-        preset = cfg.matches_preset
-        if preset not in _DIS_PRESETS:
-            raise InputError(f"flow.matches_preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
-        f0 = _dis_calc(_DIS_PRESETS[preset], a, b, init)
+        f0 = _dis_calc(_DIS_PRESETS[cfg.matches_preset], a, b, init)
         r = np.ascontiguousarray(_at_scale(variational, a, _remap(b, f0), scale))
         f = r + _remap(f0, r)
     else:
@@ -375,11 +372,8 @@ def _dis_calc(preset: int, a: np.ndarray, b: np.ndarray, init: np.ndarray | None
 
 def _dis(cur: torch.Tensor, prev: torch.Tensor, cfg: DisFlowConfig,
          grey: tuple[np.ndarray, np.ndarray] | None = None, init: np.ndarray | None = None) -> torch.Tensor:
-    preset = cfg.preset
-    if preset not in _DIS_PRESETS:
-        raise InputError(f"flow.preset: DIS preset must be one of {tuple(_DIS_PRESETS)}, got {preset!r}")
     a, b = grey if grey is not None else (_gray_u8(cur), _gray_u8(prev))
-    f = _dis_calc(_DIS_PRESETS[preset], a, b, init)
+    f = _dis_calc(_DIS_PRESETS[cfg.preset], a, b, init)
     return torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))).float()
 
 
@@ -411,8 +405,6 @@ def _raft_net(cfg: Any) -> Any:
         # its convolutions, most of the time, run faster on a CPU at a small cost in accuracy
         # (docs/experiments.md "Flow"), except where its 8-bit weights can saturate (a CPU without VNNI).
         weights, precision = cfg.weights, cfg.precision
-        if precision not in ("float32", "int8"):
-            raise InputError(f"flow.precision: must be float32 or int8, got {precision!r}")
         if weights is not None and not torch.cuda.is_available():
             w = resolve_path(weights)
             int8 = [w.with_name(w.stem + "_int8.onnx")] if precision == "int8" else []
@@ -427,11 +419,10 @@ def _raft_net(cfg: Any) -> Any:
         if cfg.weights is None:
             raise InputError("flow.weights: the raft backend needs a weights file (flow.weights=PATH)")
         return cached_torch_raft(resolve_path(cfg.weights), cfg.size, cfg.iters)
-    if runtime == "onnx":
-        if cfg.onnx is None:
-            raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
-        return cached_onnx_raft(resolve_path(cfg.onnx), cfg.threads)
-    raise InputError(f"flow.runtime: must be auto, torch or onnx, got {runtime!r}")
+    # runtime=onnx (the schema admits no other: flow_config.RaftRuntime)
+    if cfg.onnx is None:
+        raise InputError("flow.onnx: the raft backend with runtime=onnx needs an ONNX file (flow.onnx=PATH)")
+    return cached_onnx_raft(resolve_path(cfg.onnx), cfg.threads)
 
 
 def _raft(cur: torch.Tensor, prev: torch.Tensor, cfg: RaftFlowConfig,

@@ -11,10 +11,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Optional, Union
 
-from monostixels._checks import option_params
+from monostixels._checks import choice, option_params
 
-__all__ = ["FLOW_SCHEMAS", "FlowConfig", "GtFlowConfig", "ImageFlowConfig", "DisFlowConfig", "DeepFlowConfig",
+__all__ = ["FLOW_SCHEMAS", "DisPreset", "RaftSize", "RaftRuntime", "Precision", "FlowConfig", "GtFlowConfig", "ImageFlowConfig", "DisFlowConfig", "DeepFlowConfig",
            "RaftFlowConfig", "flow_name", "flow_params"]
+
+
+# The choices among names of the flow settings: OmegaConf refuses any other value (monostixels._checks.Choice).
+DisPreset = choice("DisPreset", "ultrafast fast medium", __name__)  # OpenCV's DIS presets (preset, matches_preset)
+RaftSize = choice("RaftSize", "small large", __name__)  # torchvision's RAFT models
+RaftRuntime = choice("RaftRuntime", "auto torch onnx", __name__)  # where RAFT runs
+Precision = choice("Precision", "float32 int8", __name__)  # the precision of a network's weights
 
 
 @dataclass
@@ -91,7 +98,7 @@ class DisFlowConfig(ImageFlowConfig):
     """
 
     name: str = "dis"
-    preset: str = "medium"
+    preset: DisPreset = DisPreset.medium
 
 
 @dataclass
@@ -109,7 +116,7 @@ class DeepFlowConfig(ImageFlowConfig):
 
     name: str = "deepflow"
     matches: str = "dis"
-    matches_preset: str = "medium"
+    matches_preset: DisPreset = DisPreset.medium
     bands: int = 1
     sigma_min: float = 0.3
     fb_consistency: bool = True
@@ -136,11 +143,11 @@ class RaftFlowConfig(ImageFlowConfig):
     """
 
     name: str = "raft"
-    size: str = "small"
+    size: RaftSize = RaftSize.small
     weights: Optional[str] = "models/raft_small.pt"
-    runtime: str = "auto"
+    runtime: RaftRuntime = RaftRuntime.auto
     onnx: Optional[str] = "models/raft_small.onnx"
-    precision: str = "int8"
+    precision: Precision = Precision.int8
     iters: int = 12
     threads: int = 0
     # RAFT's flow comes from a grid of 1/8 of its input: below full size its motion boundaries smear, and

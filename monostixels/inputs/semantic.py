@@ -40,7 +40,8 @@ import torch
 import torch.nn.functional as F
 from omegaconf import MISSING
 
-from monostixels._checks import InputError, check_finite_fast, check_shape, config_params, is_unset, option_params
+from monostixels._checks import (InputError, check_finite_fast, check_shape, config_params, choice,
+                                 is_unset, option_params)
 from monostixels._paths import REPO_ROOT, find_file, path_candidates
 from monostixels._threads import onnx_session_options
 from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL, NUM_CLASSES
@@ -51,6 +52,7 @@ __all__ = [
     "GtSemanticConfig",
     "NoSemanticConfig",
     "Fcn8sSemanticConfig",
+    "SemanticRuntime",
     "OnnxSemanticConfig",
     "semantic_params",
     "estimate_semantics",
@@ -99,6 +101,10 @@ class NoSemanticConfig:
     prior_overrides: Dict[str, float] = field(default_factory=lambda: {"alpha_dyn": 0.25})
 
 
+#: Where the FCN-8s runs (``semantic.runtime``): ONNX Runtime or PyTorch; OmegaConf refuses any other value.
+SemanticRuntime = choice("SemanticRuntime", "onnx torch", __name__)
+
+
 @dataclass
 class Fcn8sSemanticConfig:
     """``semantic=fcn8s``: our FCN-8s (models/MODEL_CARD.md), the real-image net by default;
@@ -116,7 +122,7 @@ class Fcn8sSemanticConfig:
     """
 
     name: str = "fcn8s"
-    runtime: str = "onnx"
+    runtime: SemanticRuntime = SemanticRuntime.onnx
     model: Optional[str] = "models/fcn8s_real.onnx"
     weights: Optional[str] = "models/fcn8s_real.pt"
     focal_px: Optional[float] = 480.0
@@ -552,10 +558,9 @@ def _fcn8s_segmenter(cfg: Fcn8sSemanticConfig, threads: int = 0) -> OnnxSegmente
         path = Path(_int8_checked(str(path), path.stat().st_mtime_ns))
         return _cached_onnx(str(path), path.stat().st_mtime_ns, None, scale,
                             (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), None, FCN8S_PAD_TO, True, int(threads))
-    if runtime == "torch":
-        path = resolve_model_path(cfg.weights, "semantic.weights")
-        return _cached_torch(str(path), path.stat().st_mtime_ns, scale)
-    raise InputError(f"semantic.runtime: expected onnx or torch, got {runtime!r}")
+    # runtime=torch (the schema admits no other: SemanticRuntime)
+    path = resolve_model_path(cfg.weights, "semantic.weights")
+    return _cached_torch(str(path), path.stat().st_mtime_ns, scale)
 
 
 def onnx_segmenter(cfg: Any, *, threads: int = 0) -> OnnxSegmenter:

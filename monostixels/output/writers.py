@@ -379,9 +379,11 @@ class RunWriters:
         return [f"run: {line}" for line in [*self.summary.lines, last]]
 
 
-def run_writers(cfg: Any, src: Source, out: Path) -> RunWriters:
+def run_writers(cfg: Any, src: Source, out: Path, *, ev: Any = None, output: Any = None) -> RunWriters:
     """``run``'s writers of source ``src`` into ``out`` (``<outputs>/run``): the per-frame files, the videos (a
     sequence: any video, or more than one pair), the Rerun recording (``output.rerun``) and the summary.
+    ``ev``, ``output``: the ``eval`` and ``output`` groups' settings where the caller parsed them
+    (:mod:`monostixels.build`), else read from ``cfg``.
 
     Raises:
         InputError: ``output.rerun=true`` without rerun-sdk installed (before any frame runs).
@@ -390,11 +392,11 @@ def run_writers(cfg: Any, src: Source, out: Path) -> RunWriters:
     from monostixels.output.viewer import open_recorder
     from monostixels.pipeline import EvalConfig
 
-    ev = config_params(EvalConfig, cfg.eval, "eval")
+    ev = config_params(EvalConfig, cfg.eval if ev is None else ev, "eval")
     pictures = FramePictures(ev.colormap_min_depth, ev.colormap_max_depth)
     sequence = str(cfg.data.name) == "video" or len(src) > 1  # a live source is a video: its length is not asked
     return RunWriters(out, FrameFiles(out, pictures), Videos(out, video_fps(src), pictures) if sequence else None,
-                      Recording(open_recorder(cfg, out, src)),
+                      Recording(open_recorder(cfg, out, src, ev=ev, output=output)),
                       RunSummary(out, src, str(cfg.data.name), camera_mount(cfg.data, cfg.camera)[0]))
 
 

@@ -56,13 +56,13 @@ from monostixels.data.base import FramePair, KeyframeParams, LiveSource, Previou
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
-from monostixels.pipeline import EvalConfig, MotionEstimationError, Pipeline, PipelineResult
+from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, PipelineSettings
 from monostixels.core.stixels import StixelWorld
-from monostixels.sequence.stream import StreamState
+from monostixels.sequence.stream import StreamParams, StreamState
 from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
                                    time_to_collision)
 
-__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix", "motion_track_for"]
+__all__ = ["KeyframeParams", "SequenceSettings", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix", "motion_track_for"]
 
 logger = logging.getLogger(__name__)
 
@@ -109,10 +109,11 @@ def choose_keyframe(candidates: Sequence[PreviousFrame], params: KeyframeParams,
     return candidates[0].back, dist[0]
 
 
-def motion_track_for(cfg: DictConfig) -> MotionTrack | None:
+def motion_track_for(motion: Any) -> MotionTrack | None:
     """The monocular scale's constant-velocity prior over the pairs of a sequence (``motion.sequence_prior``
-    with ``motion=mono``), else None: what the sequence layer keeps from pair to pair."""
-    motion = motion_params(cfg.motion)
+    with ``motion=mono``), else None: what the sequence layer keeps from pair to pair. ``motion``: the
+    ``motion`` group's settings (its config node or dataclass)."""
+    motion = motion_params(motion)
     if isinstance(motion, MonoMotionConfig) and motion.sequence_prior:
         return MotionTrack(motion)
     return None
@@ -145,29 +146,55 @@ class _Frame:
     pose: torch.Tensor           # (4, 4) camera-to-world
 
 
+@dataclass(frozen=True)
+class SequenceSettings:
+    """What a :class:`SequenceRunner` reads of the composed config, each group parsed once
+    (:meth:`from_config`): the pipeline's settings and the groups of the sequence layer."""
+
+    pipeline: PipelineSettings
+    keyframes: KeyframeParams
+    temporal: TrackParams
+    ttc: TtcParams
+    stream: StreamParams
+
+    @staticmethod
+    def from_config(cfg: Any) -> "SequenceSettings":
+        """The settings of the composed config ``cfg`` (a DictConfig, or a plain dict of one)."""
+        return SequenceSettings(
+            pipeline=PipelineSettings.from_config(cfg),
+            keyframes=config_params(KeyframeParams, cfg.get("keyframes"), "keyframes"),
+            temporal=config_params(TrackParams, cfg.get("temporal"), "temporal"),
+            ttc=config_params(TtcParams, cfg.get("ttc"), "ttc"),
+            stream=config_params(StreamParams, cfg.get("stream"), "stream"))
+
+
 class SequenceRunner:
     """Frames of a data source through the pipeline, with keyframes, tracks and TTC (module docstring).
 
     Args:
-        cfg: the composed config (groups keyframes, temporal, ttc beside the pipeline's).
-        pipeline: the per-pair pipeline (built from ``cfg`` when None).
+        cfg: the composed config (groups keyframes, temporal, ttc, stream beside the pipeline's), or its settings
+            parsed once (:class:`SequenceSettings`).
+        pipeline: the per-pair pipeline (built from the settings when None).
     """
 
-    def __init__(self, cfg: DictConfig, pipeline: Pipeline | None = None) -> None:
+    def __init__(self, cfg: DictConfig | SequenceSettings, pipeline: Pipeline | None = None) -> None:
         self.cfg = cfg
-        self.pipeline = pipeline if pipeline is not None else Pipeline(cfg)
-        self.keyframes = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes")
-        self.track_params = config_params(TrackParams, cfg.get("temporal"), "temporal")
-        self.ttc = config_params(TtcParams, cfg.get("ttc"), "ttc")
-        self.use_gt_distance = motion_params(cfg.motion).name in ("gt", "file")
+        settings = cfg if isinstance(cfg, SequenceSettings) else SequenceSettings.from_config(cfg)
+        self.settings = settings
+        self.pipeline = pipeline if pipeline is not None else Pipeline(settings.pipeline)
+        self.keyframes = settings.keyframes
+        self.track_params = settings.temporal
+        self.ttc = settings.ttc
+        motion = settings.pipeline.motion
+        self.use_gt_distance = motion.name in ("gt", "file")
         self.standing_m = float(self.pipeline.solver_cfg.min_translation)
-        self.default_dt = config_params(EvalConfig, cfg.get("eval"), "eval").frame_interval_s
+        self.default_dt = settings.pipeline.eval.frame_interval_s
         # Work carried from frame to frame (config group stream; monostixels.sequence.stream).
-        self.stream = StreamState.from_config(cfg)
+        self.stream = StreamState(settings.stream)
         self.stream.chain_frames = self.keyframes.window if self.keyframes.chain_flow else 0
         # The speed prior of the monocular scale: it restarts by itself where pairs do not continue a
         # sequence in time order (monostixels.inputs.motion_track), so a new clip needs no reset here.
-        self.motion_track = motion_track_for(cfg)
+        self.motion_track = motion_track_for(motion)
         self.reset()
 
     def reset(self) -> None:
