@@ -190,12 +190,6 @@ def _hydra_main() -> None:
 
 
 # ------------------------------------------------------------------------------------------------
-def _source(cfg: DictConfig):
-    from monostixels.build import build_source
-
-    return build_source(cfg)
-
-
 def _calibrate(cfg: DictConfig) -> float:
     """`calibrate`: chessboard views -> an intrinsics file with distortion; returns the RMS error (px)."""
     from monostixels._checks import config_params
