@@ -204,6 +204,52 @@ def test_the_scene_model_meets_the_road_in_the_plane_of_travel(monkeypatch, turn
         assert est.kind != "metric" or motion_errors(est.motion, gt)["scale_rel_err"] > 0.1, est.reason
 
 
+@pytest.mark.parametrize("grade_deg", [1.5, -1.5])
+def test_the_scene_models_uncertainty_covers_a_road_tilted_against_the_plane_of_travel(monkeypatch, grade_deg):
+    # The car drives level, the road ahead climbs (or falls) 1.5 deg: the walls' contacts lie on that road, not
+    # on the plane of travel, and each contact's depth is off by about δ z / h. Every column shares the tilt, so
+    # the scene model's error does not average out over its ~300 columns: its uncertainty must say so, and the
+    # road's own (right) length must not be called contradicted.
+    import monostixels.inputs.motion as motion_mod
+    from monostixels.inputs import motion_scene
+
+    d = math.radians(grade_deg)
+    planes = [(torch.tensor([0.0, math.cos(d), -math.sin(d)], dtype=torch.float64), HEIGHT), *_scene_planes()[1:]]
+    gt = Motion(R=_rot(0.3, 0.0, 0.0), t=torch.tensor([0.02, 0.0, 0.9], dtype=torch.float64))
+    cam = _camera()
+    pair, fr = _pair_and_flow(gt, flow=_analytic_flow(cam, gt, 0.05, planes=planes))
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(cam.K, u, v)
+    depth = torch.stack([torch.where(ray @ n > 0, h / (ray @ n), torch.tensor(math.inf, dtype=torch.float64))
+                         for n, h in planes])
+    road = depth.argmin(0) == 0
+    sem = torch.zeros(10, H, W)
+    sem[0][road] = 1.0
+    sem[3][~road] = 1.0
+
+    def scene_with(tilt_std: float):
+        seen = []
+
+        def record(*args, **kwargs):
+            seen.append(motion_scene.scene_scale(*args, **kwargs, tilt_std=tilt_std))
+            return seen[-1]
+
+        monkeypatch.setattr(motion_mod, "scene_scale", record)
+        est = estimate_motion(pair, fr, MONO, semantic=sem)
+        return seen[0], est
+
+    # Given the tilt it cannot rule out (here the road's own), the uncertainty covers the error.
+    scene, est = scene_with(math.radians(abs(grade_deg)))
+    err = abs(math.log(scene.scale / float(gt.t.norm())))
+    assert 0.1 < err < 2 * scene.std, scene
+    assert est.kind == "metric" and est.scale_from == "ground_flow" and est.scale_std < 0.05, est.reason
+    # Without the shared tilt, the same samples claim a few percent and make the right road length uncertain.
+    assert scene_with(motion_scene.GRADE_STD)[0].std < scene.std
+    blind, est_blind = scene_with(0.0)
+    assert blind.scale == scene.scale and err > 4 * blind.std
+    assert est_blind.scale_std > 0.1
+
+
 def test_travel_normal_is_the_nearest_normal_across_the_translation():
     from monostixels.inputs.motion import travel_normal
 
@@ -499,6 +545,50 @@ def test_motion_track_holds_the_speed_over_pairs_without_a_scale():
     assert tr.update(_track_pair(2), _unit()).kind == "scale_unknown"
     assert tr.update(_track_pair(9), _unit()).kind == "scale_unknown"  # frame 8 missing
     assert MotionTrack(MotionTrackParams(scale_hold_s=0.0)).update(_track_pair(1), _unit()).motion is None
+
+
+def _scene_est(length: float, reach: float, elevation_deg: float, std: float = 0.05):
+    from monostixels.core.geometry import Motion
+    from monostixels.inputs.motion import MotionEstimate
+
+    e = math.radians(elevation_deg)  # t toward the ground normal (0, 1, 0): the direction of travel's elevation
+    t = length * torch.tensor([0.0, math.sin(e), math.cos(e)], dtype=torch.float64)
+    return MotionEstimate(Motion(torch.eye(3, dtype=torch.float64), t), False, "ok", 1.0, scale_from="scene",
+                          scale_std=std, scene_reach=reach)
+
+
+def test_the_scene_models_length_is_uncertain_by_the_directions_scatter_at_its_contacts_distance():
+    from monostixels.inputs.motion_track import DIRECTION_PRIOR_STD, MotionTrack
+
+    # A steady direction of travel (a calibrated car camera): contacts 16 camera heights away still give a length.
+    tr = MotionTrack()
+    for k in range(4):
+        out = tr.update(_track_pair(k + 1), _scene_est(1.0, 16.0, 0.05 * (-1) ** k))
+    assert out.kind == "metric" and out.scale_from == "scene"
+    assert math.degrees(tr.direction_scatter()) == pytest.approx(0.1 / math.sqrt(2), rel=0.01)
+    # A direction that swings by 2 deg from pair to pair (a phone at a slow crawl, DAD 487's first pairs read
+    # 0.85 deg): the plane of travel may be tilted by 1.4 deg, and at 16 camera heights that is 40 % in the
+    # length. No metric length, not a certain one: the pair's direction is kept.
+    tr = MotionTrack()
+    outs = [tr.update(_track_pair(k + 1), _scene_est(1.0, 16.0, 1.0 * (-1) ** k)) for k in range(4)]
+    assert [o.kind for o in outs] == ["scale_unknown"] * 4 and all(o.motion is None for o in outs)
+    assert outs[-1].unit_motion is not None and "no metric length" in outs[-1].reason
+    assert math.degrees(tr.direction_scatter()) == pytest.approx(2 / math.sqrt(2), rel=0.01)
+    # Near contacts carry the same scatter lightly (3 camera heights: 7 %).
+    near = tr.update(_track_pair(5), _scene_est(1.0, 3.0, 1.0))
+    assert near.kind == "metric" and near.scale_from == "scene"
+    # Before a sequence shows its scatter, the prior: the first pair's far contacts give no length, and its
+    # near ones one as uncertain as the prior tilt makes it at their distance.
+    assert MotionTrack().update(_track_pair(1), _scene_est(1.0, 16.0, 0.0)).kind == "scale_unknown"
+    first = MotionTrack().update(_track_pair(1), _scene_est(1.0, 3.0, 0.0))
+    assert first.scale_std == pytest.approx(math.hypot(0.05, DIRECTION_PRIOR_STD * 3))
+    assert 16.0 * DIRECTION_PRIOR_STD > 0.15
+    # A length from the road is not the scene model's: its direction's scatter does not touch it.
+    tr = MotionTrack()
+    road = [tr.update(_track_pair(k + 1), dataclasses.replace(_scene_est(1.0, 16.0, 1.0 * (-1) ** k),
+                                                              scale_from="ground_flow", scene_reach=None))
+            for k in range(4)]
+    assert all(o.kind == "metric" for o in road)
 
 
 def test_motion_track_follows_a_real_speed_change():

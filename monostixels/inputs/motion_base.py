@@ -89,6 +89,9 @@ class MotionEstimate:
         scale_std: the relative uncertainty (std of ``log |t|``) of a metric translation's length: 0 for a
             given motion, the sequence filter's (:class:`~monostixels.inputs.motion_track.MotionTrack`) over a
             sequence, the settings' ``scale_meas_std`` for a single pair; None without a metric translation.
+        scene_reach: where the length came from the scene model (``scale_from`` ``scene``), its contacts'
+            distance in camera heights (:class:`~monostixels.inputs.motion_scene.SceneScale`): a tilt of the
+            plane of travel by δ moves that length by about ``δ * scene_reach`` in log; else None.
     """
 
     motion: Motion | None
@@ -100,6 +103,7 @@ class MotionEstimate:
     unit_motion: Motion | None = None
     scale_from: ScaleFrom | None = None
     scale_std: float | None = None
+    scene_reach: float | None = None
 
     def __post_init__(self) -> None:
         # Given as strings (tests, callers of old), still typed; an unknown one is a ValueError here.

@@ -26,6 +26,13 @@ __all__ = ["MOTION_SCHEMAS", "MonoMotionConfig", "MotionTrack", "MotionTrackPara
 
 logger = logging.getLogger(__name__)
 
+#: Pairs over which the direction of travel's scatter is measured (:meth:`MotionTrack.direction_scatter`).
+ELEVATION_WINDOW = 8
+#: The direction of travel's scatter (radians) assumed before a sequence has shown its own: between a
+#: calibrated car camera's (KITTI drive 0023: 0.07 deg from pair to pair) and a phone's behind a windscreen
+#: (Kochi, Singapore: about 3 deg); the clips' numbers are in docs/experiments.md.
+DIRECTION_PRIOR_STD = math.radians(1.0)
+
 
 @dataclass
 class MotionTrackParams:
@@ -134,6 +141,10 @@ class MotionTrack:
         self._confirmed = False  # two pairs' measured scales agreed since the track (re)started
         self._normals: dict[Any, tuple[torch.Tensor, float]] = {}  # frame -> (filtered normal, variance rad^2)
         self._held_s = 0.0  # seconds since the last pair with a measured scale
+        # The direction of travel's elevation over the ground (radians) of the sequence's recent pairs: its
+        # scatter is how far one pair's plane of travel may be tilted. Kept through the speed's restarts.
+        self._elevations: list[float] = []
+        self._elev_seq: Any = None
 
     def reset(self) -> None:
         self._key, self._x, self._var = None, 0.0, math.inf
@@ -148,6 +159,7 @@ class MotionTrack:
         prm = self.params
         info = pair.info
         seq, cur, prev = info.sequence, info.frame, info.frame_prev
+        est = self._scene_at_its_distance(pair, est)
         consecutive = (seq is not None and cur is not None and prev is not None and self._key is not None
                        and self._key[0] == seq and prev <= self._key[1] < cur and math.isfinite(self._var))
         dt = float(info.dt or 1.0)
@@ -207,6 +219,42 @@ class MotionTrack:
         logger.debug("%s: %s", pair.name, note)
         return dataclasses.replace(est, motion=Motion(est.motion.R, t_new), reason=f"{est.reason}; {note}",
                                    scale_std=std)
+
+    def direction_scatter(self) -> float:
+        """How far (radians, one standard deviation) one pair's direction of travel scatters in elevation: the
+        RMS change between the last :data:`ELEVATION_WINDOW` pairs over sqrt(2), or :data:`DIRECTION_PRIOR_STD`
+        before there are three of them."""
+        e = self._elevations
+        if len(e) < 3:
+            return DIRECTION_PRIOR_STD
+        d = [b - a for a, b in zip(e, e[1:])]
+        return math.sqrt(sum(x * x for x in d) / (2 * len(d)))
+
+    def _scene_at_its_distance(self, pair: FramePair, est: MotionEstimate) -> MotionEstimate:
+        """Records the pair's direction of travel, and gives a length from the scene model the uncertainty of
+        the plane of travel's tilt at its contacts' distance (``scene_reach``). Past ``max_scale_std`` the
+        pair's length is unknown (``scale_unknown``): a sequence's held speed, or none, takes its place."""
+        moving = est.motion if est.motion is not None and not est.degenerate else est.unit_motion
+        n = pair.camera.ground_normal
+        if moving is not None and n is not None and float(moving.t.norm()) > 0:
+            seq = pair.info.sequence
+            if seq != self._elev_seq or seq is None:
+                self._elevations, self._elev_seq = [], seq
+            t = moving.t.double()
+            elev = math.asin(max(-1.0, min(1.0, float(t @ n.double()) / float(t.norm()))))
+            self._elevations = [*self._elevations, elev][-ELEVATION_WINDOW:]
+        if est.scale_from != ScaleFrom.SCENE or est.scene_reach is None or est.motion is None:
+            return est
+        tilt = self.direction_scatter() * est.scene_reach
+        std = math.hypot(est.scale_std or 0.0, tilt)
+        note = (f"the scene model's length at {est.scene_reach:.0f} camera heights, the direction of travel "
+                f"scattering {math.degrees(self.direction_scatter()):.2f} deg: uncertain by {std:.2f}")
+        if std <= self.params.max_scale_std:
+            return dataclasses.replace(est, scale_std=std, reason=f"{est.reason}; {note}")
+        R, t = est.motion.R, est.motion.t
+        return dataclasses.replace(est, motion=None, kind=MotionKind.SCALE_UNKNOWN, unit_motion=Motion(R, t / t.norm()),
+                                   scale_from=None, scale_std=None, scene_reach=None,
+                                   reason=f"{est.reason}; {note} (> {self.params.max_scale_std}): no metric length")
 
     def _hold(self, est: MotionEstimate, cur: Any, prev: Any, dt: float) -> MotionEstimate:
         """A ``scale_unknown`` pair made metric by the filtered speed (predicted, not updated: its variance
