@@ -81,7 +81,7 @@ class KeyframeParams:
         window: earlier frames considered (>= 1).
         chain_flow: a pair reaching back past the previous frame takes its flow chained through the
             frames between (each frame's flow to the one before, kept by the stream, composed and then
-            refined on the pair: :func:`monostixels.inputs.flow.chained_flow`); False: the flow is computed
+            refined on the pair: :func:`monostixels.inputs.flow_chain.chained_flow`); False: the flow is computed
             on the pair directly.
         standing_max_s: a standing camera pairs with the oldest frame of the window at most this long
             ago (seconds; the movers' velocity is averaged over the pair, and should not lag behind the

@@ -14,7 +14,7 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    (``keyframes.chain_flow=false``: a flow straight across the pair loses large displacements).
    ``keyframes.min_distance_m = 0`` always pairs with the previous frame. A pair reaching past the
    previous frame takes its flow chained through the frames between (``keyframes.chain_flow``; the
-   stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow.chained_flow`).
+   stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow_chain.chained_flow`).
    Only solved frames are partners: a frame whose pair failed has no pose to chain through.
 2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
    scene model), but the movers still are found and measured from the flow: their depth from the
