@@ -59,8 +59,8 @@ from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motio
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, PipelineSettings
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamParams, StreamState
-from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
-                                   time_to_collision)
+from monostixels.sequence.tracking import Tracks, TrackParams, stixel_points
+from monostixels.sequence.ttc import TtcParams, confirmed, critical, object_wide, time_to_collision
 
 __all__ = ["KeyframeParams", "SequenceSettings", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix", "motion_track_for"]
 
