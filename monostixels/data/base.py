@@ -208,7 +208,7 @@ class SequenceSource(Protocol):
     """A recorded source: every source must provide these (``Sequence[FramePair]`` does).
 
     Pairs are read on access, in any order; a pair that cannot be made raises
-    :class:`monostixels.data._io.PairSkipped` (warned about and skipped by the sequence layer).
+    :class:`monostixels.data._lazy_source.PairSkipped` (warned about and skipped by the sequence layer).
 
     Optional attributes, read where present: ``fps`` (frames per second of the recording: videos'
     frame rate, velocities), ``step`` (recorded frames per frame offered), ``skipped_frames`` and

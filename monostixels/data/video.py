@@ -7,7 +7,7 @@ access, as ``monostixels run`` and ``eval`` do, decodes every frame once).
 
 Intrinsics, pixels of the video as stored (before ``resize``):
 
-- a file (``intrinsics``), in the formats of :func:`monostixels.data._io.read_intrinsics_file`
+- a file (``intrinsics``), in the formats of :func:`monostixels.data._camera_files.read_intrinsics_file`
   (``monostixels calibrate`` writes one from chessboard views). With a ``distortion`` key every
   frame is undistorted, keeping the file's camera matrix (:mod:`monostixels.data._lens`);
 - else a horizontal field of view ``hfov_deg``: ``fx = fy = (W / 2) / tan(hfov / 2)``, principal
@@ -41,8 +41,9 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import LazySource, UnreadableFrame, limit_frames, require_file
+from monostixels.data._lazy_source import LazySource, UnreadableFrame, limit_frames
 from monostixels.data._lens import AUTO_PIXELS, intrinsics_from_hfov, lens_camera, working_size
+from monostixels.data._readers import require_file
 from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.data.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region

@@ -2,7 +2,7 @@
 
 :class:`SequenceRunner` runs a :class:`~monostixels.pipeline.Pipeline` over a data source frame by frame.
 For a source of sequences (drives, videos, folders of frames, synthetic clips: the sources implement
-``sequence_key``, ``previous_frames`` and ``pair_back``, see :class:`monostixels.data._io.LazySource`):
+``sequence_key``, ``previous_frames`` and ``pair_back``, see :class:`monostixels.data._lazy_source.LazySource`):
 
 1. **Keyframes** (paper: "keyframes with a minimum driven distance of 0.5 m"). The current frame is
    paired with the most recent earlier frame, at most ``keyframes.window`` frames back, whose driven
@@ -51,7 +51,7 @@ from omegaconf import DictConfig
 from monostixels._checks import InputError, config_params
 from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.data._io import PairSkipped
+from monostixels.data._lazy_source import PairSkipped
 from monostixels.data.base import FramePair, KeyframeParams, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
