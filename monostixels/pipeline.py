@@ -454,7 +454,7 @@ class Pipeline:
             stixels.flags["reason"] = f"{motion.reason}; {stixels.flags.get('reason', '')}".strip("; ")
             logger.warning("%s: %s", pair.name, stixels.flags["reason"])
         if "capture_time_s" in pair.meta:
-            # A live source (monostixels.data.video.LiveVideoSource): which frames this pair is made of.
+            # A live source (monostixels.data.live_video.LiveVideoSource): which frames this pair is made of.
             stixels.flags["stream"] = {k: pair.meta.get(m) for k, m in (
                 ("frame", "frame"), ("capture_time_s", "capture_time_s"), ("previous_frame", "frame_prev"),
                 ("previous_capture_time_s", "capture_time_prev_s"), ("dropped_before", "dropped_before"),

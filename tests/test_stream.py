@@ -19,7 +19,8 @@ from monostixels import cli
 from monostixels._checks import InputError
 from monostixels.data.sources import make_source
 from monostixels.data.synthetic import SyntheticSequenceSource, render_pair
-from monostixels.data.video import LiveVideoSource, VideoSource
+from monostixels.data.live_video import LiveVideoSource
+from monostixels.data.video import VideoSource
 from monostixels.inputs.flow import estimate_flow, flow_metrics
 from monostixels.inputs.flow_backends import gray_u8, refine_flow
 from monostixels.inputs.flow_chain import compose_flows

@@ -219,7 +219,7 @@ class SequenceRunner:
             yield from self._run(read, sequential, progress)
 
     def _run(self, source: Any, sequential: bool, progress: Any) -> Iterator[SequenceStep]:
-        # A live source (a camera: monostixels.data.video.LiveVideoSource) has no length: it yields its
+        # A live source (a camera: monostixels.data.live_video.LiveVideoSource) has no length: it yields its
         # pairs' indices as frames arrive.
         for i in (source.indices() if isinstance(source, LiveSource) else range(len(source))):
             key = source.sequence_key(i) if sequential else None
