@@ -51,7 +51,8 @@ from tqdm import tqdm
 from monostixels.core.energy import load_config_group
 from monostixels.data.synthetic import SyntheticSource
 from monostixels.inputs.confidence import flow_covariance
-from monostixels.inputs.flow import compute_flow, confidence_params, estimate_flow, flow_metrics, resolve_path
+from monostixels.inputs.flow import compute_flow, confidence_params, estimate_flow, flow_metrics
+from monostixels.inputs.flow_backends import resolve_path
 
 
 def main() -> None:

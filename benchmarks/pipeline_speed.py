@@ -89,10 +89,10 @@ def dis_pair(roots: list[str]) -> tuple[np.ndarray, np.ndarray, str]:
                 size = DIS_SIZE
                 return cv2.resize(a, size), cv2.resize(b, size), f"{frames[0].parent}: {frames[0].name}, {frames[1].name}"
     from monostixels.data.synthetic import SyntheticSource
-    from monostixels.inputs.flow import _gray_u8
+    from monostixels.inputs.flow_backends import gray_u8
 
     pair = SyntheticSource(1, seed=0)[0]
-    a, b = (cv2.resize(_gray_u8(x.float()), DIS_SIZE) for x in (pair.image, pair.image_prev))
+    a, b = (cv2.resize(gray_u8(x.float()), DIS_SIZE) for x in (pair.image, pair.image_prev))
     return a, b, "synthetic scene 0"
 
 

@@ -32,7 +32,7 @@ from typing import Any, List, Optional, Sequence
 
 from monostixels._checks import InputError, config_params
 from monostixels._threads import set_threads
-from monostixels.data._io import IMAGE_EXTENSIONS
+from monostixels.data._readers import IMAGE_EXTENSIONS
 # SCHEMA_FIELDS and frame_rows: the dataset's columns, named here as before (docs/conventions.md, section 4.6).
 from monostixels.output.writers import SCHEMA_FIELDS, frame_rows  # noqa: F401
 from monostixels.output.writers import StixelRows, write_partition, write_sequence

@@ -24,7 +24,7 @@ prior          :class:`monostixels.core.energy.PriorConfig`                     
 stream         :class:`monostixels.sequence.stream.StreamParams`                    ``stream/base_stream``
 keyframes      :class:`monostixels.sequence.runner.KeyframeParams`                  ``keyframes/base_keyframes``
 temporal       :class:`monostixels.sequence.tracking.TrackParams`                   ``temporal/base_temporal``
-ttc            :class:`monostixels.sequence.tracking.TtcParams`                     ``ttc/base_ttc``
+ttc            :class:`monostixels.sequence.ttc.TtcParams`                          ``ttc/base_ttc``
 motion (mono)  :class:`monostixels.inputs.motion_track.MonoMotionConfig`            ``motion/base_mono``
 motion (gt)    :class:`monostixels.inputs.motion.GtMotionConfig`                    ``motion/base_gt``
 motion (file)  :class:`monostixels.inputs.motion.FileMotionConfig`                  ``motion/base_file``
@@ -64,7 +64,8 @@ from monostixels.pipeline import EvalConfig
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import KeyframeParams
 from monostixels.sequence.stream import StreamParams
-from monostixels.sequence.tracking import TrackParams, TtcParams
+from monostixels.sequence.tracking import TrackParams
+from monostixels.sequence.ttc import TtcParams
 
 __all__ = ["SCHEMAS", "register", "composition_error", "check_overrides", "refuse_bad_overrides"]
 

@@ -35,7 +35,8 @@ from monostixels.data.base import FramePair
 from monostixels.core.energy import PriorConfig, load_config_group
 from monostixels.post.sfm import triangulate
 from monostixels.core.geometry import Camera, Motion
-from monostixels.inputs.flow import FlowResult, chained_flow, estimate_flow
+from monostixels.inputs.flow import FlowResult, estimate_flow
+from monostixels.inputs.flow_chain import chained_flow
 from monostixels.inputs.flow_config import flow_params
 from monostixels.inputs.motion import (NO_METRIC_MOTION, MotionEstimate, MotionKind, ScaleFrom, estimate_motion,
                                       implied_height)
@@ -151,7 +152,7 @@ class Carried:
 
 @dataclass
 class Chain:
-    """What a keyframe pair's flow is chained through (:func:`monostixels.inputs.flow.chained_flow`).
+    """What a keyframe pair's flow is chained through (:func:`monostixels.inputs.flow_chain.chained_flow`).
 
     Attributes:
         last_image: (3, H, W) image of the stream's last frame ``L`` (between the pair's two frames).
@@ -453,7 +454,7 @@ class Pipeline:
             stixels.flags["reason"] = f"{motion.reason}; {stixels.flags.get('reason', '')}".strip("; ")
             logger.warning("%s: %s", pair.name, stixels.flags["reason"])
         if "capture_time_s" in pair.meta:
-            # A live source (monostixels.data.video.LiveVideoSource): which frames this pair is made of.
+            # A live source (monostixels.data.live_video.LiveVideoSource): which frames this pair is made of.
             stixels.flags["stream"] = {k: pair.meta.get(m) for k, m in (
                 ("frame", "frame"), ("capture_time_s", "capture_time_s"), ("previous_frame", "frame_prev"),
                 ("previous_capture_time_s", "capture_time_prev_s"), ("dropped_before", "dropped_before"),

@@ -23,7 +23,7 @@ from monostixels.core.geometry import (
     homography,
     pixel_rays,
 )
-from monostixels.core.columns import _DEFAULT_CLASS, ColumnProblem, _hypotheses
+from monostixels.core.columns import _DEFAULT_CLASS, ColumnProblem, hypotheses
 from monostixels.core.solver import SolverConfig
 
 __all__ = ["RefStixel", "reference_column", "column_energy", "exhaustive_column"]
@@ -53,7 +53,7 @@ class _Column:
     def __init__(self, prob: ColumnProblem, c: int, prm: PriorParams, cfg: SolverConfig):
         self.prob, self.c, self.prm, self.cfg = prob, c, prm, cfg
         self.n = prob.num_cells
-        hyp = _hypotheses(prob, cfg)  # the same hypothesis set (a shared definition, not the DP)
+        hyp = hypotheses(prob, cfg)  # the same hypothesis set (a shared definition, not the DP)
         self.p_ground = [float(x) for x in hyp.p_ground[c]]
         self.p_object = [float(x) for x in hyp.p_object[c]]
         self.tau = [hyp.tau[c, k].double() for k in range(hyp.tau.shape[1])]
@@ -125,7 +125,7 @@ class _Column:
 
     def _sky_extra(self, j: int) -> float:
         """Both caps per row where cell ``j``'s ray points more than ``sky_horizon_margin_deg`` below the
-        horizon (columns._semantic_prefix): sky is not seen there."""
+        horizon (columns.semantic_prefix): sky is not seen there."""
         prob, c = self.prob, self.c
         ray = pixel_rays(prob.K[c].double(), prob.u[c].double(), prob.v[j].double())
         below = float(ray @ self.n_g) / float(ray.norm())

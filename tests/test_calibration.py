@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from monostixels._checks import InputError
-from monostixels.data._io import check_intrinsics_size, read_distortion, read_intrinsics_file
+from monostixels.data._camera_files import check_intrinsics_size, read_distortion, read_intrinsics_file
 from monostixels.data.calibration import MIN_BOARDS, calibrate_images, write_intrinsics_file
 from tests._boards import write_board_views
 

@@ -199,7 +199,7 @@ def test_run_video_fails_clearly(tmp_path, case):
 def test_calibrate_writes_an_intrinsics_file(tmp_path):
     """`monostixels calibrate`: chessboard views -> intrinsics.yaml (fx fy cx cy distortion), the RMS error and
     the boards found printed, the views without a board named."""
-    from monostixels.data._io import read_distortion, read_intrinsics_file
+    from monostixels.data._camera_files import read_distortion, read_intrinsics_file
     from tests._boards import write_board_views
 
     K = np.array([[330.0, 0.0, 203.0], [0.0, 325.0, 148.0], [0.0, 0.0, 1.0]])

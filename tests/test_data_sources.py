@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import read_distortion, read_intrinsics_file, read_poses_file
+from monostixels.data._camera_files import read_distortion, read_intrinsics_file, read_poses_file
 from monostixels.data.ddad import DDADSource, pose_matrix, project_points
 from monostixels.data.frames import FramesSource
 from monostixels.data.kitti2015 import KITTI_STEREO_BASELINE_M, Kitti2015Source
@@ -296,7 +296,7 @@ def test_intrinsics_bad_distortion_fails_naming_file_and_key(tmp_path, value, wa
 
 def test_frame_pair_checks_its_ignore_mask():
     from monostixels.data.base import FramePair
-    from monostixels.data._io import make_camera
+    from monostixels.data._camera_files import make_camera
 
     cam = make_camera(50.0, 50.0, 6.0, 4.0, 1.5)
     img = torch.zeros(3, 8, 12)

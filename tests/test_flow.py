@@ -172,14 +172,14 @@ def test_the_kept_refinement_gives_what_a_new_one_gives():
     import cv2
     from concurrent.futures import ThreadPoolExecutor
 
-    from monostixels.inputs.flow import _DIS_PRESETS, _dis_calc, _gray_u8, _refine
+    from monostixels.inputs.flow_backends import _DIS_PRESETS, _dis_calc, gray_u8, refine_flow
 
-    pairs = [(_gray_u8(_texture(96, 160, s)), _gray_u8(torch.roll(_texture(96, 160, s), (1, 3 + s), (1, 2))))
+    pairs = [(gray_u8(_texture(96, 160, s)), gray_u8(torch.roll(_texture(96, 160, s), (1, 3 + s), (1, 2))))
              for s in (0, 1)]
     pairs.append((pairs[0][0][:64, :128].copy(), pairs[0][1][:64, :128].copy()))
 
     def kept(a, b, f):
-        return _refine((a, b), torch.from_numpy(f.transpose(2, 0, 1).copy())).permute(1, 2, 0).numpy()
+        return refine_flow((a, b), torch.from_numpy(f.transpose(2, 0, 1).copy())).permute(1, 2, 0).numpy()
 
     with ThreadPoolExecutor(1) as other:
         for i in (0, 1, 2, 0, 1):
@@ -376,7 +376,7 @@ def test_raft_runtime_auto_takes_the_export_beside_the_weights(tmp_path, raft3):
     made with the configured updates; torch for other updates, and for weights without an export."""
     import shutil
 
-    from monostixels.inputs.flow import _raft_net
+    from monostixels.inputs.flow_backends import _raft_net
 
     net, export = raft3
     torch.save(net.raft.state_dict(), tmp_path / "mine.pt")
@@ -426,7 +426,7 @@ def test_raft_int8_copy_quantizes_the_convolutions_and_keeps_the_flow(tmp_path):
 def test_shipped_raft_files_agree_and_auto_runs_the_onnx_one():
     """models/raft_small.onnx is the export of models/raft_small.pt (the same flow on a render), with
     the shipped config's updates recorded, so that runtime=auto takes it on a CPU."""
-    from monostixels.inputs.flow import _raft_net
+    from monostixels.inputs.flow_backends import _raft_net
     from monostixels.pipeline import load_config
 
     cfg = load_config(["flow=raft"]).flow
@@ -469,13 +469,13 @@ def test_without_vnni_an_int8_raft_with_8_bit_weights_gives_way_to_the_float_gra
     import logging
 
     from monostixels import _cpu
-    from monostixels.inputs import flow as flow_mod
+    from monostixels.inputs import flow_backends as flow_mod
     from monostixels.pipeline import load_config
 
     cfg = load_config(["flow=raft"]).flow
     monkeypatch.setattr(_cpu, "int8_path", lambda: "no_vnni")
     monkeypatch.setattr(flow_mod, "_saturates_here", lru_cache(flow_mod._saturates_here.__wrapped__))
-    with caplog.at_level(logging.WARNING, logger="monostixels.inputs.flow"):
+    with caplog.at_level(logging.WARNING, logger="monostixels.inputs.flow_backends"):
         net = flow_mod._raft_net(cfg)
         assert net.quantized is None and net.path.name == "raft_small.onnx"
         flow_mod._raft_net(cfg)
@@ -577,7 +577,7 @@ def test_flow_metrics_hand_computed():
 def test_raft_forward_backward_refined_hands_on_its_grey_image(tmp_path):
     """With the forward-backward check and the refinement, RAFT returns the current image's grey (the
     next pair's previous one), and a grey handed in changes nothing."""
-    from monostixels.inputs.flow import _gray_u8
+    from monostixels.inputs.flow_backends import gray_u8
 
     torch.manual_seed(2)
     net = RaftFlow(build_raft("small"), num_flow_updates=2).eval()
@@ -589,8 +589,8 @@ def test_raft_forward_backward_refined_hands_on_its_grey_image(tmp_path):
     cfg = OmegaConf.create({"name": "raft", "weights": str(wpath), "iters": 2, "refine": True, "fb_consistency": True,
                             "scale": 1.0, "refine_passes": 1, "precision": "float32"})
     cold = estimate_flow(pair, cfg)
-    assert cold.grey is not None and np.array_equal(cold.grey, _gray_u8(a.float()))
-    warm = estimate_flow(pair, cfg, grey_prev=_gray_u8(b.float()))
+    assert cold.grey is not None and np.array_equal(cold.grey, gray_u8(a.float()))
+    warm = estimate_flow(pair, cfg, grey_prev=gray_u8(b.float()))
     assert torch.equal(warm.flow, cold.flow) and torch.equal(warm.cov, cold.cov)
 
 
@@ -601,7 +601,7 @@ def test_raft_forward_backward_refined_hands_on_its_grey_image(tmp_path):
 def test_tiny_images_fail_clearly_in_the_low_level_functions(size):
     """OpenCV's DIS and filters segfaulted on such images; the functions now raise InputError first."""
     from monostixels.inputs.confidence import structure_tensor
-    from monostixels.inputs.flow import _dis_calc
+    from monostixels.inputs.flow_backends import _dis_calc
 
     H, W = size
     grey = np.random.default_rng(0).random((H, W)).astype(np.float32)
@@ -615,7 +615,7 @@ def test_tiny_images_fail_clearly_in_the_low_level_functions(size):
 
 def test_dis_on_a_wide_low_image_fails_clearly():
     """16 x 1000 px: OpenCV's DIS asserts in its resize (a cv2.error); it becomes a named InputError."""
-    from monostixels.inputs.flow import _dis_calc
+    from monostixels.inputs.flow_backends import _dis_calc
 
     a = (np.random.default_rng(1).random((16, 1000)) * 255).astype(np.uint8)
     with pytest.raises(InputError, match="1000x16"):

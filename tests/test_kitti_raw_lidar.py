@@ -307,7 +307,7 @@ TRAFFIC = SHARED / "kitti_raw_traffic" / "2011_09_26"
 def test_raw_scan_projection_reproduces_the_shared_velodyne_raw_png(tmp_path):
     """The shared drive's velodyne_raw PNG of frame 1, lifted back to Velodyne points (each return at its pixel's
     devkit coordinate, its depth) and written as a scan: projected with the drive's calibration it gives the PNG."""
-    from monostixels.data._io import read_kitti_calib
+    from monostixels.data._camera_files import read_kitti_calib
     from monostixels.data.kitti_raw import velo_to_cam0_rect
 
     src_drive = TRAFFIC / "2011_09_26_drive_traffic_sync"

@@ -222,14 +222,14 @@ def test_scaled_flow_is_in_full_size_pixels(name, refine):
 def test_scaled_flow_upsampling_convention():
     # A zoom about the continuous point c: x_prev = c + k (x - c), with pixel centres at u + 0.5.
     # Sampled at the grid's pixel centres, upsampled and rescaled, it must be the full-size zoom flow.
-    from monostixels.inputs.flow import _upsample_flow
+    from monostixels.inputs.flow_resample import upsample_flow
 
     k, cu, cv = 1.04, 50.3, 20.7
     H, W, h, w = 60, 150, 24, 50  # grid scales 0.4 (rows) and 1/3 (columns)
     vl, ul = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     sx, sy = w / W, h / H
     low = torch.stack([(k - 1) * ((ul + 0.5) - cu * sx), (k - 1) * ((vl + 0.5) - cv * sy)]).float()
-    up = _upsample_flow(low, (H, W))
+    up = upsample_flow(low, (H, W))
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
     want = torch.stack([(k - 1) * ((u + 0.5) - cu), (k - 1) * ((v + 0.5) - cv)]).float()
     assert torch.allclose(up[:, 3:-3, 3:-3], want[:, 3:-3, 3:-3], atol=1e-4)
@@ -402,11 +402,11 @@ def test_numpy_grey_images_equal_the_torch_formulas():
     import cv2
 
     from monostixels.inputs.confidence import to_gray
-    from monostixels.inputs.flow import _gray_u8
+    from monostixels.inputs.flow_backends import gray_u8
 
     img = torch.rand(3, 41, 67, generator=torch.Generator().manual_seed(6)) * 1.2 - 0.1  # values outside [0, 1] too
     rgb = (img.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
-    assert np.array_equal(_gray_u8(img), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    assert np.array_equal(gray_u8(img), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
     ref = (img.float() * torch.tensor([0.299, 0.587, 0.114]).view(3, 1, 1)).sum(0)
     assert torch.equal(to_gray(img), ref) and torch.equal(to_gray(img.double()), ref)
 
@@ -429,14 +429,14 @@ def test_refined_flow_shares_the_grey_images_with_the_backend():
     # One grey conversion for DeepFlow and the refinement: the same flow as each doing its own.
     import cv2
 
-    from monostixels.inputs.flow import _deepflow, _gray_u8
+    from monostixels.inputs.flow_backends import _deepflow, gray_u8
     from monostixels.inputs.flow_config import flow_params
 
     pair = _shift_pair((3, 1), h=64, w=120)
     cfg = flow_params({"name": "deepflow", "scale": 0.5, "refine": True, "refine_passes": 1})
     got = compute_flow(pair.image, pair.image_prev, cfg)
     f = np.ascontiguousarray(_deepflow(pair.image, pair.image_prev, cfg).permute(1, 2, 0).numpy())
-    cv2.VariationalRefinement_create().calc(_gray_u8(pair.image), _gray_u8(pair.image_prev), f)
+    cv2.VariationalRefinement_create().calc(gray_u8(pair.image), gray_u8(pair.image_prev), f)
     assert torch.equal(got, torch.from_numpy(np.ascontiguousarray(f.transpose(2, 0, 1))))
 
 
@@ -465,7 +465,7 @@ def test_pipeline_asks_for_one_onnx_thread_only_beside_an_image_flow(monkeypatch
 def test_bands_stitch_strips_in_place():
     # A "flow" that reads the image content: stitched strips must give back the image exactly,
     # so every strip sits at its own columns and the blend weights add up to 1.
-    from monostixels.inputs.flow import _in_bands
+    from monostixels.inputs.flow_backends import _in_bands
 
     h, w = 20, 301
     a = (np.arange(w, dtype=np.float32)[None, :] * 0.7 + np.arange(h, dtype=np.float32)[:, None]).astype(np.float32)

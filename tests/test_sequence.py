@@ -16,7 +16,8 @@ from monostixels.core.geometry import Motion, object_normals, pixel_rays
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import KeyframeParams, SequenceRunner, choose_keyframe
 from monostixels.core.stixels import StixelWorld
-from monostixels.sequence.tracking import TrackParams, Tracks, TtcParams, critical, time_to_collision
+from monostixels.sequence.tracking import TrackParams, Tracks
+from monostixels.sequence.ttc import TtcParams, critical, time_to_collision
 
 
 def _prev(back: int, tz: float | None, dt: float = 0.1) -> PreviousFrame:
@@ -271,7 +272,7 @@ def test_time_to_collision_of_a_hand_made_closing_object():
 
 def test_a_warning_needs_an_object_wider_than_one_column():
     from monostixels.core.stixels import StixelWorld
-    from monostixels.sequence.tracking import object_wide
+    from monostixels.sequence.ttc import object_wide
 
     # Columns 3-4 one object (overlapping rows), column 8 a lone sliver, column 10 beside column 9 but not
     # sharing a row with it; column 9 is not warned.
@@ -291,7 +292,7 @@ def test_a_warning_needs_an_object_wider_than_one_column():
 def test_a_warning_waits_for_its_track_to_be_confirmed():
     """A car closing in the path is warned about once its track has continued ttc.confirm_frames frames; a
     stixel critical in one frame only (a new track each time) never is."""
-    from monostixels.sequence.tracking import confirmed
+    from monostixels.sequence.ttc import confirmed
 
     params = TtcParams(confirm_frames=2)
     tracks, warned = Tracks(TrackParams()), []

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from monostixels._checks import InputError
-from monostixels.data._io import MAX_SKIPPED_FRAMES, PairSkipped
+from monostixels.data._lazy_source import MAX_SKIPPED_FRAMES, PairSkipped
 from monostixels.data.frames import FramesSource
 from monostixels.data.video import VideoSource
 

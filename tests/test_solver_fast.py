@@ -177,21 +177,21 @@ def test_cpp_preparation_identical_to_torch(seed, dtype):
                                     degenerate=seed % 5 == 0)
     prob = _cast(prob, dtype)
     cfg = _with(cfg, dtype="float64" if dtype == torch.float64 else "float32", standing_hypotheses=seed % 3 != 0)
-    geo_t, geo_c = columns_mod._geometry(prob), columns_mod._geometry(prob, cpp=True)
+    geo_t, geo_c = columns_mod.column_geometry(prob), columns_mod.column_geometry(prob, cpp=True)
     for k in ("ray", "a", "cK", "s_g", "s_o", "q"):
         assert torch.equal(getattr(geo_t, k), getattr(geo_c, k)), k
-    hyp_t = columns_mod._hypotheses(prob, _with(cfg, backend="eager"), geo_t)
-    hyp_c = columns_mod._hypotheses(prob, _with(cfg, backend="cpp"), geo_c)
+    hyp_t = columns_mod.hypotheses(prob, _with(cfg, backend="eager"), geo_t)
+    hyp_c = columns_mod.hypotheses(prob, _with(cfg, backend="cpp"), geo_c)
     for k in ("p_ground", "p_object", "tau", "B"):
         assert torch.equal(getattr(hyp_t, k), getattr(hyp_c, k)), k
-    g_t = columns_mod._flow_geometry(prob, hyp_t, geo_t)[-1]
+    g_t = columns_mod.flow_geometry(prob, hyp_t, geo_t)[-1]
     assert hyp_t.g is None and torch.equal(g_t, hyp_c.g)
     # Cells without a fit were replaced (reference ground, farthest depth, tau = 0): repeats exist.
     assert len(set(hyp_c.p_ground[0].tolist())) < hyp_c.p_ground.shape[1]
     prm_t = prm.as_tensors(dtype)
     for margin in (5.0, math.inf):
-        L_t, cls_t = columns_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_t)
-        L_c, cls_c = columns_mod._semantic_prefix(prob, prm_t, dtype, margin, geo_c, cpp=True)
+        L_t, cls_t = columns_mod.semantic_prefix(prob, prm_t, dtype, margin, geo_t)
+        L_c, cls_c = columns_mod.semantic_prefix(prob, prm_t, dtype, margin, geo_c, cpp=True)
         assert cls_t == cls_c and torch.equal(L_t, L_c), margin
 
 

@@ -19,9 +19,11 @@ from monostixels import cli
 from monostixels._checks import InputError
 from monostixels.data.sources import make_source
 from monostixels.data.synthetic import SyntheticSequenceSource, render_pair
-from monostixels.data.video import LiveVideoSource, VideoSource
-from monostixels.inputs import flow as flow_module
-from monostixels.inputs.flow import compose_flows, estimate_flow, flow_metrics
+from monostixels.data.live_video import LiveVideoSource
+from monostixels.data.video import VideoSource
+from monostixels.inputs.flow import estimate_flow, flow_metrics
+from monostixels.inputs.flow_backends import gray_u8, refine_flow
+from monostixels.inputs.flow_chain import compose_flows
 from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import Pipeline, load_config
 from monostixels.sequence import SequenceRunner
@@ -259,8 +261,8 @@ def test_keyframe_flow_is_chained_through_the_frames_between(slow_sequence):
     a, b = estimate_flow(p32, fc), estimate_flow(p21, fc)
     hwc = lambda x: np.ascontiguousarray(x.permute(1, 2, 0).numpy())  # noqa: E731
     fwd = compose_flows(hwc(a.flow), hwc(b.flow))
-    want = flow_module._refine((flow_module._gray_u8(p31.image), flow_module._gray_u8(p31.image_prev)),
-                               torch.from_numpy(np.ascontiguousarray(fwd.transpose(2, 0, 1))), fc.refine_passes)
+    want = refine_flow((gray_u8(p31.image), gray_u8(p31.image_prev)),
+                       torch.from_numpy(np.ascontiguousarray(fwd.transpose(2, 0, 1))), fc.refine_passes)
     assert torch.allclose(steps[2].result.flow.flow, want, atol=1e-4)
     # Against ground truth, the same pairs with the flow across them.
     off = load_config(base + ["keyframes.chain_flow=false"])

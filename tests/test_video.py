@@ -160,7 +160,7 @@ def test_undistorted_frames_are_pinhole_images_of_their_camera(board_clip, resiz
 
 
 def test_live_source_undistorts_like_the_file_source(board_clip):
-    from monostixels.data.video import LiveVideoSource
+    from monostixels.data.live_video import LiveVideoSource
 
     path, intr, _, _, _ = board_clip
     live = LiveVideoSource(path, intrinsics=intr, resize=0.5)

@@ -12,7 +12,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.core.classes import PALETTE, TYPE_PALETTE
 from monostixels.core.geometry import intrinsics
-from monostixels.data._io import read_rgb
+from monostixels.data._readers import read_rgb
 from monostixels.output.io import (
     KITTI_DEPTH_PNG_SCALE,
     depth_to_points,

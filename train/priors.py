@@ -93,7 +93,7 @@ def labelling_energy(prob: ColumnProblem, lab: ColumnSolution, prm: PriorParams,
     T_c, p_c, cls_c = cell(lab.type), cell(lab.p.to(dt)), cell(lab.cls)
     tau_c = cell(lab.tau.to(dt))
 
-    # Flow term: predicted point H x of every cell under its stixel's homography (columns._flow_prefix).
+    # Flow term: predicted point H x of every cell under its stixel's homography (columns.flow_prefix).
     ray = pixel_rays(prob.K[:, None], prob.u[:, None], prob.v[None, :])  # C x n x 3
     a = ((prob.K @ prob.R)[:, None] @ ray[..., None])[..., 0]
     cK = (prob.K @ prob.t[..., None])[..., 0][:, None]  # C x 1 x 3

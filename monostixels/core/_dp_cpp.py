@@ -182,16 +182,16 @@ def cell_means_checked(x: torch.Tensor, r: int, w: int, count: torch.Tensor, che
 
 
 def hypotheses(*args: object) -> list[torch.Tensor]:
-    """Hypothesis sets (p_ground, p_object, tau, g = K B tau) for hypothesis_stride 1 (see ``columns._hypotheses``)."""
+    """Hypothesis sets (p_ground, p_object, tau, g = K B tau) for hypothesis_stride 1 (see ``columns.hypotheses``)."""
     return torch.ops.monostixels.hypotheses(*args)
 
 
 def geometry(*args: object) -> list[torch.Tensor]:
-    """Per-cell (ray, a, s_g, s_o, q) of every column (see ``columns._geometry``)."""
+    """Per-cell (ray, a, s_g, s_o, q) of every column (see ``columns.column_geometry``)."""
     return torch.ops.monostixels.geometry(*args)
 
 
 def semantic_prefix(*args: object) -> torch.Tensor:
-    """Prefix-summed semantic cost (C, 10, n + 1) (see ``columns._semantic_prefix``)."""
+    """Prefix-summed semantic cost (C, 10, n + 1) (see ``columns.semantic_prefix``)."""
     return torch.ops.monostixels.semantic_prefix(*args)
 

@@ -4,8 +4,8 @@ Steps 1 and 2 of :mod:`monostixels.core.solver`'s method: each column of width `
 of ``r`` pixel rows counted from the image bottom, with the flow, covariance and semantic scores
 averaged per cell (:func:`prepare_columns`, a :class:`ColumnProblem`); every ``hypothesis_stride``-th
 cell gives a ground / static-object inverse depth or a dynamic object's motion, and the flow cost
-of each hypothesis on each cell is prefix-summed over the cells (:func:`_flow_prefix`), as are the
-semantic costs (:func:`_semantic_prefix`). The DP (:func:`monostixels.core.solver.solve_columns`) reads
+of each hypothesis on each cell is prefix-summed over the cells (:func:`flow_prefix`), as are the
+semantic costs (:func:`semantic_prefix`). The DP (:func:`monostixels.core.solver.solve_columns`) reads
 segment costs as differences of these sums. Where the C++ kernel is loaded the same expressions
 run there (``csrc/column_dp.cpp``).
 """
@@ -32,7 +32,8 @@ from monostixels.core.geometry import (
 )
 from monostixels.core.solver_config import SolverConfig
 
-__all__ = ["ColumnProblem", "prepare_columns", "beyond_horizon"]
+__all__ = ["ColumnProblem", "prepare_columns", "beyond_horizon", "Z_MIN", "column_geometry", "cpp_prep", "flow_geometry",
+           "flow_prefix", "hypotheses", "semantic_prefix"]
 
 #: Default class of each type when there is no semantic input (road, building, vehicle, sky).
 _DEFAULT_CLASS = (0, 3, 6, 9)
@@ -40,7 +41,7 @@ _SKY_CLASS = TYPE_CLASSES[SKY][0]
 #: Hypothesis-cell pairs evaluated at once when computing flow costs (bounds peak memory).
 _CHUNK_ELEMENTS = 4_000_000
 #: A predicted point with ``z`` at or below this (homogeneous, px) is behind the camera: flow cap.
-_Z_MIN = 1e-9
+Z_MIN = 1e-9
 #: Singular-system threshold of the per-cell fits (geometry.solve_static_dof / solve_dynamic_dof).
 _FIT_EPS = inspect.signature(solve_static_dof).parameters["eps"].default
 
@@ -210,7 +211,7 @@ class _Hypotheses:
     p_object: torch.Tensor   # C x Ko
     tau: torch.Tensor        # C x Kd x 2
     B: torch.Tensor          # C x 3 x 2 ground-plane basis
-    g: torch.Tensor | None = None  # C x Kd x 3 K B tau, if already computed (see _flow_geometry)
+    g: torch.Tensor | None = None  # C x Kd x 3 K B tau, if already computed (see flow_geometry)
 
 
 def _window_median(x: torch.Tensor, stride: int) -> torch.Tensor:
@@ -254,7 +255,7 @@ class _Geometry:
     q: torch.Tensor
 
 
-def _geometry(prob: ColumnProblem, cpp: bool = False) -> _Geometry:
+def column_geometry(prob: ColumnProblem, cpp: bool = False) -> _Geometry:
     """The terms of :class:`_Geometry`, with the expressions of geometry.static_dof_system (same bits).
 
     ``cpp``: the same expressions cell by cell in one pass (csrc/column_dp.cpp; tests/test_solver_fast.py).
@@ -294,20 +295,20 @@ def _fits(prob: ColumnProblem, geo: _Geometry) -> tuple[torch.Tensor, torch.Tens
     return p_g, p_o, solve_dynamic_dof(A, b), Bm
 
 
-def _hypotheses(prob: ColumnProblem, cfg: SolverConfig, geo: _Geometry | None = None) -> _Hypotheses:
+def hypotheses(prob: ColumnProblem, cfg: SolverConfig, geo: _Geometry | None = None) -> _Hypotheses:
     """Per-column hypothesis sets of the three flow-fitted types (see module docstring).
 
     Every cell gives one hypothesis per type from its own flow vector. With
     ``hypothesis_stride = s > 1`` the cells are grouped in windows of ``s`` and each window gives
     the median of its cells' hypotheses: exact for a plane that covers most of a window, robust
     to flow noise, and ``s`` times fewer hypotheses (the DP cost is linear in their number).
-    ``geo``: the problem's :func:`_geometry`, if already computed.
+    ``geo``: the problem's :func:`column_geometry`, if already computed.
     """
-    geo = _geometry(prob) if geo is None else geo
+    geo = column_geometry(prob) if geo is None else geo
     s = cfg.hypothesis_stride
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
     p_ref = (1.0 / prob.h_cam)[:, None]
-    if s == 1 and _cpp_prep(prob, cfg):
+    if s == 1 and cpp_prep(prob, cfg):
         # The same expressions, cell by cell in one pass (csrc/column_dp.cpp; tests/test_solver_fast.py).
         Bm = ground_basis(prob.n_g)
         p_g, p_o, tau, g = _dp_cpp.hypotheses(
@@ -344,7 +345,7 @@ def _hypotheses(prob: ColumnProblem, cfg: SolverConfig, geo: _Geometry | None = 
 def _row_costs(prob: ColumnProblem, Hx: torch.Tensor, prm: PriorParams) -> torch.Tensor:
     """Flow cost (C, K, n) per cell of predicted points ``H x`` (C, K, n, 3), weighted by rows."""
     z = Hx[..., 2]
-    ok = z > _Z_MIN
+    ok = z > Z_MIN
     zs = torch.where(ok, z, torch.ones_like(z))
     up = prob.u[:, None, None] + prob.flow[:, None, :, 0]
     vp = prob.v[None, None, :] + prob.flow[:, None, :, 1]
@@ -371,7 +372,7 @@ def _prefix(x: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(torch.cumsum(x, -1), (1, 0))
 
 
-def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses, geo: _Geometry | None = None) -> tuple[torch.Tensor, ...]:
+def flow_geometry(prob: ColumnProblem, hyp: _Hypotheses, geo: _Geometry | None = None) -> tuple[torch.Tensor, ...]:
     """Terms of the predicted points ``H x`` of every hypothesis (shared by both backends).
 
     Returns:
@@ -379,7 +380,7 @@ def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses, geo: _Geometry | None 
         of the dynamic hypotheses. A static hypothesis ``p`` predicts ``a + p s cK``, a dynamic
         one ``a + s_o g``, the sky ``a``.
     """
-    geo = _geometry(prob) if geo is None else geo
+    geo = column_geometry(prob) if geo is None else geo
     g = hyp.g
     if g is None:
         M = prob.K @ hyp.B  # C x 3 x 2
@@ -387,10 +388,10 @@ def _flow_geometry(prob: ColumnProblem, hyp: _Hypotheses, geo: _Geometry | None 
     return geo.a, geo.cK, geo.s_g, geo.s_o, g
 
 
-def _flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams,
-                 geo: _Geometry | None = None) -> list[torch.Tensor]:
+def flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams,
+                geo: _Geometry | None = None) -> list[torch.Tensor]:
     """Prefix-summed flow cost (C, K_T, n + 1) of every hypothesis of every type."""
-    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp, geo)
+    a, cK, s_g, s_o, g = flow_geometry(prob, hyp, geo)
 
     def chunked(Hx_of: Any, K: int) -> torch.Tensor:
         # Hypotheses in chunks: the (C, K, n, 3) points of all at once are the peak memory at r = 1.
@@ -417,8 +418,8 @@ def _sky_unseen(geo: _Geometry, margin_deg: float) -> torch.Tensor:
     return sin_below > math.sin(math.radians(margin_deg))
 
 
-def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky_margin_deg: float = math.inf,
-                     geo: _Geometry | None = None, cpp: bool = False) -> tuple[torch.Tensor, list[list[int]]]:
+def semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky_margin_deg: float = math.inf,
+                    geo: _Geometry | None = None, cpp: bool = False) -> tuple[torch.Tensor, list[list[int]]]:
     """Prefix-summed semantic cost (C, 10, n + 1) and the classes of each type.
 
     With semantics, the sky class also pays the flow and semantic caps (``alpha_F delta_F + alpha_L
@@ -434,7 +435,7 @@ def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky
     if prob.nll is not None:
         unseen = extra = None
         if math.isfinite(sky_margin_deg):
-            unseen = _sky_unseen(_geometry(prob) if geo is None else geo, sky_margin_deg)
+            unseen = _sky_unseen(column_geometry(prob) if geo is None else geo, sky_margin_deg)
             extra = (prm.alpha_F * prm.delta_F + prm.alpha_L * prm.delta_L) * prob.rows[None, :]
         if cpp:  # the same expressions and sums, one pass (csrc/column_dp.cpp; tests/test_solver_fast.py)
             Lp = _dp_cpp.semantic_prefix(prob.nll, prob.rows, prm.alpha_L, prm.delta_L, unseen,
@@ -448,7 +449,7 @@ def _semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky
     return torch.zeros(C, 1, n + 1, dtype=dt), [[c] for c in _DEFAULT_CLASS]
 
 
-def _cpp_prep(prob: ColumnProblem, cfg: SolverConfig) -> bool:
+def cpp_prep(prob: ColumnProblem, cfg: SolverConfig) -> bool:
     """Whether the C++ kernel may prepare ``prob`` (values only: no gradients through it)."""
     if cfg.backend == "eager" or prob.flow.dtype not in (torch.float32, torch.float64):
         return False

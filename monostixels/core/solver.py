@@ -49,8 +49,8 @@ import torch
 from monostixels.core import _dp_cpp
 from monostixels._checks import InputError, check_finite, check_same_size, check_shape
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TYPES, STATIC_OBJECT
-from monostixels.core.columns import (_Z_MIN, ColumnProblem, _cpp_prep, _flow_geometry, _flow_prefix, _geometry, _hypotheses,
-                                 _semantic_prefix, prepare_columns)
+from monostixels.core.columns import (Z_MIN, ColumnProblem, column_geometry, cpp_prep, flow_geometry, flow_prefix, hypotheses,
+                                      prepare_columns, semantic_prefix)
 from monostixels.core.energy import GRAVITY_TOLERANCE_M, PriorParams, gravity, ordering_from_depths
 from monostixels.core.geometry import Camera, Motion, dynamic_motion, ground_basis
 from monostixels.core.solver_config import SolverConfig
@@ -140,15 +140,15 @@ def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig)
     Bit-identical to eager.
     """
     dt = cfg.torch_dtype
-    geo = _geometry(prob, cpp=_cpp_prep(prob, cfg))
-    hyp = _hypotheses(prob, cfg, geo)
-    a, cK, s_g, s_o, g = _flow_geometry(prob, hyp, geo)
-    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo, cpp=_cpp_prep(prob, cfg))
+    geo = column_geometry(prob, cpp=cpp_prep(prob, cfg))
+    hyp = hypotheses(prob, cfg, geo)
+    a, cK, s_g, s_o, g = flow_geometry(prob, hyp, geo)
+    Lp, classes = semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo, cpp=cpp_prep(prob, cfg))
     cls_table = torch.tensor([cs + [-1] * (3 - len(cs)) for cs in classes], dtype=torch.long)  # 4 x 3
     ncs = torch.tensor([len(cs) for cs in classes], dtype=torch.long)
     params = torch.stack([getattr(prm, k) for k in _dp_cpp.PARAM_ORDER]
                          + [torch.tensor(x, dtype=dt) for x in (1.0 / cfg.max_depth, 1.0 / cfg.min_depth,
-                                                                GRAVITY_TOLERANCE_M, _Z_MIN)])
+                                                                GRAVITY_TOLERANCE_M, Z_MIN)])
     col, b, t, typ, cls, p, g, tau, cost, energy = _dp_cpp.column_dp(
         a, cK, s_g, s_o, prob.u, prob.v, prob.rows, prob.flow, prob.cov_inv, prob.logdet,
         hyp.p_ground, hyp.p_object, g, hyp.tau, Lp, geo.q, 1.0 / prob.h_cam,
@@ -171,12 +171,12 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
         return _solve_columns_cpp(prob, prm, cfg)
     tau_T = float(cfg.tau)
     C, n = prob.num_columns, prob.num_cells
-    geo = _geometry(prob, cpp=_cpp_prep(prob, cfg))
-    hyp = _hypotheses(prob, cfg, geo)
-    P = _flow_prefix(prob, hyp, prm, geo)  # per type: C x K_T x (n + 1)
+    geo = column_geometry(prob, cpp=cpp_prep(prob, cfg))
+    hyp = hypotheses(prob, cfg, geo)
+    P = flow_prefix(prob, hyp, prm, geo)  # per type: C x K_T x (n + 1)
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
 
-    Lp, classes = _semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo)
+    Lp, classes = semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo)
     cls_idx = [torch.tensor(cs) if prob.nll is not None else torch.tensor([0]) for cs in classes]
     L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
 

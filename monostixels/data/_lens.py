@@ -34,8 +34,8 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.core.geometry import Camera
-from monostixels.data._io import (check_intrinsics_size, make_camera, read_distortion, read_intrinsics_file,
-                                  read_mask_file)
+from monostixels.data._camera_files import check_intrinsics_size, make_camera, read_distortion, read_intrinsics_file
+from monostixels.data._readers import read_mask_file
 
 __all__ = ["FrameWarp", "AUTO_PIXELS", "intrinsics_from_hfov", "working_size", "lens_camera"]
 

@@ -81,7 +81,7 @@ class KeyframeParams:
         window: earlier frames considered (>= 1).
         chain_flow: a pair reaching back past the previous frame takes its flow chained through the
             frames between (each frame's flow to the one before, kept by the stream, composed and then
-            refined on the pair: :func:`monostixels.inputs.flow.chained_flow`); False: the flow is computed
+            refined on the pair: :func:`monostixels.inputs.flow_chain.chained_flow`); False: the flow is computed
             on the pair directly.
         standing_max_s: a standing camera pairs with the oldest frame of the window at most this long
             ago (seconds; the movers' velocity is averaged over the pair, and should not lag behind the
@@ -208,7 +208,7 @@ class SequenceSource(Protocol):
     """A recorded source: every source must provide these (``Sequence[FramePair]`` does).
 
     Pairs are read on access, in any order; a pair that cannot be made raises
-    :class:`monostixels.data._io.PairSkipped` (warned about and skipped by the sequence layer).
+    :class:`monostixels.data._lazy_source.PairSkipped` (warned about and skipped by the sequence layer).
 
     Optional attributes, read where present: ``fps`` (frames per second of the recording: videos'
     frame rate, velocities), ``step`` (recorded frames per frame offered), ``skipped_frames`` and

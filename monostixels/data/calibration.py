@@ -3,8 +3,8 @@
 OpenCV's method (Zhang's, as in OpenCV's calibration tutorial): ``findChessboardCorners`` per image,
 ``cornerSubPix`` to refine the corners, ``calibrateCamera`` over all views with a board, giving the
 pinhole intrinsics and five distortion coefficients ``k1, k2, p1, p2, k3``. The result is written as
-an intrinsics file in the format :func:`monostixels.data._io.read_intrinsics_file` reads, with the
-``distortion`` key (:func:`monostixels.data._io.read_distortion`), so that ``data=video`` and
+an intrinsics file in the format :func:`monostixels.data._camera_files.read_intrinsics_file` reads, with the
+``distortion`` key (:func:`monostixels.data._camera_files.read_distortion`), so that ``data=video`` and
 ``data=frames`` undistort with it.
 
 Convention: ``board = (columns, rows)`` counts *inner* corners (where four squares meet), as OpenCV's
@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from monostixels._checks import InputError
-from monostixels.data._io import IMAGE_EXTENSIONS
+from monostixels.data._readers import IMAGE_EXTENSIONS
 
 __all__ = ["CalibrateConfig", "Calibration", "MIN_BOARDS", "calibrate_images", "calibration_lines", "find_board",
            "write_intrinsics_file"]

@@ -41,15 +41,9 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import (
-    LazySource,
-    limit_frames,
-    make_camera,
-    read_image_pair,
-    relative_motion,
-    require_dir,
-    require_file,
-)
+from monostixels.data._camera_files import make_camera, relative_motion
+from monostixels.data._lazy_source import LazySource, limit_frames
+from monostixels.data._readers import read_image_pair, require_dir, require_file
 from monostixels.data.base import FramePair, GroundTruth
 from monostixels.core.geometry import Motion
 

@@ -11,7 +11,7 @@ Pairs: current = image ``i``, previous = image ``i - step`` in name order. Frame
 
 Intrinsics, pixels of the images as stored (before ``resize``), :func:`monostixels.data._lens.lens_camera`:
 
-- a file, in the formats of :func:`monostixels.data._io.read_intrinsics_file`:
+- a file, in the formats of :func:`monostixels.data._camera_files.read_intrinsics_file`:
   YAML / JSON ``fx: 718.9`` ``fy: 718.9`` ``cx: 607.2`` ``cy: 185.2`` (``fy`` optional = ``fx``),
   or ``K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``; text ``fx fy cx cy`` (4 numbers) or the 9 numbers
   of K (row-major), or ``key: value`` lines. A ``distortion: [k1, k2, p1, p2, k3]`` key (OpenCV's
@@ -34,7 +34,7 @@ bool at the working size, True = ignore; also True where undistortion leaves a p
 Camera height from ``data.camera_height`` (metres), else the camera config.
 
 Optional poses (``data.poses``): camera-to-world ``T_w_cam`` per image in the formats of
-:func:`monostixels.data._io.read_poses_file`: 13 values per line (image id = the file stem as a
+:func:`monostixels.data._camera_files.read_poses_file`: 13 values per line (image id = the file stem as a
 number, then 3x4), or 12 / 16 values per line (3x4 / 4x4) for the images in name order (one
 line per image). Then ``motion`` is the ground-truth camera motion ``X_prev = R X_cur + t``;
 without poses ``motion`` is None. No ground truth otherwise.
@@ -52,16 +52,9 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError, check_same_size
-from monostixels.data._io import (
-    LazySource,
-    UnreadableFrame,
-    limit_frames,
-    list_images,
-    read_poses_file,
-    read_rgb,
-    relative_motion,
-    require_dir,
-)
+from monostixels.data._camera_files import read_poses_file, relative_motion
+from monostixels.data._lazy_source import LazySource, UnreadableFrame, limit_frames
+from monostixels.data._readers import list_images, read_rgb, require_dir
 from monostixels.data._lens import lens_camera, working_size
 from monostixels.data.static_regions import AUTO_MASK, AUTO_SPACING_S, spread_samples, with_static_region
 from monostixels.data.base import FOLDER_FPS, FramePair, GroundTruth

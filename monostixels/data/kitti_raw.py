@@ -51,20 +51,10 @@ import numpy as np
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data._io import (
-    LazySource,
-    limit_frames,
-    list_images,
-    make_camera,
-    projection_matrix,
-    read_image_pair,
-    read_kitti_calib,
-    read_png16,
-    read_poses_file,
-    relative_motion,
-    require_dir,
-    require_file,
-)
+from monostixels.data._camera_files import (make_camera, projection_matrix, read_kitti_calib, read_poses_file,
+                                            relative_motion)
+from monostixels.data._lazy_source import LazySource, limit_frames
+from monostixels.data._readers import list_images, read_image_pair, read_png16, require_dir, require_file
 from monostixels.data.base import FramePair, GroundTruth
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion
 

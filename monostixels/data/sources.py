@@ -353,7 +353,8 @@ def _mask(value: str | None) -> str | Path | None:
 
 
 def _video(data: VideoDataConfig, camera: Any, window: int = 10) -> Source:
-    from monostixels.data.video import LiveVideoSource, VideoSource, is_live_path
+    from monostixels.data.live_video import LiveVideoSource, is_live_path
+    from monostixels.data.video import VideoSource
 
     height, pitch = camera_mount(data, camera)
     common = dict(

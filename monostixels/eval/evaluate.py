@@ -252,7 +252,7 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
         report["failed_frames"] = failed
     skipped = list(getattr(source, "skipped_frames", []))
     if skipped:
-        # Unreadable frames the source skipped (monostixels.data._io.LazySource): counted, never silent.
+        # Unreadable frames the source skipped (monostixels.data._lazy_source.LazySource): counted, never silent.
         report["skipped_frames"] = len(skipped)
     if flow_stats:
         report["flow"] = {flow_name: {k: float(np.mean([f[k] for f in flow_stats])) for k in ("epe", "fl_all")}}

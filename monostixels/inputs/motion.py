@@ -8,7 +8,7 @@ Backends (``cfg.name``):
 
 - ``gt``: ``pair.motion`` from the data source.
 - ``file``: a KITTI-style poses file (``cfg.path``, read by
-  :func:`monostixels.data._io.read_poses_file`): per line either 12 numbers (the 3x4 row-major
+  :func:`monostixels.data._camera_files.read_poses_file`): per line either 12 numbers (the 3x4 row-major
   ``T_w_cam``, camera to world, metres; line ``i`` = frame ``i``), a frame number followed by the
   12 numbers, or the 16 numbers of the 4x4 matrix. Frames are ``pair.meta["frame_index"]`` (current) and
   ``pair.meta["frame_index_prev"]`` (or ``"frame"`` / ``"frame_prev"``, as kitti_raw writes them). ``cfg.offset`` (3,) is the position of the image camera
@@ -86,7 +86,7 @@ import torch
 from monostixels._pools import helper_pool
 from monostixels._checks import InputError, check_finite, check_shape, config_params
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, NUM_CLASSES, SKY
-from monostixels.data._io import read_poses_file, relative_motion
+from monostixels.data._camera_files import read_poses_file, relative_motion
 from monostixels.data.base import FramePair
 from monostixels.core.geometry import Motion, angle_deg
 from monostixels.inputs.ground import (PATTERN_MAX_GAIN, ROAD_CLASS, fit_ground, ground_candidates, ground_system,
@@ -172,7 +172,7 @@ def _load_poses_cached(path: str, mtime: float) -> dict[int, np.ndarray]:
 def load_poses(path: str | Path) -> dict[int, np.ndarray]:
     """Poses ``T_w_cam`` (4, 4) float64 (camera to world, metres) by frame number from a poses file.
 
-    The formats of :func:`monostixels.data._io.read_poses_file` (12 numbers a line, line ``i`` =
+    The formats of :func:`monostixels.data._camera_files.read_poses_file` (12 numbers a line, line ``i`` =
     frame ``i``; a frame number and 12 numbers; 16 numbers), the frame ids being whole numbers.
     """
     p = Path(path)

@@ -1,6 +1,6 @@
 """Writing images, 16-bit depth PNGs and PLY point clouds (and reading the last two back).
 
-Images are written with OpenCV (and read by :func:`monostixels.data._io.read_rgb`, the package's one
+Images are written with OpenCV (and read by :func:`monostixels.data._readers.read_rgb`, the package's one
 image reader); the conversion BGR <-> RGB happens at that boundary, so everything inside the package
 is RGB. Failures raise :class:`InputError` naming the
 file (docs/conventions.md, section 7).

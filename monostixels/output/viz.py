@@ -496,7 +496,7 @@ def stixel_depth_overlay(
         notes: more lines for the top-left box (e.g. warnings of a caller).
         legend: draw the depth scale.
         ttc_warning: (N,) bool, stixels closing within the TTC warning time in the camera's path
-            (:mod:`monostixels.sequence.tracking`): a red outline and their time to collision; default
+            (:mod:`monostixels.sequence.ttc`): a red outline and their time to collision; default
             ``stixels.ttc_warning`` where the sequence layer set it.
 
     Returns:

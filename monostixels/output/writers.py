@@ -321,7 +321,7 @@ class RunSummary(Writer):
         if error is not None:
             return
         from monostixels._cpu import runtime_report
-        from monostixels.data._io import MAX_SKIPPED_FRAMES
+        from monostixels.data._lazy_source import MAX_SKIPPED_FRAMES
 
         src, out = self.src, self.out
         written = len(self.camera)

@@ -2,7 +2,7 @@
 
 :class:`SequenceRunner` runs a :class:`~monostixels.pipeline.Pipeline` over a data source frame by frame.
 For a source of sequences (drives, videos, folders of frames, synthetic clips: the sources implement
-``sequence_key``, ``previous_frames`` and ``pair_back``, see :class:`monostixels.data._io.LazySource`):
+``sequence_key``, ``previous_frames`` and ``pair_back``, see :class:`monostixels.data._lazy_source.LazySource`):
 
 1. **Keyframes** (paper: "keyframes with a minimum driven distance of 0.5 m"). The current frame is
    paired with the most recent earlier frame, at most ``keyframes.window`` frames back, whose driven
@@ -14,7 +14,7 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
    (``keyframes.chain_flow=false``: a flow straight across the pair loses large displacements).
    ``keyframes.min_distance_m = 0`` always pairs with the previous frame. A pair reaching past the
    previous frame takes its flow chained through the frames between (``keyframes.chain_flow``; the
-   stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow.chained_flow`).
+   stream keeps each frame's flows to the frame before it: :func:`monostixels.inputs.flow_chain.chained_flow`).
    Only solved frames are partners: a frame whose pair failed has no pose to chain through.
 2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
    scene model), but the movers still are found and measured from the flow: their depth from the
@@ -51,7 +51,7 @@ from omegaconf import DictConfig
 from monostixels._checks import InputError, config_params
 from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.data._io import PairSkipped
+from monostixels.data._lazy_source import PairSkipped
 from monostixels.data.base import FramePair, KeyframeParams, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.core.geometry import Motion
 from monostixels.inputs.motion import NO_METRIC_MOTION
@@ -59,8 +59,8 @@ from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motio
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, PipelineSettings
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamParams, StreamState
-from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
-                                   time_to_collision)
+from monostixels.sequence.tracking import Tracks, TrackParams, stixel_points
+from monostixels.sequence.ttc import TtcParams, confirmed, critical, object_wide, time_to_collision
 
 __all__ = ["KeyframeParams", "SequenceSettings", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix", "motion_track_for"]
 
@@ -219,7 +219,7 @@ class SequenceRunner:
             yield from self._run(read, sequential, progress)
 
     def _run(self, source: Any, sequential: bool, progress: Any) -> Iterator[SequenceStep]:
-        # A live source (a camera: monostixels.data.video.LiveVideoSource) has no length: it yields its
+        # A live source (a camera: monostixels.data.live_video.LiveVideoSource) has no length: it yields its
         # pairs' indices as frames arrive.
         for i in (source.indices() if isinstance(source, LiveSource) else range(len(source))):
             key = source.sequence_key(i) if sequential else None

@@ -19,7 +19,7 @@ becomes the *previous* frame of the next pair:
 With :attr:`StreamState.chain_frames` (set by the sequence layer from ``keyframes.chain_flow`` and
 ``keyframes.window``) each kept frame also keeps its image and its flows to the frame before it, both
 ways; a keyframe pair reaching past the last frame gets them (:class:`Chain`) and its flow is chained
-through the frames between (:func:`monostixels.inputs.flow.chained_flow`).
+through the frames between (:func:`monostixels.inputs.flow_chain.chained_flow`).
 
 A pair is continued when its earlier frame (``info.frame_prev``) is a kept frame of the same
 ``info.sequence`` (and image size) and it comes after the last pair; keyframe pairs that reach two
