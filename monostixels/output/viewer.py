@@ -32,7 +32,7 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError
 from monostixels.core.classes import DYNAMIC_OBJECT, PALETTE
 from monostixels.pipeline import EvalConfig
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
@@ -274,22 +274,19 @@ def _scaled_K(K: np.ndarray, stride: int) -> torch.Tensor:
     return torch.from_numpy(S @ K)
 
 
-def open_recorder(cfg: Any, out: Path, src: Any, *, ev: Any = None, output: Any = None) -> RecordingHook:
+def open_recorder(out: Path, src: Any, *, ev: EvalConfig, output: OutputConfig) -> RecordingHook:
     """The recording hook of ``monostixels run``: a :class:`RerunRecorder` writing
     ``out/recording.rrd`` where ``output.rerun`` is true, else one that records nothing.
 
     Args:
-        cfg: the composed config (``output`` and ``eval`` groups). out: ``<outputs>/run``.
-        src: the data source (its ``fps``, for videos, gives the ``time`` timeline).
-        ev, output: the ``eval`` and ``output`` groups' settings where the caller parsed them, else read from ``cfg``.
+        out: ``<outputs>/run``. src: the data source (its ``fps``, for videos, gives the ``time`` timeline).
+        ev, output: the ``eval`` and ``output`` groups' settings.
 
     Raises:
         InputError: ``output.rerun=true`` without rerun-sdk installed (checked before any frame runs).
     """
-    output = config_params(OutputConfig, cfg.get("output") if output is None else output, "output")
     if not output.rerun:
         return RecordingHook()
-    ev = config_params(EvalConfig, cfg.get("eval") if ev is None else ev, "eval")
     return RerunRecorder(out / RECORDING_NAME, fps=getattr(src, "fps", None), colors=output.rerun_colors,
                          point_stride=output.rerun_point_stride, jpeg_quality=output.rerun_jpeg_quality,
                          min_depth=ev.colormap_min_depth, max_depth=ev.colormap_max_depth)
