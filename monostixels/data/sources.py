@@ -16,16 +16,21 @@ from pathlib import Path
 from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Union
 
-from monostixels._checks import InputError, config_params, option_params
+from monostixels._checks import InputError, choice, config_params, option_params
 from monostixels.data.base import FOLDER_FPS, Source
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.data.static_regions import AUTO_MASK
 
-__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
+__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "KittiSplit", "KittiPrevious", "CamVidSplit", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
            "KittiRawDataConfig", "DdadDataConfig", "FramesDataConfig", "VideoDataConfig", "CamVidDataConfig",
            "camera_mount", "data_params", "make_source"]
 
 logger = logging.getLogger(__name__)
+
+# The choices among names of the data settings: OmegaConf refuses any other value (monostixels._checks.Choice).
+KittiSplit = choice("KittiSplit", "training testing", __name__)  # KITTI 2015's folders
+KittiPrevious = choice("KittiPrevious", "auto 11 09", __name__)  # the partner of KITTI 2015's frame _10
+CamVidSplit = choice("CamVidSplit", "train val test", __name__)  # CamVid's lists
 
 
 @dataclass
@@ -89,8 +94,8 @@ class Kitti2015DataConfig:
 
     name: str = "kitti2015"
     root: Optional[str] = None
-    split: str = "training"
-    previous: str = "auto"
+    split: KittiSplit = KittiSplit.training
+    previous: KittiPrevious = KittiPrevious.auto
     frames: Optional[int] = None
     scenes: Optional[List[int]] = None
     fx: Optional[float] = 721.5377
@@ -254,7 +259,7 @@ class CamVidDataConfig:
 
     name: str = "camvid"
     root: Optional[str] = None
-    split: str = "test"
+    split: CamVidSplit = CamVidSplit.test
     frames: Optional[int] = None
     step: int = 1
 

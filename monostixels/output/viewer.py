@@ -32,12 +32,15 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from monostixels._checks import InputError
+from monostixels._checks import InputError, choice
 from monostixels.core.classes import DYNAMIC_OBJECT, PALETTE
 from monostixels.pipeline import EvalConfig
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
 
-__all__ = ["OutputConfig", "RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
+__all__ = ["RerunColors", "OutputConfig", "RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
+
+#: ``output.rerun_colors``: the colour of the recorded stixel boxes (OmegaConf refuses any other name).
+RerunColors = choice("RerunColors", "class depth", __name__)
 
 
 @dataclass
@@ -57,7 +60,7 @@ class OutputConfig:
     """
 
     rerun: bool = False
-    rerun_colors: str = "class"
+    rerun_colors: RerunColors = RerunColors["class"]
     rerun_point_stride: int = 4
     rerun_jpeg_quality: Optional[int] = 85
 
@@ -118,11 +121,11 @@ class RerunRecorder(RecordingHook):
         InputError: rerun-sdk is not installed; a bad ``colors``, ``point_stride`` or ``jpeg_quality``.
     """
 
-    def __init__(self, path: str | Path, *, fps: float | None = None, colors: str = "class", point_stride: int = 4,
+    def __init__(self, path: str | Path, *, fps: float | None = None, colors: RerunColors | str = "class", point_stride: int = 4,
                  jpeg_quality: int | None = 85, min_depth: float = 2.0, max_depth: float = 80.0) -> None:
         rr = require_rerun()
-        if colors not in ("class", "depth"):
-            raise InputError(f"output.rerun_colors: expected 'class' or 'depth', got {colors!r}")
+        if colors not in RerunColors.__members__:  # the config's value is one (RerunColors); a caller's may not be
+            raise InputError(f"output.rerun_colors: expected one of {', '.join(RerunColors.__members__)}, got {colors!r}")
         if int(point_stride) < 1:
             raise InputError(f"output.rerun_point_stride: must be a positive number of pixels, got {point_stride}")
         if jpeg_quality is not None and not 1 <= int(jpeg_quality) <= 100:
