@@ -115,11 +115,10 @@ def build_source(cfg: Any, camera: Any = None) -> Source:
         InputError: an unknown ``data.name``, a bad setting (naming it), or a source that cannot be opened.
     """
     data = cfg
-    window = None
-    if hasattr(cfg, "keys") and "data" in cfg and "name" not in cfg:
+    whole = hasattr(cfg, "keys") and "data" in cfg and "name" not in cfg
+    if whole:
         data = cfg["data"]
         camera = camera if camera is not None else cfg.get("camera")
-        window = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes").window
     name = (data or {}).get("name") if hasattr(data, "keys") or data is None else getattr(data, "name", None)
     if name not in SOURCE_NAMES:
         raise InputError(f"data.name: unknown data source {name!r}; choose one of {', '.join(SOURCE_NAMES)}")
@@ -129,8 +128,10 @@ def build_source(cfg: Any, camera: Any = None) -> Source:
                          f"at its frame rate); data={name} is read from disk frame by frame")
     params = data_params(data)
     cam = config_params(CameraConfig, camera, "camera")
-    # A live source keeps as many frames as keyframe pairs may reach back (10 without a keyframes group).
-    return make_source(params, cam) if window is None else make_source(params, cam, window=window)
+    if name == "video" and whole:
+        # A live source keeps as many frames as keyframe pairs may reach back (10 without a keyframes group).
+        return make_source(params, cam, window=config_params(KeyframeParams, cfg.get("keyframes"), "keyframes").window)
+    return make_source(params, cam)
 
 
 def build_writers(cfg: Any, src: Source, out: Path, settings: Settings | None = None) -> RunWriters:
