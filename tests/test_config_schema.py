@@ -50,6 +50,8 @@ def test_hydra_refuses_unknown_keys_and_wrong_types(override, key):
     (["data=kitti2015", "data.split=val"], "data.split", "training, testing"),
     (["data=camvid", "data.split=training"], "data.split", "train, val, test"),
     (["flow=dis", "flow.confidence=harris"], "flow.confidence", "constant, structure_tensor"),
+    (["flow=deepflow", "flow.matches=sift"], "flow.matches", "dis, none"),
+    (["data=kitti_raw", "data.oxts=gps"], "data.oxts", "velocity, position"),
 ])
 def test_a_name_that_is_none_of_a_settings_choices_is_refused_naming_it(overrides, key, choices):
     """The choices among names are Choice fields of the schemas: Hydra refuses any other name when it composes

@@ -21,7 +21,7 @@ from monostixels.data.base import FOLDER_FPS, Source
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.data.static_regions import AUTO_MASK
 
-__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "KittiSplit", "KittiPrevious", "CamVidSplit", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
+__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "KittiSplit", "KittiPrevious", "CamVidSplit", "KittiOxts", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
            "KittiRawDataConfig", "DdadDataConfig", "FramesDataConfig", "VideoDataConfig", "CamVidDataConfig",
            "camera_mount", "data_params", "make_source"]
 
@@ -31,6 +31,7 @@ logger = logging.getLogger(__name__)
 KittiSplit = choice("KittiSplit", "training testing", __name__)  # KITTI 2015's folders
 KittiPrevious = choice("KittiPrevious", "auto 11 09", __name__)  # the partner of KITTI 2015's frame _10
 CamVidSplit = choice("CamVidSplit", "train val test", __name__)  # CamVid's lists
+KittiOxts = choice("KittiOxts", "velocity position", __name__)  # where KITTI raw's OXTS positions come from
 
 
 @dataclass
@@ -130,7 +131,7 @@ class KittiRawDataConfig:
     frames: Optional[int] = None
     only_labelled: bool = False
     camera_height: Optional[float] = None
-    oxts: str = "velocity"
+    oxts: KittiOxts = KittiOxts.velocity
 
 
 @dataclass

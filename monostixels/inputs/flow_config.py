@@ -13,7 +13,7 @@ from typing import Any, Optional, Union
 
 from monostixels._checks import choice, option_params
 
-__all__ = ["FLOW_SCHEMAS", "DisPreset", "RaftSize", "RaftRuntime", "Precision", "FlowConfidence", "FlowConfig", "GtFlowConfig", "ImageFlowConfig", "DisFlowConfig", "DeepFlowConfig",
+__all__ = ["FLOW_SCHEMAS", "DisPreset", "RaftSize", "RaftRuntime", "Precision", "FlowConfidence", "DeepFlowMatches", "FlowConfig", "GtFlowConfig", "ImageFlowConfig", "DisFlowConfig", "DeepFlowConfig",
            "RaftFlowConfig", "flow_name", "flow_params"]
 
 
@@ -23,6 +23,7 @@ RaftSize = choice("RaftSize", "small large", __name__)  # torchvision's RAFT mod
 RaftRuntime = choice("RaftRuntime", "auto torch onnx", __name__)  # where RAFT runs
 Precision = choice("Precision", "float32 int8", __name__)  # the precision of a network's weights
 FlowConfidence = choice("FlowConfidence", "constant structure_tensor", __name__)  # the covariance's method
+DeepFlowMatches = choice("DeepFlowMatches", "dis none", __name__)  # DeepFlow's large-displacement guidance
 
 
 @dataclass
@@ -116,7 +117,7 @@ class DeepFlowConfig(ImageFlowConfig):
     """
 
     name: str = "deepflow"
-    matches: str = "dis"
+    matches: DeepFlowMatches = DeepFlowMatches.dis
     matches_preset: DisPreset = DisPreset.medium
     bands: int = 1
     sigma_min: float = 0.3
