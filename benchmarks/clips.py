@@ -70,7 +70,7 @@ from benchmarks.dashcam import _DILATE_PX, _MOVER_CLASSES, _referee, false_mover
 from monostixels._checks import InputError
 from monostixels.build import Purpose, build_runner
 from monostixels.core.classes import DYNAMIC_OBJECT
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.eval.metrics import DepthAccumulator
 from monostixels.pipeline import load_config
 from monostixels.sequence.runner import SequenceStep
@@ -283,7 +283,7 @@ def _open(clip: Clip, data: Path, extra: list[str], tmp: Path) -> tuple[Any, Any
     overrides = [*clip.resolved(data), *extra]
     try:
         cfg = load_config(["preset=fast", *overrides])
-        return cfg, make_source(cfg.data, cfg.camera), overrides, None
+        return cfg, build_source(cfg.data, cfg.camera), overrides, None
     except InputError as err:
         if clip.kitti_frames is None:
             raise
@@ -291,7 +291,7 @@ def _open(clip: Clip, data: Path, extra: list[str], tmp: Path) -> tuple[Any, Any
     frames, lidar_dir = _kitti_frames_overrides(data / clip.kitti_frames, tmp)
     overrides = [*frames, *(o for o in clip.resolved(data) if not o.startswith("data")), *extra]
     cfg = load_config(["preset=fast", *overrides])
-    return cfg, make_source(cfg.data, cfg.camera), overrides, lidar_dir
+    return cfg, build_source(cfg.data, cfg.camera), overrides, lidar_dir
 
 
 def measure(clip: Clip, data: Path, extra: list[str], referee: str | None = None) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.inputs.flow import estimate_flow
 from monostixels.eval.metrics import motion_errors
 from monostixels.build import Purpose, build_pipeline
@@ -44,7 +44,7 @@ def main() -> None:
     track = motion_track_for(cfg.motion)  # the sequence layer's speed prior over the drive's pairs
 
     rows = []
-    for pair in make_source(cfg):
+    for pair in build_source(cfg):
         fr = estimate_flow(pair, cfg.flow)
         est = pipe.motion_for(pair, fr, estimate_semantics(pair, cfg.semantic), track=track)
         if pair.motion is None or est.degenerate:

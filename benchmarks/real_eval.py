@@ -140,7 +140,7 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*", help="config overrides as for `monostixels eval`")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
 
     pipeline_module.estimate_flow = cached_flow(args.cache)  # the Pipeline looks it up at call time
     if args.ground_from_motion:
@@ -148,7 +148,7 @@ def main() -> None:
     rows = []
     for a in args.alpha:
         cfg = load_config([*args.overrides, f"prior.alpha_dyn={a}"])
-        report = evaluate(cfg, make_source(cfg), dataset=str(cfg.data.name), progress=False)
+        report = evaluate(cfg, build_source(cfg), dataset=str(cfg.data.name), progress=False)
         if args.out is not None:
             write_report(report, args.out / f"alpha_dyn_{a:g}.json")
         s = summary(report)

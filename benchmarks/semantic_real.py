@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from monostixels.data.camvid import CamVidSource
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.eval.evaluate import evaluate
 from monostixels.eval.semantic import evaluate_semantics
 from monostixels.inputs.semantic import CITYSCAPES19_MAPPING
@@ -72,11 +72,11 @@ def measure(backend: str, task: str, *, camvid_step: int = 1, extra: list[str] =
     common = ["flow=deepflow", "motion=mono", *_overrides(backend, task), *extra]
     if task == "kitti":
         cfg = load_config(["data=kitti_raw", f"data.root={SHARED}/data/kitti_raw", "data.only_labelled=true", *common])
-        b = evaluate(cfg, make_source(cfg), dataset="kitti_raw")["bottoms"]
+        b = evaluate(cfg, build_source(cfg), dataset="kitti_raw")["bottoms"]
         return {"within_10px": b["within_10px"], "within_5px": b["within_5px"], "mae_px": b["mae_px"], "n": b["n"]}
     if task == "lidar":
         cfg = load_config(["data=kitti_raw", f"data.root={SHARED}/data/kitti_raw_lidar", *common])
-        rep = evaluate(cfg, make_source(cfg), dataset="kitti_raw_lidar")
+        rep = evaluate(cfg, build_source(cfg), dataset="kitti_raw_lidar")
         mono, sfm = rep["methods"]["monostixels"]["overall"], rep["methods"]["sfm"]["overall"]
         return {"lidar_rel": mono["rel"], "lidar_d125": mono["d1.25"], "sfm_rel": sfm["rel"], "sfm_d125": sfm["d1.25"]}
     raise ValueError(f"unknown task {task!r}")

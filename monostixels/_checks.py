@@ -34,6 +34,14 @@ class Choice(str, Enum):
     def __format__(self, spec: str) -> str:
         return format(str(self.value), spec)
 
+    @classmethod
+    def _missing_(cls, value: object) -> "Choice | None":
+        # A name of digits typed on the command line (data.previous=11) reaches OmegaConf as an int, which it
+        # looks up by value: the member that number spells.
+        if isinstance(value, int) and not isinstance(value, bool):
+            return cls.__members__.get(str(value))
+        return None
+
 
 def choice(name: str, values: str, module: str) -> type[Choice]:
     """The :class:`Choice` ``name`` of the space-separated ``values``, each member named as its value (OmegaConf

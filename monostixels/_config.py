@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 
 from monostixels._checks import InputError, config_error
 
-__all__ = ["load_config", "composition_error"]
+__all__ = ["load_config", "load_group", "composition_error"]
 
 
 def load_config(overrides: Sequence[str] = ()) -> DictConfig:
@@ -40,6 +40,24 @@ def load_config(overrides: Sequence[str] = ()) -> DictConfig:
             if named is None:
                 raise
             raise named from None
+
+
+def load_group(group: str, name: str) -> dict:
+    """The packaged option ``<group>=<name>`` as Hydra composes it (its schema's defaults, the YAML's choices and
+    overrides), resolved into a plain dict: what a layer below the builder may read of the config.
+
+    Raises:
+        InputError: no such option in ``conf/<group>/``.
+    """
+    from omegaconf import OmegaConf
+
+    try:
+        cfg = load_config([f"{group}={name}"])
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - Hydra's MissingConfigException and kin: no such option
+        raise InputError(f"config {group}={name}: no such option in conf/{group}/ ({str(e).splitlines()[0]})") from None
+    return OmegaConf.to_container(cfg[group], resolve=True)  # type: ignore[return-value]
 
 
 def composition_error(error: BaseException) -> InputError | None:

@@ -7,7 +7,9 @@ list (``defaults: [base_<group or name>, _self_]``, or another option of the gro
 overrides values. Hydra then refuses an unknown key or a value of the wrong type when it composes the
 config (``movers.no_such_key=1``, ``solver.cell_rows=abc``, ``data.hfov_deg=wide``) or a name that is none of
 a setting's choices (a :class:`monostixels._checks.Choice` field: ``flow.preset``, ``flow.matches_preset``,
-``flow.size``, ``flow.runtime``, ``flow.precision``, ``semantic.runtime``), and the code takes the
+``flow.size``, ``flow.runtime``, ``flow.precision``, ``flow.confidence``, ``semantic.runtime``, ``solver.dtype``,
+``solver.backend``, ``solver.top_refine_objects``, ``output.rerun_colors``, ``data.split`` of kitti2015 and
+camvid, ``data.previous``, ``data.oxts``, ``flow.matches``), and the code takes the
 settings as the dataclass (:func:`monostixels._checks.config_params`, or
 :func:`monostixels._checks.option_params` by ``name``), also from a plain dict or a config rebuilt from one.
 

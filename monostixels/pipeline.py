@@ -3,12 +3,12 @@
 Data flows one way: images -> inputs (flow, semantics, camera motion) -> per-column costs ->
 DP -> stixels -> depth / evaluation / pictures.
 
-Example:
-    >>> from omegaconf import OmegaConf
-    >>> from monostixels.pipeline import Pipeline, load_config
+Example (the builder, :mod:`monostixels.build`, parses the config into the pipeline's settings):
+    >>> from monostixels.build import Purpose, build_pipeline
+    >>> from monostixels.pipeline import load_config
     >>> cfg = load_config(["flow=gt", "semantic=gt", "motion=gt"])
     >>> from monostixels.data.synthetic import render_pair
-    >>> result = Pipeline(cfg).run(render_pair(0, scale=0.25))
+    >>> result = build_pipeline(cfg, Purpose.EVAL).run(render_pair(0, scale=0.25))
     >>> result.stixels.depth_map().shape
     torch.Size([94, 310])
 """
@@ -24,7 +24,6 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
 from monostixels._checks import InputError, check_frame_size, config_params
 from monostixels._config import load_config
@@ -37,11 +36,10 @@ from monostixels.post.sfm import triangulate
 from monostixels.core.geometry import Camera, Motion
 from monostixels.inputs.flow import FlowResult, estimate_flow
 from monostixels.inputs.flow_chain import chained_flow
-from monostixels.inputs.flow_config import flow_params
 from monostixels.inputs.motion import (NO_METRIC_MOTION, MotionEstimate, MotionKind, ScaleFrom, estimate_motion,
                                       implied_height)
-from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motion_params
-from monostixels.inputs.semantic import estimate_semantics, semantic_params
+from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack
+from monostixels.inputs.semantic import estimate_semantics
 from monostixels.post.movers import MoverCheckParams, check_movers, settle_receding, static_only
 from monostixels.core.solver import SolverConfig, solve
 from monostixels.data.static_regions import crop_ignored
@@ -171,8 +169,7 @@ class Chain:
 @dataclass(frozen=True)
 class PipelineSettings:
     """What a :class:`Pipeline` reads of the composed config, each group parsed once into its schema's dataclass
-    (monostixels.config_schema): :meth:`from_config`. The builder (:mod:`monostixels.build`) parses them once
-    and hands them down; a pipeline made from a config parses them itself.
+    (monostixels.config_schema) by the builder (:func:`monostixels.build.pipeline_settings`), which hands them down.
 
     Attributes:
         flow, semantic, motion: the input groups' settings (the dataclass of the chosen option).
@@ -191,28 +188,13 @@ class PipelineSettings:
     movers: MoverCheckParams
     threads: Any = "auto"
 
-    @staticmethod
-    def from_config(cfg: Any) -> "PipelineSettings":
-        """The settings of the composed config ``cfg`` (a DictConfig, or a plain dict of one)."""
-        semantic = semantic_params(cfg["semantic"])
-        prior = config_params(PriorConfig, cfg.get("prior"), "prior")
-        # A semantic mode may carry prior values of its own: without semantics (semantic=none) the
-        # 2-DOF dynamic type needs a cost (alpha_dyn) or it explains every column; see conf/semantic/none.yaml.
-        overrides = getattr(semantic, "prior_overrides", None)
-        if overrides:
-            prior = config_params(PriorConfig, {**dataclasses.asdict(prior), **overrides}, "semantic.prior_overrides")
-        return PipelineSettings(
-            flow=flow_params(cfg["flow"]), semantic=semantic, motion=motion_params(cfg["motion"]),
-            eval=config_params(EvalConfig, cfg.get("eval"), "eval"), prior=prior,
-            solver=config_params(SolverConfig, cfg.get("solver"), "solver"),
-            movers=config_params(MoverCheckParams, cfg.get("movers"), "movers"), threads=cfg.get("threads", "auto"))
-
 
 class Pipeline:
-    """Frame pair -> stixels, configured by the Hydra config (groups flow, semantic, motion, prior, solver).
+    """Frame pair -> stixels, configured by the settings of the Hydra config's groups (flow, semantic, motion,
+    prior, solver, movers, eval): :func:`monostixels.build.build_pipeline` builds one from a config.
 
     Args:
-        cfg: the composed config (see :func:`load_config`), or its settings parsed once (:class:`PipelineSettings`).
+        settings: the settings parsed once (:class:`PipelineSettings`; :func:`monostixels.build.pipeline_settings`).
         allow_motion_failure: see :meth:`motion_for`.
         sfm: also triangulate the SfM baseline (``eval``, ``demo``); ``run`` does not read it.
         report_height: with a metric motion from elsewhere (``motion=gt`` / ``file``), also estimate the camera
@@ -224,10 +206,11 @@ class Pipeline:
             time, which overlap, and ``seconds["wall"]`` the pair's.
     """
 
-    def __init__(self, cfg: DictConfig | PipelineSettings, *, allow_motion_failure: bool = False, sfm: bool = True,
+    def __init__(self, settings: PipelineSettings, *, allow_motion_failure: bool = False, sfm: bool = True,
                  overlap: bool = True, report_height: bool = False) -> None:
-        self.cfg = cfg
-        settings = cfg if isinstance(cfg, PipelineSettings) else PipelineSettings.from_config(cfg)
+        if not isinstance(settings, PipelineSettings):
+            raise TypeError(f"Pipeline: expected PipelineSettings, got {type(settings).__name__}; "
+                            "from a config: monostixels.build.build_pipeline(cfg, purpose)")
         self.settings = settings
         self.report_height = report_height
         # The monocular estimator's own settings, for the camera height the road implies beside a given motion.

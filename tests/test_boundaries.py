@@ -151,6 +151,7 @@ def test_pipeline_puts_movers_tops_where_the_ground_truth_has_them():
     # cut off the tops of movers; refined, far fewer moving pixels get a background's depth.
     from monostixels.data.synthetic import render_pair
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     pair = render_pair(39, scale=0.5)
     g = pair.gt.depth.double()
@@ -159,7 +160,7 @@ def test_pipeline_puts_movers_tops_where_the_ground_truth_has_them():
     err = {}
     for rows in (0, 3):
         cfg = load_config(["flow=dis", "semantic=gt", "motion=gt", f"solver.top_refine_rows={rows}"])
-        d = Pipeline(cfg).run(pair).stixels.depth_map().double().clamp(1e-3, 80.0)
+        d = Pipeline(pipeline_settings(cfg)).run(pair).stixels.depth_map().double().clamp(1e-3, 80.0)
         err[rows] = ((d - g).abs() / g)[moving]
     assert float(err[3].mean()) < 0.9 * float(err[0].mean())
     assert int((err[3] > 1).sum()) < int((err[0] > 1).sum()) / 2

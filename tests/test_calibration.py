@@ -126,7 +126,7 @@ def _bend_px(gray: np.ndarray) -> float | None:
 def test_dashcam_calibration_straightens_the_boards_in_data_frames(tmp_path):
     """The whole chain on the dashcam views: calibrate, write the file, data=frames undistorts with it:
     the board's rows and columns come out straighter than through a pinhole with the same K."""
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
 
     cal = calibrate_images(str(CAMERA_CAL / "*.jpg"), size=(1280, 720))
     lens = write_intrinsics_file(cal, tmp_path / "cam.yaml")
@@ -138,7 +138,7 @@ def test_dashcam_calibration_straightens_the_boards_in_data_frames(tmp_path):
         (frames / p.name).symlink_to(p)
     bends = {}
     for name, intr in (("lens", lens), ("pinhole", pinhole)):
-        src = make_source({"name": "frames", "root": str(frames), "intrinsics": str(intr)})
+        src = build_source({"name": "frames", "root": str(frames), "intrinsics": str(intr)})
         bends[name] = [_bend_px((src[i].image.mean(0).numpy() * 255).round().astype(np.uint8)) for i in range(len(src))]
     both = [(a, b) for a, b in zip(bends["lens"], bends["pinhole"]) if a is not None and b is not None]
     assert len(both) >= 10

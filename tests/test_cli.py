@@ -149,10 +149,11 @@ def test_run_on_the_kitti2015_pair(tmp_path):
 
 def test_semantic_none_carries_its_prior_overrides():
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
-    assert Pipeline(load_config(["semantic=none"])).prior.alpha_dyn == 0.25
-    assert Pipeline(load_config(["semantic=gt"])).prior.alpha_dyn == 0.0
-    assert Pipeline(load_config(["semantic=none", "semantic.prior_overrides.alpha_dyn=1.5"])).prior.alpha_dyn == 1.5
+    assert Pipeline(pipeline_settings(load_config(["semantic=none"]))).prior.alpha_dyn == 0.25
+    assert Pipeline(pipeline_settings(load_config(["semantic=gt"]))).prior.alpha_dyn == 0.0
+    assert Pipeline(pipeline_settings(load_config(["semantic=none", "semantic.prior_overrides.alpha_dyn=1.5"]))).prior.alpha_dyn == 1.5
 
 
 def test_run_on_a_video(tmp_path):
@@ -261,12 +262,13 @@ def test_pipeline_refuses_a_frame_below_the_minimum_size():
     from monostixels.data.base import FramePair
     from monostixels.core.geometry import Camera, intrinsics
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     H, W = MIN_FRAME_SIZE[0] - 1, 200
     img = torch.rand(3, H, W)
     pair = FramePair(image=img, image_prev=img.clone(), camera=Camera(K=intrinsics(100.0, 100.0, W / 2, H / 2)), name="tiny")
     with pytest.raises(InputError, match=rf"tiny: frame of {W}x{H}"):
-        Pipeline(load_config(["flow=dis", "semantic=none", "motion=mono"])).run(pair)
+        Pipeline(pipeline_settings(load_config(["flow=dis", "semantic=none", "motion=mono"]))).run(pair)
 
 
 @pytest.mark.parametrize("option, key, what", [("data.hfov_deg=wide", "data.hfov_deg", "a number"),

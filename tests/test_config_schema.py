@@ -41,6 +41,37 @@ def test_hydra_refuses_unknown_keys_and_wrong_types(override, key):
         load_config([override])
 
 
+@pytest.mark.parametrize("overrides, key, choices", [
+    (["solver.dtype=float16"], "solver.dtype", "float32, float64"),
+    (["solver.backend=cuda"], "solver.backend", "auto, eager, cpp"),
+    (["solver.top_refine_objects=static"], "solver.top_refine_objects", "dynamic, all"),
+    (["output.rerun_colors=rainbow"], "output.rerun_colors", "class, depth"),
+    (["data=kitti2015", "data.previous=10"], "data.previous", "auto, 11, 09"),
+    (["data=kitti2015", "data.split=val"], "data.split", "training, testing"),
+    (["data=camvid", "data.split=training"], "data.split", "train, val, test"),
+    (["flow=dis", "flow.confidence=harris"], "flow.confidence", "constant, structure_tensor"),
+    (["flow=deepflow", "flow.matches=sift"], "flow.matches", "dis, none"),
+    (["data=kitti_raw", "data.oxts=gps"], "data.oxts", "velocity, position"),
+])
+def test_a_name_that_is_none_of_a_settings_choices_is_refused_naming_it(overrides, key, choices):
+    """The choices among names are Choice fields of the schemas: Hydra refuses any other name when it composes
+    the config, and load_config (as the command line) says so in one line naming the key."""
+    with pytest.raises(ConfigCompositionException):
+        _hydra_compose(overrides)
+    with pytest.raises(InputError, match=rf"^{key}: expected one of {choices}, got ") as info:
+        load_config(overrides)
+    assert "\n" not in str(info.value)
+
+
+def test_a_choice_of_digits_reads_from_the_command_line_and_from_a_dict():
+    """``data.previous=11`` reaches OmegaConf as an int: it is the member that number spells, as ``"11"`` is."""
+    from monostixels.data.sources import KittiPrevious, data_params
+
+    assert data_params(load_config(["data=kitti2015", "data.previous=11"]).data).previous is KittiPrevious["11"]
+    assert data_params({"name": "kitti2015", "previous": "09"}).previous is KittiPrevious["09"]
+    assert str(KittiPrevious["11"]) == "11" and KittiPrevious["11"] == "11"
+
+
 def test_a_key_added_on_the_command_line_is_refused_where_it_is_read():
     """``+group.key=...`` is Hydra's explicit request to add a key: it composes, and the group's settings refuse it."""
     from monostixels._checks import config_params

@@ -16,7 +16,7 @@ from monostixels.data.ddad import DDADSource, pose_matrix, project_points
 from monostixels.data.frames import FramesSource
 from monostixels.data.kitti2015 import KITTI_STEREO_BASELINE_M, Kitti2015Source
 from monostixels.data.kitti_raw import KittiRawSource, read_stixel_bottoms
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"shared real-data samples not found at {SHARED}")
@@ -126,7 +126,7 @@ def test_ddad_sample_depth_motion_moving():
 
 @needs_shared
 def test_kitti2015_sample_direction():
-    src = make_source({"name": "kitti2015", "root": str(SHARED / "kitti2015"), "fx": 721.5377, "cx": 609.5593, "cy": 172.854})
+    src = build_source({"name": "kitti2015", "root": str(SHARED / "kitti2015"), "fx": 721.5377, "cx": 609.5593, "cy": 172.854})
     assert len(src) == 1
     p = src[0]
     assert p.meta["previous"] == "11" and p.meta["time_reversed"] is True
@@ -326,7 +326,7 @@ def test_frames_folder_undistorts_and_carries_the_mask(tmp_path):
     mask = np.zeros((H, W), np.uint8)
     mask[40:] = 255
     cv2.imwrite(str(tmp_path / "bonnet.png"), mask)
-    src = make_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "bonnet.png")})
+    src = build_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "bonnet.png")})
     p = src[0]
     # OpenCV's own undistortion with the same camera matrix is the reference.
     want = cv2.cvtColor(cv2.undistort(img, K, d), cv2.COLOR_BGR2RGB).transpose(2, 0, 1) / 255.0
@@ -339,13 +339,13 @@ def test_frames_folder_undistorts_and_carries_the_mask(tmp_path):
     assert bool(ignore[-1].all()) and not bool(ignore[:30].any())
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((H // 2, W // 2), np.uint8))
     with pytest.raises(InputError, match=rf"data.mask: .*small\.png is {W // 2}x{H // 2} pixels, the frames are {W}x{H}"):
-        make_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "small.png")})
+        build_source({"name": "frames", "root": str(tmp_path), "mask": str(tmp_path / "small.png")})
     # An intrinsics file for another image size is refused (also without distortion or mask).
     (tmp_path / "other.yaml").write_text("fx: 60\nfy: 58\ncx: 30.5\ncy: 24\nwidth: 128\nheight: 96\n")
     with pytest.raises(InputError, match=rf"other\.yaml holds for 128x96 images .* are {W}x{H}"):
-        make_source({"name": "frames", "root": str(tmp_path), "intrinsics": str(tmp_path / "other.yaml")})
+        build_source({"name": "frames", "root": str(tmp_path), "intrinsics": str(tmp_path / "other.yaml")})
     (tmp_path / "other.yaml").write_text(f"fx: 60\nfy: 58\ncx: 30.5\ncy: 24\nwidth: {W}\nheight: {H}\n")
-    assert "ignore_mask" not in make_source({"name": "frames", "root": str(tmp_path),
+    assert "ignore_mask" not in build_source({"name": "frames", "root": str(tmp_path),
                                              "intrinsics": str(tmp_path / "other.yaml")})[0].meta
     # Every image must have the size the tables were set up for.
     assert cv2.imwrite(str(tmp_path / "01.png"), img[:40]) and cv2.imwrite(str(tmp_path / "02.png"), img[:40])
@@ -358,7 +358,7 @@ def test_frames_folder_pairs_intrinsics_and_poses(tmp_path):
         _write_img(tmp_path / f"img_{i:02d}.png", value=10 * i)
     (tmp_path / "intrinsics.yaml").write_text("fx: 300\nfy: 310\ncx: 6\ncy: 4\n")
     cfg = {"data": {"name": "frames", "root": str(tmp_path), "frames": None}, "camera": {"height": 1.3, "pitch": 0.0}}
-    src = make_source(cfg)
+    src = build_source(cfg)
     assert len(src) == 3 and src[0].name == "img_01" and src[0].meta["path_prev"].endswith("img_00.png")
     assert src[0].motion is None and src[0].camera.height == 1.3
     assert torch.allclose(src[0].camera.K, torch.tensor([[300.0, 0, 6], [0, 310, 4], [0, 0, 1]], dtype=src[0].camera.K.dtype))
@@ -369,7 +369,7 @@ def test_frames_folder_pairs_intrinsics_and_poses(tmp_path):
         T[2, 3] = 0.5 * i
         lines.append(" ".join(str(v) for v in T.ravel()))
     (tmp_path / "poses.txt").write_text("\n".join(lines))
-    src = make_source({"name": "frames", "root": str(tmp_path), "poses": str(tmp_path / "poses.txt"),
+    src = build_source({"name": "frames", "root": str(tmp_path), "poses": str(tmp_path / "poses.txt"),
                        "step": 2, "camera_height": 1.1}, {"height": 1.3})
     assert len(src) == 2 and src[0].camera.height == 1.1
     assert torch.allclose(src[0].motion.t, torch.tensor([0.0, 0.0, 1.0], dtype=src[0].motion.t.dtype))
@@ -389,7 +389,7 @@ def test_frames_folder_field_of_view_frame_rate_and_resize(tmp_path):
     a resize scales the images and the intrinsics (pixel centres at integers)."""
     root = tmp_path / "f"
     _grey_folder(root, 5, 40, 64)  # W != H
-    src = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0, "fps": 20.0, "step": 2, "resize": None})
+    src = build_source({"name": "frames", "root": str(root), "hfov_deg": 90.0, "fps": 20.0, "step": 2, "resize": None})
     K = src[0].camera.K.numpy()
     # tan(45 deg) = 1: fx = W / 2 = 32, principal point ((W-1)/2, (H-1)/2).
     assert np.allclose(K, [[32.0, 0, 31.5], [0, 32.0, 19.5], [0, 0, 1]])
@@ -398,21 +398,21 @@ def test_frames_folder_field_of_view_frame_rate_and_resize(tmp_path):
     # Keyframe pairs reach back whole steps: 2 steps = 4 images = 0.2 s at 20 fps.
     assert [f.dt for f in src.previous_frames(len(src) - 1, 2)] == pytest.approx([0.1, 0.2])
     # A factor: the image as cv2's area resize makes it, the intrinsics with it.
-    half = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0, "resize": 0.5})
+    half = build_source({"name": "frames", "root": str(root), "hfov_deg": 90.0, "resize": 0.5})
     want = cv2.cvtColor(cv2.resize(cv2.imread(str(root / "001.png")), (32, 20), interpolation=cv2.INTER_AREA),
                         cv2.COLOR_BGR2RGB)
     got = (half[0].image.permute(1, 2, 0).numpy() * 255).round()
     assert half[0].image.shape == (3, 20, 32) and np.abs(got - want).max() <= 1
     assert np.allclose(half[0].camera.K.numpy(), [[16.0, 0, 15.5], [0, 16.0, 9.5], [0, 0, 1]])
     # The default frame rate is 10 fps; the default resize (auto) keeps a small folder as it is.
-    plain = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0})
+    plain = build_source({"name": "frames", "root": str(root), "hfov_deg": 90.0})
     assert plain[0].meta["dt"] == pytest.approx(0.1) and plain[0].image.shape == (3, 40, 64)
 
 
 def test_frames_folder_auto_resize_of_a_720p_folder(tmp_path):
     root = tmp_path / "f"
     _grey_folder(root, 2, 720, 1280)
-    src = make_source({"name": "frames", "root": str(root), "hfov_deg": 90.0})
+    src = build_source({"name": "frames", "root": str(root), "hfov_deg": 90.0})
     assert src[0].image.shape == (3, 530, 942)  # about 0.5 MP, as data=video's auto
     fx = 640.0 * 942 / 1280  # (W/2)/tan(45 deg) at the stored size, scaled with the width
     assert float(src[0].camera.K[0, 0]) == pytest.approx(fx)
@@ -467,11 +467,11 @@ def test_missing_root_and_unknown_source(tmp_path):
     missing = tmp_path / "nope"
     for name in ("kitti2015", "kitti_raw", "ddad", "frames"):
         with pytest.raises(InputError, match="nope"):
-            make_source({"name": name, "root": str(missing)})
+            build_source({"name": name, "root": str(missing)})
         with pytest.raises(InputError, match="data.root"):
-            make_source({"name": name, "root": None})
+            build_source({"name": name, "root": None})
     with pytest.raises(InputError, match="unknown data source 'kitti'"):
-        make_source({"name": "kitti"})
+        build_source({"name": "kitti"})
 
 
 def test_empty_folder_and_missing_intrinsics(tmp_path):
@@ -559,6 +559,6 @@ def test_ddad_missing_scene(tmp_path):
 
 
 def test_make_source_synthetic_dispatch():
-    src = make_source({"data": {"name": "synthetic", "frames": 3, "seed": 2, "scale": 0.25, "density": 1.0}})
+    src = build_source({"data": {"name": "synthetic", "frames": 3, "seed": 2, "scale": 0.25, "density": 1.0}})
     assert type(src).__name__ == "SyntheticSource" and len(src) == 3
     assert src.scene_seed(1) == 2 * 100_000 + 1

@@ -180,6 +180,48 @@ def test_the_readme_states_the_layers_in_order():
     assert [h for h in heads if h in layers] == layers, heads
 
 
+#: Modules below the builder that may hold a config itself: the config's own helpers, which compose it
+#: (``_config``: load_config, load_group) and turn its nodes into the settings' dataclasses with one-line errors
+#: (``_checks``: config_params, option_params); the builder calls them, every other module takes the settings.
+_MAY_TAKE_THE_CONFIG = ("monostixels._config", "monostixels._checks")
+#: What a schema dataclass below the builder may import of omegaconf: the marker of a required value (``???``).
+_SCHEMA_NAMES = {"MISSING"}
+
+
+def _config_uses(path: Path) -> list[str]:
+    """Where ``path`` imports omegaconf (but :data:`_SCHEMA_NAMES`) or annotates a parameter or a return with
+    ``DictConfig`` (also in a string annotation), as ``line: what``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found += [f"{node.lineno}: import {a.name}" for a in node.names if a.name.split(".")[0] == "omegaconf"]
+        elif isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == "omegaconf":
+            found += [f"{node.lineno}: from {node.module} import {a.name}" for a in node.names if a.name not in _SCHEMA_NAMES]
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            args = node.args
+            notes = [a.annotation for a in (*args.posonlyargs, *args.args, *args.kwonlyargs, args.vararg, args.kwarg)
+                     if a is not None and a.annotation is not None] + ([node.returns] if node.returns else [])
+            found += [f"{n.lineno}: {node.name}(... {ast.unparse(n)})" for n in notes if "DictConfig" in ast.unparse(n)]
+    return sorted(found, key=lambda u: int(u.split(":")[0]))
+
+
+def test_the_config_scan_sees_imports_and_annotations(tmp_path):
+    src = tmp_path / "x.py"
+    src.write_text("from omegaconf import MISSING\nimport omegaconf\nfrom omegaconf import DictConfig, OmegaConf\n"
+                   "def f(cfg: 'DictConfig | None', n: int) -> None:\n    from omegaconf.errors import ValidationError\n"
+                   "def g(*, cfg: Any) -> DictConfig: ...\n")
+    assert [u.split(":")[0] for u in _config_uses(src)] == ["2", "3", "3", "4", "5", "6"]
+
+
+def test_nothing_below_the_builder_takes_a_config():
+    # The builder (build.py) parses the composed config once into typed settings and hands them down: a module
+    # below it that took the config would parse it again, its own way (issue 55, "one direction through the code").
+    builder = _layer("monostixels.build")
+    uses = {m: u for m, f in ((_module_name(f), f) for f in sorted(PACKAGE.rglob("*.py")))
+            if _layer(m) < builder and m not in _MAY_TAKE_THE_CONFIG and (u := _config_uses(f))}
+    assert not uses, f"modules below build.py that read the config itself (take the settings instead): {uses}"
+
+
 #: Most lines of one module of the package: past it a module holds more than one concern.
 _MAX_MODULE_LINES = 800
 

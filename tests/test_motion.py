@@ -145,6 +145,7 @@ def test_mono_takes_the_sign_of_the_translation_from_the_road():
 
 def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     # The road falls away 2 degrees (camera pitched up against it): level ground is the configured model.
     a = math.radians(2.0)
@@ -160,14 +161,14 @@ def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
     assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.01
     # The pipeline solves with the fitted normal only when asked to.
     for use, want in ((True, est.ground_normal), (False, cam.ground_normal)):
-        pipe = Pipeline(load_config(["motion=mono", f"motion.use_ground_normal={str(use).lower()}"]))
+        pipe = Pipeline(pipeline_settings(load_config(["motion=mono", f"motion.use_ground_normal={str(use).lower()}"])))
         got = pipe.camera_for(pair, est).ground_normal
         assert torch.allclose(got.double(), want.double(), atol=1e-9)
     # Ground truth / poses motion has no fitted plane: the configured one stays.
     pair.motion = gt
     est_gt = estimate_motion(pair, fr, OmegaConf.create({"name": "gt"}))
     assert est_gt.ground_normal is None
-    assert Pipeline(load_config(["motion=mono"])).camera_for(pair, est_gt) is pair.camera
+    assert Pipeline(pipeline_settings(load_config(["motion=mono"]))).camera_for(pair, est_gt) is pair.camera
 
 
 @pytest.mark.parametrize("turned", [True, False])
@@ -675,15 +676,16 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     from monostixels.data.synthetic import render_pair
     from monostixels.output.writers import camera_report, camera_summary
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     pair = render_pair(2, scale=0.5)
     true_h = pair.camera.height
     wrong = dataclasses.replace(pair, camera=dataclasses.replace(pair.camera, height=true_h * 1.3))
     cfg = load_config(["data.scale=0.5", "flow=gt", "semantic=gt", "motion=gt"])
-    res = Pipeline(cfg, sfm=False, report_height=True).run(wrong)
+    res = Pipeline(pipeline_settings(cfg), sfm=False, report_height=True).run(wrong)
     fit = res.stixels.flags["camera_height_fit_m"]
     assert abs(fit / true_h - 1) < 0.03, (fit, true_h)
-    assert "camera_height_fit_m" not in Pipeline(cfg, sfm=False).run(wrong).stixels.flags  # only when asked
+    assert "camera_height_fit_m" not in Pipeline(pipeline_settings(cfg), sfm=False).run(wrong).stixels.flags  # only when asked
     lines = camera_summary(camera_report([res.stixels.flags], wrong.camera.height))
     assert lines[0].startswith("camera motion metric on 1 of 1 pair(s) (scale: 1 given)")
     assert f"the road implies {fit:.2f} m" in lines[1] and f"camera height {wrong.camera.height:.2f} m" in lines[1]

@@ -364,11 +364,12 @@ def test_structure_tensor_of_a_diagonal_ramp():
 def test_overlapped_inputs_give_the_same_result():
     from monostixels.data.synthetic import render_pair
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     pair = render_pair(1, scale=0.25)
     cfg = load_config(["flow=dis", "semantic=gt", "motion=gt"])
-    a = Pipeline(cfg, overlap=True).run(pair)
-    b = Pipeline(cfg, overlap=False).run(pair)
+    a = Pipeline(pipeline_settings(cfg), overlap=True).run(pair)
+    b = Pipeline(pipeline_settings(cfg), overlap=False).run(pair)
     assert torch.equal(a.flow.flow, b.flow.flow) and torch.equal(a.semantic, b.semantic)
     assert torch.equal(a.stixels.type, b.stixels.type) and torch.equal(a.stixels.inverse_depth, b.stixels.inverse_depth)
     assert set(a.seconds) >= {"flow", "semantic", "motion", "solver", "wall"}
@@ -378,11 +379,12 @@ def test_overlapped_inputs_give_the_same_result():
 def test_overlapped_semantics_error_reaches_the_caller():
     from monostixels.data.synthetic import render_pair
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     pair = render_pair(1, scale=0.25)
     pair.gt.labels = None  # semantic=gt without ground-truth labels: the semantics thread raises
     with pytest.raises(InputError, match="no ground-truth labels"):
-        Pipeline(load_config(["flow=dis", "semantic=gt", "motion=gt"]), overlap=True).run(pair)
+        Pipeline(pipeline_settings(load_config(["flow=dis", "semantic=gt", "motion=gt"])), overlap=True).run(pair)
 
 
 def test_semantics_beside_the_flow_use_one_onnx_thread_and_give_the_same_scores():
@@ -444,6 +446,7 @@ def test_pipeline_asks_for_one_onnx_thread_only_beside_an_image_flow(monkeypatch
     from monostixels import pipeline as pipeline_mod
     from monostixels.data.synthetic import render_pair
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     asked = []
     real = pipeline_mod.estimate_semantics
@@ -455,7 +458,7 @@ def test_pipeline_asks_for_one_onnx_thread_only_beside_an_image_flow(monkeypatch
     monkeypatch.setattr(pipeline_mod, "estimate_semantics", recording)
     pair = render_pair(1, scale=0.25)
     for flow, overlap in (("dis", True), ("dis", False), ("gt", True)):
-        Pipeline(load_config([f"flow={flow}", "semantic=gt", "motion=gt"]), overlap=overlap, sfm=False).run(pair)
+        Pipeline(pipeline_settings(load_config([f"flow={flow}", "semantic=gt", "motion=gt"])), overlap=overlap, sfm=False).run(pair)
     assert asked == [1, 0, 0]
 
 

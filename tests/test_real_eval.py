@@ -11,9 +11,10 @@ from pathlib import Path
 import pytest
 
 from monostixels.core.classes import DYNAMIC_OBJECT
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.eval.evaluate import SPLITS, evaluate
 from monostixels.pipeline import Pipeline, PipelineResult, load_config
+from monostixels.build import pipeline_settings
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 KITTI_RAW = SHARED / "kitti_raw"
@@ -35,7 +36,7 @@ def test_kitti_raw_labelled_frame_gives_bottoms_and_motion() -> None:
     """One labelled KITTI raw pair: `bottoms` counts every label of the frame, `motion` is measured."""
     cfg = load_config(["data=kitti_raw", f"data.root={KITTI_RAW}", "data.only_labelled=true", "data.frames=1",
                        "flow=dis", "semantic=none", "motion=mono"])
-    src = make_source(cfg)
+    src = build_source(cfg)
     assert src[0].name.endswith(str(FIRST_LABELLED_FRAME))
     report = evaluate(cfg, src, dataset="kitti_raw", progress=False)
     assert report["frames"] == 1
@@ -72,7 +73,7 @@ def test_ddad_report_has_three_splits_and_degenerate_flag() -> None:
     not the static scene."""
     cfg = _ddad_config("prior=nosem")
     results: list[PipelineResult] = []
-    report = evaluate(cfg, make_source(cfg), dataset="ddad", progress=False, on_result=results.append)
+    report = evaluate(cfg, build_source(cfg), dataset="ddad", progress=False, on_result=results.append)
     assert report["frames"] == 1 and len(results) == 1
     flags = results[0].stixels.flags
     assert flags["degenerate_motion"] is True
@@ -92,7 +93,7 @@ def test_ddad_without_dynamic_cost_the_dynamic_type_takes_everything() -> None:
     """Why semantic=none needs alpha_dyn > 0: without it (and without semantics) the 2-DOF dynamic
     type fits the static scene at least as well as the static types and covers most of it."""
     cfg = _ddad_config("prior.alpha_dyn=0", "semantic.prior_overrides.alpha_dyn=0")
-    res = Pipeline(cfg).run(make_source(cfg)[0])
+    res = Pipeline(pipeline_settings(cfg)).run(build_source(cfg)[0])
     _, on_static = _dynamic_share(res)
     assert on_static > 0.5, on_static
 
@@ -106,7 +107,7 @@ def test_kitti_raw_lidar_report_has_depth_motion_and_stixel_motion() -> None:
     moving-object mask), the motion section against OXTS, and the stixel_motion share."""
     cfg = load_config(["data=kitti_raw", f"data.root={LIDAR}", "data.frames=1", "flow=dis", "semantic=none",
                        "motion=mono"])
-    src = make_source(cfg)
+    src = build_source(cfg)
     n_lidar = int((src[0].gt.depth > 0).sum())
     r = evaluate(cfg, src, dataset="kitti_raw", progress=False)
     for m in ("monostixels", "sfm"):

@@ -10,10 +10,11 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.data.base import PreviousFrame
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.data.synthetic import SyntheticSequence, render_pair
 from monostixels.core.geometry import Motion, object_normals, pixel_rays
 from monostixels.pipeline import Pipeline, load_config
+from monostixels.build import pipeline_settings, sequence_settings
 from monostixels.sequence import KeyframeParams, SequenceRunner, choose_keyframe
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.tracking import TrackParams, Tracks
@@ -76,7 +77,7 @@ def test_keyframe_when_nothing_is_far_enough():
 def test_bad_sequence_settings_are_named(key, value, match):
     # A value of the wrong type (or a null) is refused as the config composes, a bad number where it is read.
     with pytest.raises(InputError, match=match):
-        SequenceRunner(load_config(["data=synthetic", f"{key}={value}"]))
+        SequenceRunner(sequence_settings(load_config(["data=synthetic", f"{key}={value}"])))
 
 
 # ---------------------------------------------------------------------------------------------- synthetic sequences
@@ -122,17 +123,17 @@ def test_synthetic_sequence_ground_truth():
 
 def test_synthetic_sequence_source_and_bad_config():
     cfg = load_config(["data=synthetic", "data.frames=2", "data.sequence_length=4", "data.ego_speed_mps=0", "data.scale=0.2"])
-    src = make_source(cfg)
+    src = build_source(cfg)
     assert len(src) == 8
     assert src.sequence_key(3) != src.sequence_key(4)
     prev = src.previous_frames(2, 10)
     assert [p.back for p in prev] == [1, 2, 3] and all(p.motion.translation_norm == 0 for p in prev)
     with pytest.raises(InputError, match="sequence_length"):
-        make_source(load_config(["data=synthetic", "data.sequence_length=0"]))
+        build_source(load_config(["data=synthetic", "data.sequence_length=0"]))
     with pytest.raises(InputError, match="ego_speed_mps"):
-        make_source(load_config(["data=synthetic", "data.ego_speed_mps=3"]))  # only for sequences
+        build_source(load_config(["data=synthetic", "data.ego_speed_mps=3"]))  # only for sequences
     with pytest.raises(InputError, match="ego_speed_mps"):
-        make_source(load_config(["data=synthetic", "data.sequence_length=3", "data.ego_speed_mps=-1"]))
+        build_source(load_config(["data=synthetic", "data.sequence_length=3", "data.ego_speed_mps=-1"]))
 
 
 # ---------------------------------------------------------------------------------------------- tracks and TTC
@@ -392,8 +393,8 @@ def test_sequence_eval_and_run_outputs(tmp_path):
     ov = ["data=synthetic", "data.frames=1", "data.sequence_length=5", "data.ego_speed_mps=3", "data.scale=0.25",
           "flow=gt", "semantic=gt", "motion=gt"]
     cfg = load_config(ov)
-    runner = SequenceRunner(cfg)
-    steps = list(runner.run(make_source(cfg)))
+    runner = SequenceRunner(sequence_settings(cfg))
+    steps = list(runner.run(build_source(cfg)))
     # 0.3 m a frame: from the third frame on the pair reaches two frames back (0.6 m >= 0.5 m).
     assert [s.result.stixels.pair_info["frames_back"] for s in steps] == [1, 2, 2, 2, 2]
     st = steps[-1].result.stixels
@@ -410,15 +411,15 @@ def test_sequence_eval_and_run_outputs(tmp_path):
     st.save_npz(tmp_path / "s.npz")
     z = StixelWorld.load_npz(tmp_path / "s.npz")
     assert torch.equal(z.track_id, st.track_id) and z.pair_info == st.pair_info
-    rep = evaluate(cfg, make_source(cfg), dataset="synthetic", progress=False)
+    rep = evaluate(cfg, build_source(cfg), dataset="synthetic", progress=False)
     tmp = rep["temporal"]
     assert tmp["velocity_err_mps"] < 0.5 and tmp["static_speed_mps"] < 0.3
     assert tmp["ttc_rel_err"] < 0.1 and tmp["depth_jitter"] < 0.05
-    off = evaluate(load_config(ov + ["temporal.enabled=false"]), make_source(cfg), dataset="synthetic", progress=False)
+    off = evaluate(load_config(ov + ["temporal.enabled=false"]), build_source(cfg), dataset="synthetic", progress=False)
     assert off["temporal"]["tracking"] is False and rep["temporal"]["tracking"] is True
     # Independent pairs have no temporal section.
     single = evaluate(load_config(["data=synthetic", "data.scale=0.25", "flow=gt", "semantic=gt", "motion=gt"]),
-                      make_source(load_config(["data=synthetic", "data.scale=0.25"])), dataset="synthetic", progress=False)
+                      build_source(load_config(["data=synthetic", "data.scale=0.25"])), dataset="synthetic", progress=False)
     assert "temporal" not in single
 
 
@@ -430,7 +431,7 @@ def test_a_failed_pair_is_not_a_later_pairs_partner():
     ov = ["data=synthetic", "data.frames=1", "data.sequence_length=6", "data.ego_speed_mps=3", "data.scale=0.25",
           "flow=gt", "semantic=gt", "motion=gt"]
     cfg = load_config(ov)
-    runner = SequenceRunner(cfg)
+    runner = SequenceRunner(sequence_settings(cfg))
     motion_for = runner.pipeline.motion_for
 
     def failing(pair, *args, **kwargs):
@@ -439,7 +440,7 @@ def test_a_failed_pair_is_not_a_later_pairs_partner():
         return motion_for(pair, *args, **kwargs)
 
     runner.pipeline.motion_for = failing
-    steps = list(runner.run(make_source(cfg)))
+    steps = list(runner.run(build_source(cfg)))
     assert steps[1].result is None and "test" in steps[1].error  # frame 2
     # 0.3 m a frame, keyframes at 0.5 m: frame 4 would pair with frame 2 (2 back); it reaches frame 1 instead.
     info = steps[3].result.stixels.pair_info
@@ -448,10 +449,10 @@ def test_a_failed_pair_is_not_a_later_pairs_partner():
     assert float(pose[:3, 3].norm()) == pytest.approx(4 * 0.3, abs=1e-3)  # frame 4 is 1.2 m from frame 0
     assert steps[3].result.stixels.track_id.max() >= 0
     # Where every earlier frame of the window failed, the sequence starts again with the frame before.
-    runner = SequenceRunner(load_config(ov + ["keyframes.window=1"]))
+    runner = SequenceRunner(sequence_settings(load_config(ov + ["keyframes.window=1"])))
     motion_for = runner.pipeline.motion_for
     runner.pipeline.motion_for = failing
-    steps = list(runner.run(make_source(cfg)))
+    steps = list(runner.run(build_source(cfg)))
     assert steps[2].result.stixels.pair_info["frames_back"] == 1
     # ... its world is the frame before (frame 2), 0.3 m back, not frame 0.
     assert float(steps[2].result.pose[:3, 3].norm()) == pytest.approx(0.3, abs=1e-3)
@@ -515,8 +516,8 @@ def test_a_pair_whose_camera_motion_is_unknown_shows_no_movers_and_no_warning(mo
         return est
 
     monkeypatch.setattr(pipeline_module, "estimate_motion", estimate)
-    runner = SequenceRunner(cfg, Pipeline(cfg, allow_motion_failure=True))
-    steps = list(runner.run(make_source(cfg)))
+    runner = SequenceRunner(sequence_settings(cfg), Pipeline(pipeline_settings(cfg), allow_motion_failure=True))
+    steps = list(runner.run(build_source(cfg)))
     worlds = [s.result.stixels for s in steps]
     assert any(bool((w.type == DYNAMIC_OBJECT).any()) for w in (worlds[0], worlds[4]))  # the scene has movers
     for w, kind, what in ((worlds[1], "scale_unknown", "speed"), (worlds[2], "unknown", "motion")):
@@ -539,7 +540,7 @@ def test_the_sequence_layer_owns_the_speed_prior():
     ov = ["data=synthetic", "data.frames=1", "data.sequence_length=4", "data.ego_speed_mps=3", "data.scale=0.25",
           "flow=gt", "semantic=gt", "motion=mono"]
     cfg = load_config(ov)
-    runner = SequenceRunner(cfg)
+    runner = SequenceRunner(sequence_settings(cfg))
     assert isinstance(runner.motion_track, MotionTrack) and not hasattr(runner.pipeline, "motion_track")
     seen = []
     update = runner.motion_track.update
@@ -549,10 +550,10 @@ def test_the_sequence_layer_owns_the_speed_prior():
         return update(pair, est)
 
     runner.motion_track.update = spy
-    steps = list(runner.run(make_source(cfg)))
+    steps = list(runner.run(build_source(cfg)))
     assert seen == [s.pair.name for s in steps] and len(seen) == 4
-    assert SequenceRunner(load_config(ov[:-1] + ["motion=gt"])).motion_track is None
-    assert SequenceRunner(load_config(ov + ["motion.sequence_prior=false"])).motion_track is None
+    assert SequenceRunner(sequence_settings(load_config(ov[:-1] + ["motion=gt"]))).motion_track is None
+    assert SequenceRunner(sequence_settings(load_config(ov + ["motion.sequence_prior=false"]))).motion_track is None
 
 
 def test_start_up_objects_leave_the_garbage_collector_once_after_the_first_pair(monkeypatch):
@@ -567,7 +568,7 @@ def test_start_up_objects_leave_the_garbage_collector_once_after_the_first_pair(
     try:
         cfg = load_config(["data=synthetic", "data.frames=1", "data.sequence_length=4", "data.scale=0.25",
                            "flow=gt", "semantic=gt", "motion=gt"])
-        counts = [gc.get_freeze_count() for _ in SequenceRunner(cfg).run(make_source(cfg))]
+        counts = [gc.get_freeze_count() for _ in SequenceRunner(sequence_settings(cfg)).run(build_source(cfg))]
         assert len(counts) >= 3 and counts[0] > 1000
         assert all(c <= counts[0] for c in counts[1:])  # frozen objects may still be freed; none are added
     finally:

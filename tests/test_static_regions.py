@@ -114,7 +114,7 @@ def test_samples_are_runs_spread_over_the_whole_clip():
 def test_a_bonnet_is_found_where_the_camera_stands_at_first(tmp_path):
     """The camera stands for the first 12 frames (2.4 s) and drives later: data.mask=auto reads runs of frames
     spread over the clip, and finds the bonnet in the runs where the scene moves."""
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
     from monostixels.pipeline import load_config
 
     pair, frames = _clip()
@@ -124,7 +124,7 @@ def test_a_bonnet_is_found_where_the_camera_stands_at_first(tmp_path):
     _write_clip(path, [_bgr(_paint(f, truth)) for f in [frames[0]] * 12 + frames + frames], pair.camera.K)
     cfg = load_config(["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}",
                        "data.resize=null", "data.mask=auto"])
-    ignore = make_source(cfg.data)[0].meta["ignore_mask"].numpy()
+    ignore = build_source(cfg.data)[0].meta["ignore_mask"].numpy()
     assert (ignore & truth).sum() >= 0.9 * truth.sum() and (ignore & ~truth).sum() <= 3 * W
     # The first frames alone, as data.mask=auto read them before: a standing camera, no region.
     still = [_bgr(_paint(frames[0], truth))] * 6
@@ -169,6 +169,7 @@ def test_the_pipeline_leaves_the_bonnet_out_and_keeps_the_frame_size():
     import dataclasses
 
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     pair, _ = _clip()
     H, W = pair.size
@@ -176,7 +177,7 @@ def test_the_pipeline_leaves_the_bonnet_out_and_keeps_the_frame_size():
     painted = dataclasses.replace(pair, image=_paint(pair.image, bonnet), image_prev=_paint(pair.image_prev, bonnet),
                                   meta=dict(pair.meta, ignore_mask=torch.from_numpy(bonnet)))
     cfg = load_config(["data.scale=0.25", "flow=dis", "semantic=gt", "motion=gt"])
-    res = Pipeline(cfg, sfm=False).run(painted)
+    res = Pipeline(pipeline_settings(cfg), sfm=False).run(painted)
     st = res.stixels
     assert st.image_size == (H, W) and res.pair is painted
     assert int(st.v_bottom.max()) < H - _BONNET_MIN  # the rows that are bonnet all across: no stixel
@@ -191,7 +192,7 @@ def test_the_pipeline_leaves_the_bonnet_out_and_keeps_the_frame_size():
 
 def test_a_video_source_finds_the_bonnet_itself(tmp_path):
     """data=video with data.mask=auto (the default): the pairs carry the bonnet as their ignore mask."""
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
     from monostixels.pipeline import load_config
 
     pair, frames = _clip()
@@ -200,10 +201,10 @@ def test_a_video_source_finds_the_bonnet_itself(tmp_path):
     path = tmp_path / "bonnet.avi"
     _write_clip(path, [_bgr(_paint(f, truth)) for f in frames + frames[:2]], pair.camera.K)
     common = ["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}", "data.resize=null"]
-    src = make_source(load_config(common).data)
+    src = build_source(load_config(common).data)
     ignore = src[0].meta["ignore_mask"]
     assert (ignore.numpy() & truth).sum() >= 0.9 * truth.sum() and (ignore.numpy() & ~truth).sum() <= 3 * W
-    assert "ignore_mask" not in make_source(load_config(common + ["data.mask=null"]).data)[0].meta
+    assert "ignore_mask" not in build_source(load_config(common + ["data.mask=null"]).data)[0].meta
 
 
 _SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -256,9 +257,10 @@ def test_a_smooth_bonnet_reflecting_the_sky_is_found_on_a_real_highway_clip():
 def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
     """A video with a bonnet through the sequence layer with the stream reading ahead (preset=fast): every
     pair is solved at the cropped size, its inputs computed ahead are used, the outputs have the frame's size."""
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
     from monostixels.pipeline import load_config
     from monostixels.sequence import SequenceRunner
+    from monostixels.build import sequence_settings
 
     pair, frames = _clip()
     H, W = pair.size
@@ -267,8 +269,8 @@ def test_run_on_a_bonnet_clip_keeps_the_frame_size_and_reads_ahead(tmp_path):
     _write_clip(path, [_bgr(_paint(f, truth)) for f in frames + frames], pair.camera.K)
     cfg = load_config(["data=video", f"data.path={path}", f"data.intrinsics={tmp_path / 'intr.yaml'}",
                        "data.resize=null", "preset=fast", "semantic=none", "keyframes.min_distance_m=0"])
-    runner = SequenceRunner(cfg)
-    source = make_source(cfg.data)
+    runner = SequenceRunner(sequence_settings(cfg))
+    source = build_source(cfg.data)
     found = source[0].meta["ignore_mask"].numpy()
     # The bonnet, and at most the rows its pattern's window reaches above its edge (STILL_WINDOW // 2).
     assert (found & truth).sum() >= 0.9 * truth.sum() and (found & ~truth).sum() <= (STILL_WINDOW // 2) * W

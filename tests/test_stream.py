@@ -17,7 +17,7 @@ import torch
 
 from monostixels import cli
 from monostixels._checks import InputError
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.data.synthetic import SyntheticSequenceSource, render_pair
 from monostixels.data.live_video import LiveVideoSource
 from monostixels.data.video import VideoSource
@@ -26,6 +26,7 @@ from monostixels.inputs.flow_backends import gray_u8, refine_flow
 from monostixels.inputs.flow_chain import compose_flows
 from monostixels.eval.metrics import motion_errors
 from monostixels.pipeline import Pipeline, load_config
+from monostixels.build import pipeline_settings, sequence_settings
 from monostixels.sequence import SequenceRunner
 from monostixels.sequence.stream import StreamParams, StreamState, warp_scores
 from monostixels.core.stixels import StixelWorld
@@ -98,13 +99,13 @@ def test_a_missing_preset_model_falls_back_as_before(monkeypatch):
 ])
 def test_bad_stream_settings_are_named(key, value, match):
     with pytest.raises(InputError, match=match):
-        StreamState.from_config(load_config([f"{key}={value}"]))
+        sequence_settings(load_config([f"{key}={value}"]))
 
 
 def test_realtime_on_a_source_read_from_disk_is_refused():
     cfg = load_config(["data=synthetic", "+data.realtime=true"])
     with pytest.raises(InputError, match="data.realtime: only data=video"):
-        make_source(cfg)
+        build_source(cfg)
 
 
 # ---------------------------------------------------------------------------------------------- warm starts
@@ -143,7 +144,7 @@ def test_warm_motion_agrees_with_the_cold_motion_on_a_synthetic_sequence(sequenc
     photometric minimum of these half-size renders is flat to ~2 %: the cold search itself moves by
     that from pair to pair); against ground truth the warm length is on average as good (+0.5 %)."""
     cfg = load_config(["preset=fast", "semantic=gt", "stream.flow_init=false", "motion.sequence_prior=false"])
-    pipe = Pipeline(cfg, sfm=False)
+    pipe = Pipeline(pipeline_settings(cfg), sfm=False)
     warm_state = StreamState(StreamParams(motion_warm_start=True))
     warm_used, err_warm, err_cold = 0, [], []
     for i in range(len(sequence)):
@@ -182,7 +183,7 @@ def test_carried_scores_follow_the_flow():
 
 def _stixels_of(cfg_overrides: list[str], source) -> list[StixelWorld]:
     cfg = load_config(cfg_overrides)
-    runner = SequenceRunner(cfg, Pipeline(cfg, sfm=False))
+    runner = SequenceRunner(sequence_settings(cfg), Pipeline(pipeline_settings(cfg), sfm=False))
     out = [s.result.stixels for s in runner.run(source)]
     return out, runner
 
@@ -202,9 +203,9 @@ def test_overlapped_pairs_and_reused_grey_images_change_nothing(sequence):
     assert all(_same(a, b) for a, b in zip(ref, ahead))
     # Each pair as on its own (no state at all): the flow is the same as with the kept grey images.
     cfg = load_config(base)
-    pipe = Pipeline(cfg, sfm=False)
+    pipe = Pipeline(pipeline_settings(cfg), sfm=False)
     for i in (1, 3):
-        assert torch.equal(pipe.run(sequence[i]).flow.flow, SequenceRunner(cfg, pipe).pipeline.inputs(
+        assert torch.equal(pipe.run(sequence[i]).flow.flow, SequenceRunner(sequence_settings(cfg), pipe).pipeline.inputs(
             sequence[i], StreamState().carried(sequence[i]))[0].flow)
     # With the warm stream too, overlap changes nothing.
     warm, _ = _stixels_of(base + ["stream=warm", "stream.overlap=false"], sequence)
@@ -218,7 +219,7 @@ def test_the_next_pairs_inputs_start_before_the_motion_and_its_motion_start_is_k
     next pair's estimate (the essential matrix's warm start), and every pair after the first takes
     inputs computed ahead."""
     cfg = load_config(["flow=dis_refine", "semantic=gt", "motion=mono", "stream=warm", "stream.overlap=true"])
-    runner = SequenceRunner(cfg, Pipeline(cfg, sfm=False))
+    runner = SequenceRunner(sequence_settings(cfg), Pipeline(pipeline_settings(cfg), sfm=False))
     reasons = [s.result.motion.reason for s in runner.run(sequence)]
     assert runner.stream.ahead == len(sequence) - 1
     assert "warm start" not in reasons[0] and all("warm start" in r for r in reasons[1:]), reasons
@@ -249,7 +250,7 @@ def test_keyframe_flow_is_chained_through_the_frames_between(slow_sequence):
     flows, and against ground truth: closer to it than the flow computed across the pair directly."""
     base = ["flow=deepflow", "semantic=gt", "motion=gt", "stream.overlap=false"]
     cfg = load_config(base)
-    runner = SequenceRunner(cfg, Pipeline(cfg, sfm=False))
+    runner = SequenceRunner(sequence_settings(cfg), Pipeline(pipeline_settings(cfg), sfm=False))
     steps = list(runner.run(slow_sequence))
     backs = [s.result.stixels.pair_info["frames_back"] for s in steps]
     chained = [s.result.flow.chained for s in steps]
@@ -266,7 +267,7 @@ def test_keyframe_flow_is_chained_through_the_frames_between(slow_sequence):
     assert torch.allclose(steps[2].result.flow.flow, want, atol=1e-4)
     # Against ground truth, the same pairs with the flow across them.
     off = load_config(base + ["keyframes.chain_flow=false"])
-    direct = list(SequenceRunner(off, Pipeline(off, sfm=False)).run(slow_sequence))
+    direct = list(SequenceRunner(sequence_settings(off), Pipeline(pipeline_settings(off), sfm=False)).run(slow_sequence))
     assert [s.result.flow.chained for s in direct] == [1, 1, 1, 1]
     epe = lambda st: np.mean([flow_metrics(s.result.flow.flow, s.pair.gt.flow, s.pair.gt.flow_valid)["epe"]  # noqa: E731
                               for s in st[1:]])

@@ -115,14 +115,16 @@ def test_an_overlapped_stream_gives_torch_one_thread_less_while_it_runs(restore_
     sequence runs, at least one, and the budget back after; without overlap it keeps the budget."""
     from monostixels.data.synthetic import SyntheticSequenceSource
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings, sequence_settings
     from monostixels.sequence import SequenceRunner
+    from monostixels.build import pipeline_settings, sequence_settings
 
     source = SyntheticSequenceSource(1, 2, seed=4, scale=0.25)
     for budget, overlap, inside in ((2, "true", 1), (3, "true", 2), (1, "true", 1), (2, "false", 2)):
         _threads._applied = None
         set_threads(budget)
         cfg = load_config(["flow=dis", "semantic=gt", "motion=gt", f"stream.overlap={overlap}"])
-        runner = SequenceRunner(cfg, Pipeline(cfg, sfm=False))
+        runner = SequenceRunner(sequence_settings(cfg), Pipeline(pipeline_settings(cfg), sfm=False))
         seen = [torch.get_num_threads() for _ in runner.run(source)]
         assert seen == [inside] * len(source) and torch.get_num_threads() == budget, (budget, overlap, seen)
         assert (runner.stream.ahead > 0) == (overlap == "true")
@@ -137,21 +139,22 @@ def test_import_makes_idle_pool_threads_sleep():
 
 
 def test_an_overlapping_pipeline_gives_opencv_one_thread(restore_threads):
-    """Pipeline(overlap=True) runs its flow in a thread beside other work, which keeps a core busy:
+    """Pipeline(pipeline_settings(overlap=True)) runs its flow in a thread beside other work, which keeps a core busy:
     OpenCV's pool gets one thread less than the budget there (at least one), the budget otherwise;
     torch keeps the budget (the solver's columns split over it)."""
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings
 
     set_threads(2)
     cfg = load_config(["data=synthetic", "flow=gt", "semantic=gt", "motion=gt"])
-    Pipeline(cfg, overlap=True)
+    Pipeline(pipeline_settings(cfg), overlap=True)
     assert cv2.getNumThreads() == 1 and torch.get_num_threads() == 2
-    Pipeline(cfg, overlap=False)
+    Pipeline(pipeline_settings(cfg), overlap=False)
     assert cv2.getNumThreads() == 2 and torch.get_num_threads() == 2
     _threads._applied = None
     set_threads(4)
-    Pipeline(cfg, overlap=True)
+    Pipeline(pipeline_settings(cfg), overlap=True)
     assert cv2.getNumThreads() == 3
     set_threads(1)
-    Pipeline(cfg, overlap=True)
+    Pipeline(pipeline_settings(cfg), overlap=True)
     assert cv2.getNumThreads() == 1

@@ -60,9 +60,9 @@ def test_calibration_pairs_are_the_real_sources_at_the_running_scale():
     cfg = OmegaConf.create({"export": {"calibration_per_source": 2, "calibration_scale": 0.5},
                             "real": {"sources": [{"name": "kitti_raw", "root": root, "step": 1}]}})
     pairs = calibration_pairs(cfg)
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
 
-    H, W = next(iter(make_source({"name": "kitti_raw", "root": root, "step": 1}))).size
+    H, W = next(iter(build_source({"name": "kitti_raw", "root": root, "step": 1}))).size
     assert len(pairs) == 2 and all(a.shape == b.shape == (3, round(H / 2), round(W / 2)) for a, b in pairs)
     assert all(0 <= float(a.min()) and float(a.max()) <= 1 and not torch.equal(a, b) for a, b in pairs)
     cfg.real.sources = [{"name": "kitti_raw", "root": "../shared/data/kitti_raw_lidar"}]

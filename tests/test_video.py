@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from monostixels._checks import InputError
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.data._lens import working_size
 from monostixels.data.video import VideoSource, intrinsics_from_hfov
 
@@ -86,10 +86,10 @@ def test_bad_input_fails_clearly(tmp_path, case):
 
 def test_make_source_video(tmp_path):
     v = write_video(tmp_path / "c.mp4", 4)
-    src = make_source({"name": "video", "path": str(v), "hfov_deg": 90, "step": 1, "resize": [40, 24]})
+    src = build_source({"name": "video", "path": str(v), "hfov_deg": 90, "step": 1, "resize": [40, 24]})
     assert len(src) == 3 and src[0].size == (24, 40)
     with pytest.raises(InputError, match="no video file given"):
-        make_source({"name": "video", "hfov_deg": 90})
+        build_source({"name": "video", "hfov_deg": 90})
 
 
 # ------------------------------------------------------------------------------------------------
@@ -184,7 +184,7 @@ def test_mask_is_carried_warped_with_the_frames(tmp_path):
         vw.write(cv2.cvtColor(np.where(mask > 0, 255, 0).astype(np.uint8), cv2.COLOR_GRAY2BGR))
     vw.release()
     (tmp_path / "k.yaml").write_text("fx: 100\nfy: 98\ncx: 83\ncy: 57\ndistortion: [-0.3, 0.08, 0, 0, 0]\n")
-    src = make_source({"name": "video", "path": str(tmp_path / "m.mp4"), "intrinsics": str(tmp_path / "k.yaml"),
+    src = build_source({"name": "video", "path": str(tmp_path / "m.mp4"), "intrinsics": str(tmp_path / "k.yaml"),
                        "resize": 0.5, "mask": str(tmp_path / "mask.png")})
     for p in src:
         ignore = p.meta["ignore_mask"]
@@ -238,11 +238,11 @@ def test_resize_auto_is_the_video_default_and_bad_values_fail(tmp_path):
     conf = load_config(["data=video"]).data
     assert conf.resize == "auto" and conf.mask == "auto"  # the bonnet found from the first frames
     v = write_video(tmp_path / "c.mp4", 3)
-    src = make_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": "auto"})
+    src = build_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": "auto"})
     assert src[0].size == (H, W)  # small frames stay as they are
     for bad in ("big", [1, 2, 3], -1):
         with pytest.raises(InputError, match="data.resize"):
-            make_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": bad})
+            build_source({"name": "video", "path": str(v), "hfov_deg": 90, "resize": bad})
 
 
 @pytest.mark.parametrize("case", ["mask_size", "mask_missing", "mask_all", "distortion_length", "intrinsics_size"])

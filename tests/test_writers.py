@@ -133,15 +133,18 @@ def test_stixel_rows_hold_nothing_after_an_error():
 def test_run_writes_its_files_through_the_writers(tmp_path):
     """The writers of `run` on one synthetic pair: each frame's files, named as docs/conventions.md 4.3 says."""
     from monostixels.data.synthetic import SyntheticSource
-    from monostixels.output.writers import FrameFiles, run_writers
+    from monostixels.build import build_writers
+    from monostixels.output.writers import FrameFiles
     from monostixels.pipeline import Pipeline, load_config
+    from monostixels.build import pipeline_settings, sequence_settings
     from monostixels.sequence import SequenceRunner
+    from monostixels.build import pipeline_settings, sequence_settings
 
     cfg = load_config(["data.scale=0.25", "flow=gt", "semantic=gt", "motion=gt", f"outputs={tmp_path}"])
     src = SyntheticSource(2, seed=0, scale=0.25)
-    writers = run_writers(cfg, src, Path(cfg.outputs) / "run")
+    writers = build_writers(cfg, src, Path(cfg.outputs) / "run")
     assert writers.videos is not None  # two pairs: a sequence
-    runner = SequenceRunner(cfg, Pipeline(cfg, allow_motion_failure=True, sfm=False, report_height=True))
+    runner = SequenceRunner(sequence_settings(cfg), Pipeline(pipeline_settings(cfg), allow_motion_failure=True, sfm=False, report_height=True))
     assert write_sequence(runner.run(src), writers.all) == 2
     run = tmp_path / "run"
     for i in range(2):

@@ -164,7 +164,7 @@ def real_pool(cfg: DictConfig) -> list[Sample]:
     if path.is_file():
         return torch.load(path, weights_only=True)
     from monostixels.core.energy import load_config_group
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
     from monostixels.inputs.confidence import fb_consistency_error
     from monostixels.inputs.flow import compute_flow
     from monostixels.inputs.flow_config import flow_params
@@ -176,7 +176,7 @@ def real_pool(cfg: DictConfig) -> list[Sample]:
         d = OmegaConf.to_container(src_cfg, resolve=True)
         if "0023" in str(d.get("root", "")) or "lidar" in str(d.get("root", "")):
             raise InputError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never train on it")
-        src = make_source(d)
+        src = build_source(d)
         for pair in tqdm(src, desc=f"teacher flow {d['name']}", leave=False):
             H, W = pair.size
             fx = float(pair.camera.K[0, 0])
@@ -329,7 +329,7 @@ def calibration_pairs(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor]
     """Image pairs (3, h, w) in [0, 1] for the INT8 copy's activation ranges: the first
     ``export.calibration_per_source`` pairs of each of ``real.sources`` (the training's real frames, never
     drive 0023), each at ``export.calibration_scale`` of its size (where ``flow=raft`` runs the network)."""
-    from monostixels.data.sources import make_source
+    from monostixels.build import build_source
 
     per, scale = int(cfg.export.calibration_per_source), float(cfg.export.calibration_scale)
     pairs = []
@@ -337,7 +337,7 @@ def calibration_pairs(cfg: DictConfig) -> list[tuple[torch.Tensor, torch.Tensor]
         d = OmegaConf.to_container(src_cfg, resolve=True)
         if "0023" in str(d.get("root", "")) or "lidar" in str(d.get("root", "")):
             raise InputError(f"real.sources: {d.get('root')} is the LiDAR evaluation drive; never calibrate on it")
-        for k, pair in enumerate(make_source(d)):
+        for k, pair in enumerate(build_source(d)):
             if k >= per:
                 break
             H, W = pair.size

@@ -185,16 +185,17 @@ def build_problems(cfg: DictConfig) -> tuple[ColumnProblem, ColumnProblem]:
     from monostixels.inputs.flow import estimate_flow
     from monostixels.inputs.semantic import estimate_semantics
     from monostixels.pipeline import Pipeline
+    from monostixels.build import pipeline_settings
 
-    pipes = {k: Pipeline(_load(list(cfg.inputs[k]))) for k in ("noisy", "gt")}
+    pipes = {k: Pipeline(pipeline_settings(_load(list(cfg.inputs[k])))) for k in ("noisy", "gt")}
     scfg = SolverConfig.from_yaml(**OmegaConf.to_container(cfg.solver, resolve=True))  # type: ignore[arg-type]
     per = {k: {"flow": [], "cov": [], "sem": [], "cam": [], "mot": []} for k in pipes}
     for i in tqdm(range(int(cfg.data.frames)), desc="inputs", unit="frame"):
         pair = render_pair(int(cfg.data.seed) * 100_000 + i, scale=float(cfg.data.scale),
                            density=float(cfg.data.density))
         for k, pipe in pipes.items():
-            fl = estimate_flow(pair, pipe.cfg.flow)
-            sem = estimate_semantics(pair, pipe.cfg.semantic)
+            fl = estimate_flow(pair, pipe.flow_cfg)
+            sem = estimate_semantics(pair, pipe.semantic_cfg)
             mot = pipe.motion_for(pair, fl, sem)
             d = per[k]
             d["flow"].append(fl.flow)

@@ -15,7 +15,7 @@ from typing import Any
 import torch
 
 from monostixels._checks import InputError, check_number, config_params
-from monostixels._config import load_config
+from monostixels._config import load_group
 
 __all__ = [
     "GRAVITY_TOLERANCE_M",
@@ -150,15 +150,7 @@ def load_config_group(group: str, name: str) -> dict[str, Any]:
 
 @lru_cache(maxsize=None)
 def _composed_group(group: str, name: str) -> dict[str, Any]:
-    from omegaconf import OmegaConf
-
-    try:
-        cfg = load_config([f"{group}={name}"])
-    except InputError:
-        raise
-    except Exception as e:  # noqa: BLE001 - Hydra's MissingConfigException and kin: no such option
-        raise InputError(f"config {group}={name}: no such option in conf/{group}/ ({str(e).splitlines()[0]})") from None
-    return OmegaConf.to_container(cfg[group], resolve=True)  # type: ignore[return-value]
+    return load_group(group, name)
 
 
 def flow_cost(residual: torch.Tensor, cov_inv: torch.Tensor, logdet: torch.Tensor, alpha_F: Any) -> torch.Tensor:

@@ -12,16 +12,21 @@ from typing import Any
 
 import torch
 
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError, choice, config_params
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.core.energy import load_config_group
 
-__all__ = ["BACKENDS", "REFINE_OBJECTS", "SolverConfig"]
+__all__ = ["BACKENDS", "REFINE_OBJECTS", "SolverDtype", "SolverBackend", "RefineObjects", "SolverConfig"]
 
-#: ``solver.top_refine_objects``: whose tops move.
-REFINE_OBJECTS = {"dynamic": (DYNAMIC_OBJECT,), "all": (STATIC_OBJECT, DYNAMIC_OBJECT)}
+# The choices among names of the solver's settings: OmegaConf refuses any other value (monostixels._checks.Choice).
+SolverDtype = choice("SolverDtype", "float32 float64", __name__)  # the compute dtype
+SolverBackend = choice("SolverBackend", "auto eager cpp", __name__)  # the DP's implementation
+RefineObjects = choice("RefineObjects", "dynamic all", __name__)  # whose tops move
+
+#: ``solver.top_refine_objects``: the stixel types whose tops move.
+REFINE_OBJECTS = {RefineObjects.dynamic: (DYNAMIC_OBJECT,), RefineObjects.all: (STATIC_OBJECT, DYNAMIC_OBJECT)}
 #: ``solver.backend`` values: ``auto`` = the C++ kernel for the hard DP where it builds, else eager.
-BACKENDS = ("auto", "eager", "cpp")
+BACKENDS = tuple(SolverBackend.__members__)
 
 
 @dataclass
@@ -62,15 +67,15 @@ class SolverConfig:
     min_depth: float = 0.5
     max_depth: float = 300.0
     tau: float = 0.0
-    dtype: str = "float32"
+    dtype: SolverDtype = SolverDtype.float32
     min_translation: float = 0.05
     standing_hypotheses: bool = True
-    backend: str = "auto"
+    backend: SolverBackend = SolverBackend.auto
     sky_horizon_margin_deg: float = 5.0
     # Applied after the DP by the pipeline (monostixels.post.boundaries.refine_object_tops).
     top_refine_rows: int = 3
     top_refine_depth_ratio: float = 1.5
-    top_refine_objects: str = "dynamic"
+    top_refine_objects: RefineObjects = RefineObjects.dynamic
 
     def __post_init__(self) -> None:
         self.validate()
@@ -90,8 +95,6 @@ class SolverConfig:
             raise InputError(f"solver.min_depth/max_depth: need 0 < min_depth < max_depth < inf, got {self.min_depth}, {self.max_depth}")
         if not (self.tau >= 0 and math.isfinite(self.tau)):
             raise InputError(f"solver.tau: must be >= 0, got {self.tau}")
-        if self.dtype not in ("float32", "float64"):
-            raise InputError(f"solver.dtype: float32 or float64, got {self.dtype!r}")
         if not self.min_translation >= 0:
             raise InputError(f"solver.min_translation: must be >= 0, got {self.min_translation}")
         try:  # a command line gives `inf` as a float, but `.inf` (YAML's spelling) as a string
@@ -105,10 +108,6 @@ class SolverConfig:
             raise InputError(f"solver.top_refine_rows: an integer >= 0 (0 = off), got {self.top_refine_rows!r}")
         if not (isinstance(self.top_refine_depth_ratio, (int, float)) and 1.0 <= self.top_refine_depth_ratio < math.inf):
             raise InputError(f"solver.top_refine_depth_ratio: a number >= 1, got {self.top_refine_depth_ratio!r}")
-        if self.top_refine_objects not in REFINE_OBJECTS:
-            raise InputError(f"solver.top_refine_objects: one of {', '.join(REFINE_OBJECTS)}, got {self.top_refine_objects!r}")
-        if self.backend not in BACKENDS:
-            raise InputError(f"solver.backend: one of {', '.join(BACKENDS)}, got {self.backend!r}")
 
     @property
     def torch_dtype(self) -> torch.dtype:

@@ -1,9 +1,9 @@
 """The one factory that turns the ``data`` config group into a sequence of frame pairs.
 
-``make_source(cfg)`` dispatches on ``cfg.name`` (docs/conventions.md, section 4.8): ``synthetic``,
-``kitti2015``, ``kitti_raw``, ``ddad``, ``frames``, ``video``. ``cfg`` is either the ``data`` group
-or the whole config (with ``data`` and ``camera`` entries); the camera group supplies the default
-mounting height and pitch.
+``make_source(data, camera)`` dispatches on ``data.name`` (docs/conventions.md, section 4.8): ``synthetic``,
+``kitti2015``, ``kitti_raw``, ``ddad``, ``frames``, ``video``. ``data`` is the ``data`` group's settings and
+``camera`` the ``camera`` group's, which supplies the default mounting height and pitch; the builder
+(:func:`monostixels.build.build_source`) reads both from a config.
 
 Each option of ``data`` has its settings dataclass (:data:`DATA_SCHEMAS`, by ``name``), its schema in the
 package config (monostixels.config_schema); ``camera``'s is :class:`CameraConfig`. A dict given by a library
@@ -14,18 +14,24 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 from dataclasses import dataclass
-from typing import Any, Callable, List, Mapping, Optional, Union
+from typing import Any, Callable, List, Optional, Union
 
-from monostixels._checks import InputError, config_params, is_unset, option_params
-from monostixels.data.base import FOLDER_FPS, KeyframeParams, Source
+from monostixels._checks import InputError, choice, config_params, option_params
+from monostixels.data.base import FOLDER_FPS, Source
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.data.static_regions import AUTO_MASK
 
-__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
+__all__ = ["SOURCE_NAMES", "DATA_SCHEMAS", "KittiSplit", "KittiPrevious", "CamVidSplit", "KittiOxts", "CameraConfig", "SyntheticDataConfig", "Kitti2015DataConfig",
            "KittiRawDataConfig", "DdadDataConfig", "FramesDataConfig", "VideoDataConfig", "CamVidDataConfig",
            "camera_mount", "data_params", "make_source"]
 
 logger = logging.getLogger(__name__)
+
+# The choices among names of the data settings: OmegaConf refuses any other value (monostixels._checks.Choice).
+KittiSplit = choice("KittiSplit", "training testing", __name__)  # KITTI 2015's folders
+KittiPrevious = choice("KittiPrevious", "auto 11 09", __name__)  # the partner of KITTI 2015's frame _10
+CamVidSplit = choice("CamVidSplit", "train val test", __name__)  # CamVid's lists
+KittiOxts = choice("KittiOxts", "velocity position", __name__)  # where KITTI raw's OXTS positions come from
 
 
 @dataclass
@@ -89,8 +95,8 @@ class Kitti2015DataConfig:
 
     name: str = "kitti2015"
     root: Optional[str] = None
-    split: str = "training"
-    previous: str = "auto"
+    split: KittiSplit = KittiSplit.training
+    previous: KittiPrevious = KittiPrevious.auto
     frames: Optional[int] = None
     scenes: Optional[List[int]] = None
     fx: Optional[float] = 721.5377
@@ -125,7 +131,7 @@ class KittiRawDataConfig:
     frames: Optional[int] = None
     only_labelled: bool = False
     camera_height: Optional[float] = None
-    oxts: str = "velocity"
+    oxts: KittiOxts = KittiOxts.velocity
 
 
 @dataclass
@@ -254,7 +260,7 @@ class CamVidDataConfig:
 
     name: str = "camvid"
     root: Optional[str] = None
-    split: str = "test"
+    split: CamVidSplit = CamVidSplit.test
     frames: Optional[int] = None
     step: int = 1
 
@@ -390,13 +396,14 @@ _FACTORIES: dict[str, Callable[[Any, Any], Source]] = {
 SOURCE_NAMES: tuple[str, ...] = tuple(_FACTORIES)
 
 
-def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | None = None) -> Source:
-    """Build the data source named by ``cfg.name``.
+def make_source(data: _Data, camera: CameraConfig | None = None, *, window: int = 10) -> Source:
+    """Build the data source named by ``data.name``.
 
     Args:
-        cfg: the ``data`` config group (dict or OmegaConf node) — or the whole config, in which
-            case ``cfg.data`` and ``cfg.camera`` are used.
-        camera: the ``camera`` config group (``height`` metres, ``pitch`` radians); optional.
+        data: the ``data`` group's settings, the dataclass of its option (:data:`DATA_SCHEMAS`; read from a
+            config by :func:`monostixels.build.build_source`).
+        camera: the ``camera`` group's settings (``height`` metres, ``pitch`` radians); None: the defaults.
+        window: frames a live source keeps (``keyframes.window``: as many as keyframe pairs may reach back).
 
     Returns:
         A :class:`~monostixels.data.base.SequenceSource` of :class:`FramePair` (``len`` and indexing; images
@@ -404,25 +411,13 @@ def make_source(cfg: Mapping[str, Any] | Any, camera: Mapping[str, Any] | Any | 
         :class:`~monostixels.data.base.LiveSource` (frames as they come).
 
     Raises:
-        InputError: unknown ``name``, or any bad input of the chosen source (missing root, files,
-            calibration...), with a message naming it.
+        InputError: any bad input of the chosen source (missing root, files, calibration...), with a message
+            naming it.
     """
-    data = cfg
-    if hasattr(cfg, "keys") and "data" in cfg and "name" not in cfg:
-        data = cfg["data"]
-        camera = camera if camera is not None else cfg.get("camera")
-    name = data.name if isinstance(data, tuple(DATA_SCHEMAS.values())) else (data or {}).get("name")
-    if name not in _FACTORIES:
-        raise InputError(f"data.name: unknown data source {name!r}; choose one of {', '.join(SOURCE_NAMES)}")
-    # Before the schema's own refusal of the key: say what the setting is for.
-    if name != "video" and hasattr(data, "keys") and not is_unset(data, "realtime"):
-        raise InputError(f"data.realtime: only data=video reads frames as they come (a camera, a URL, a video file "
-                         f"at its frame rate); data={name} is read from disk frame by frame")
-    params = data_params(data)
-    if name == "video":
-        # A live source keeps as many frames as keyframe pairs may reach back.
-        window = 10
-        if data is not cfg:
-            window = config_params(KeyframeParams, cfg.get("keyframes"), "keyframes").window
-        return _video(params, camera, window)
-    return _FACTORIES[name](params, camera)
+    if not isinstance(data, tuple(DATA_SCHEMAS.values())):
+        raise TypeError(f"make_source: expected the data group's settings (one of {', '.join(c.__name__ for c in DATA_SCHEMAS.values())}), "
+                        f"got {type(data).__name__}; from a config: monostixels.build.build_source")
+    camera = camera if camera is not None else CameraConfig()
+    if data.name == "video":
+        return _video(data, camera, window)
+    return _FACTORIES[data.name](data, camera)

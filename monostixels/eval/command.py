@@ -9,7 +9,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from monostixels.data.base import LiveSource
-from monostixels.data.sources import make_source
+from monostixels.build import build_source
 from monostixels.output.writers import DemoFiles, Frame, listed
 
 __all__ = ["demo", "evaluate_command", "semantic_label"]
@@ -78,7 +78,7 @@ def evaluate_command(cfg: DictConfig) -> float:
 
     if str(cfg.data.name) == "camvid":
         return _evaluate_semantics(cfg)
-    src = make_source(cfg)
+    src = build_source(cfg)
     if isinstance(src, LiveSource):
         from monostixels._checks import InputError
 

@@ -13,7 +13,7 @@ from typing import Any, Optional, Union
 
 from monostixels._checks import choice, option_params
 
-__all__ = ["FLOW_SCHEMAS", "DisPreset", "RaftSize", "RaftRuntime", "Precision", "FlowConfig", "GtFlowConfig", "ImageFlowConfig", "DisFlowConfig", "DeepFlowConfig",
+__all__ = ["FLOW_SCHEMAS", "DisPreset", "RaftSize", "RaftRuntime", "Precision", "FlowConfidence", "DeepFlowMatches", "FlowConfig", "GtFlowConfig", "ImageFlowConfig", "DisFlowConfig", "DeepFlowConfig",
            "RaftFlowConfig", "flow_name", "flow_params"]
 
 
@@ -22,6 +22,8 @@ DisPreset = choice("DisPreset", "ultrafast fast medium", __name__)  # OpenCV's D
 RaftSize = choice("RaftSize", "small large", __name__)  # torchvision's RAFT models
 RaftRuntime = choice("RaftRuntime", "auto torch onnx", __name__)  # where RAFT runs
 Precision = choice("Precision", "float32 int8", __name__)  # the precision of a network's weights
+FlowConfidence = choice("FlowConfidence", "constant structure_tensor", __name__)  # the covariance's method
+DeepFlowMatches = choice("DeepFlowMatches", "dis none", __name__)  # DeepFlow's large-displacement guidance
 
 
 @dataclass
@@ -42,7 +44,7 @@ class GtFlowConfig:
 
     name: str = "gt"
     sigma: float = 0.5
-    confidence: str = "constant"
+    confidence: FlowConfidence = FlowConfidence.constant
     sigma_max: float = 20.0
     noise: float = 0.01
     window_sigma: float = 2.0
@@ -75,7 +77,7 @@ class ImageFlowConfig:
     """
 
     name: str = ""
-    confidence: str = "structure_tensor"
+    confidence: FlowConfidence = FlowConfidence.structure_tensor
     sigma: float = 0.5
     noise: float = 0.01
     window_sigma: float = 2.0
@@ -115,7 +117,7 @@ class DeepFlowConfig(ImageFlowConfig):
     """
 
     name: str = "deepflow"
-    matches: str = "dis"
+    matches: DeepFlowMatches = DeepFlowMatches.dis
     matches_preset: DisPreset = DisPreset.medium
     bands: int = 1
     sigma_min: float = 0.3

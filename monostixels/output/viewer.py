@@ -32,12 +32,15 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError, choice
 from monostixels.core.classes import DYNAMIC_OBJECT, PALETTE
 from monostixels.pipeline import EvalConfig
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
 
-__all__ = ["OutputConfig", "RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
+__all__ = ["RerunColors", "OutputConfig", "RecordingHook", "RerunRecorder", "open_recorder", "require_rerun"]
+
+#: ``output.rerun_colors``: the colour of the recorded stixel boxes (OmegaConf refuses any other name).
+RerunColors = choice("RerunColors", "class depth", __name__)
 
 
 @dataclass
@@ -57,7 +60,7 @@ class OutputConfig:
     """
 
     rerun: bool = False
-    rerun_colors: str = "class"
+    rerun_colors: RerunColors = RerunColors["class"]
     rerun_point_stride: int = 4
     rerun_jpeg_quality: Optional[int] = 85
 
@@ -118,11 +121,11 @@ class RerunRecorder(RecordingHook):
         InputError: rerun-sdk is not installed; a bad ``colors``, ``point_stride`` or ``jpeg_quality``.
     """
 
-    def __init__(self, path: str | Path, *, fps: float | None = None, colors: str = "class", point_stride: int = 4,
+    def __init__(self, path: str | Path, *, fps: float | None = None, colors: RerunColors | str = "class", point_stride: int = 4,
                  jpeg_quality: int | None = 85, min_depth: float = 2.0, max_depth: float = 80.0) -> None:
         rr = require_rerun()
-        if colors not in ("class", "depth"):
-            raise InputError(f"output.rerun_colors: expected 'class' or 'depth', got {colors!r}")
+        if colors not in RerunColors.__members__:  # the config's value is one (RerunColors); a caller's may not be
+            raise InputError(f"output.rerun_colors: expected one of {', '.join(RerunColors.__members__)}, got {colors!r}")
         if int(point_stride) < 1:
             raise InputError(f"output.rerun_point_stride: must be a positive number of pixels, got {point_stride}")
         if jpeg_quality is not None and not 1 <= int(jpeg_quality) <= 100:
@@ -274,22 +277,19 @@ def _scaled_K(K: np.ndarray, stride: int) -> torch.Tensor:
     return torch.from_numpy(S @ K)
 
 
-def open_recorder(cfg: Any, out: Path, src: Any, *, ev: Any = None, output: Any = None) -> RecordingHook:
+def open_recorder(out: Path, src: Any, *, ev: EvalConfig, output: OutputConfig) -> RecordingHook:
     """The recording hook of ``monostixels run``: a :class:`RerunRecorder` writing
     ``out/recording.rrd`` where ``output.rerun`` is true, else one that records nothing.
 
     Args:
-        cfg: the composed config (``output`` and ``eval`` groups). out: ``<outputs>/run``.
-        src: the data source (its ``fps``, for videos, gives the ``time`` timeline).
-        ev, output: the ``eval`` and ``output`` groups' settings where the caller parsed them, else read from ``cfg``.
+        out: ``<outputs>/run``. src: the data source (its ``fps``, for videos, gives the ``time`` timeline).
+        ev, output: the ``eval`` and ``output`` groups' settings.
 
     Raises:
         InputError: ``output.rerun=true`` without rerun-sdk installed (checked before any frame runs).
     """
-    output = config_params(OutputConfig, cfg.get("output") if output is None else output, "output")
     if not output.rerun:
         return RecordingHook()
-    ev = config_params(EvalConfig, cfg.get("eval") if ev is None else ev, "eval")
     return RerunRecorder(out / RECORDING_NAME, fps=getattr(src, "fps", None), colors=output.rerun_colors,
                          point_stride=output.rerun_point_stride, jpeg_quality=output.rerun_jpeg_quality,
                          min_depth=ev.colormap_min_depth, max_depth=ev.colormap_max_depth)

@@ -14,7 +14,7 @@ finishing a summary can leave it unwritten).
   :func:`write_partition`;
 - :class:`DemoFiles`: ``demo``'s pictures and stixels of its one pair.
 
-:func:`run_writers` builds ``run``'s list from the composed config.
+:func:`run_writers` builds ``run``'s list from the settings the builder (:mod:`monostixels.build`) parsed.
 """
 from __future__ import annotations
 
@@ -24,16 +24,21 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
 import numpy as np
 import torch
 
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError
 from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
 from monostixels.data.base import LiveSource, Source
 from monostixels.inputs.motion_base import NO_METRIC_MOTION, MotionKind
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
+
+if TYPE_CHECKING:  # the settings' types, for the annotations only
+    from monostixels.data.sources import CameraConfig, _Data
+    from monostixels.output.viewer import OutputConfig
+    from monostixels.pipeline import EvalConfig
 
 __all__ = ["Frame", "Writer", "write_sequence", "Pictures", "FramePictures", "FrameFiles", "video_fps", "Videos",
            "Recording", "RunSummary", "RunWriters", "run_writers", "camera_report", "camera_summary",
@@ -379,25 +384,24 @@ class RunWriters:
         return [f"run: {line}" for line in [*self.summary.lines, last]]
 
 
-def run_writers(cfg: Any, src: Source, out: Path, *, ev: Any = None, output: Any = None) -> RunWriters:
+def run_writers(src: Source, out: Path, *, data: _Data, camera: CameraConfig, ev: EvalConfig,
+                output: OutputConfig) -> RunWriters:
     """``run``'s writers of source ``src`` into ``out`` (``<outputs>/run``): the per-frame files, the videos (a
     sequence: any video, or more than one pair), the Rerun recording (``output.rerun``) and the summary.
-    ``ev``, ``output``: the ``eval`` and ``output`` groups' settings where the caller parsed them
-    (:mod:`monostixels.build`), else read from ``cfg``.
+    ``data``, ``camera``, ``ev``, ``output``: the ``data``, ``camera``, ``eval`` and ``output`` groups' settings
+    (their dataclasses; :func:`monostixels.build.build_writers` reads them from a config).
 
     Raises:
         InputError: ``output.rerun=true`` without rerun-sdk installed (before any frame runs).
     """
     from monostixels.data.sources import camera_mount
     from monostixels.output.viewer import open_recorder
-    from monostixels.pipeline import EvalConfig
 
-    ev = config_params(EvalConfig, cfg.eval if ev is None else ev, "eval")
     pictures = FramePictures(ev.colormap_min_depth, ev.colormap_max_depth)
-    sequence = str(cfg.data.name) == "video" or len(src) > 1  # a live source is a video: its length is not asked
+    sequence = str(data.name) == "video" or len(src) > 1  # a live source is a video: its length is not asked
     return RunWriters(out, FrameFiles(out, pictures), Videos(out, video_fps(src), pictures) if sequence else None,
-                      Recording(open_recorder(cfg, out, src, ev=ev, output=output)),
-                      RunSummary(out, src, str(cfg.data.name), camera_mount(cfg.data, cfg.camera)[0]))
+                      Recording(open_recorder(out, src, ev=ev, output=output)),
+                      RunSummary(out, src, str(data.name), camera_mount(data, camera)[0]))
 
 
 # ------------------------------------------------------------------------------------------------ batch

@@ -46,9 +46,8 @@ from dataclasses import dataclass
 from typing import Any, Iterator, Sequence
 
 import torch
-from omegaconf import DictConfig
 
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError
 from monostixels._threads import threads, torch_threads
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.data._lazy_source import PairSkipped
@@ -148,8 +147,8 @@ class _Frame:
 
 @dataclass(frozen=True)
 class SequenceSettings:
-    """What a :class:`SequenceRunner` reads of the composed config, each group parsed once
-    (:meth:`from_config`): the pipeline's settings and the groups of the sequence layer."""
+    """What a :class:`SequenceRunner` reads of the composed config, each group parsed once by the builder
+    (:func:`monostixels.build.sequence_settings`): the pipeline's settings and the groups of the sequence layer."""
 
     pipeline: PipelineSettings
     keyframes: KeyframeParams
@@ -157,29 +156,21 @@ class SequenceSettings:
     ttc: TtcParams
     stream: StreamParams
 
-    @staticmethod
-    def from_config(cfg: Any) -> "SequenceSettings":
-        """The settings of the composed config ``cfg`` (a DictConfig, or a plain dict of one)."""
-        return SequenceSettings(
-            pipeline=PipelineSettings.from_config(cfg),
-            keyframes=config_params(KeyframeParams, cfg.get("keyframes"), "keyframes"),
-            temporal=config_params(TrackParams, cfg.get("temporal"), "temporal"),
-            ttc=config_params(TtcParams, cfg.get("ttc"), "ttc"),
-            stream=config_params(StreamParams, cfg.get("stream"), "stream"))
-
 
 class SequenceRunner:
     """Frames of a data source through the pipeline, with keyframes, tracks and TTC (module docstring).
 
     Args:
-        cfg: the composed config (groups keyframes, temporal, ttc, stream beside the pipeline's), or its settings
-            parsed once (:class:`SequenceSettings`).
+        settings: the settings parsed once (:class:`SequenceSettings`: groups keyframes, temporal, ttc, stream
+            beside the pipeline's; :func:`monostixels.build.sequence_settings`, or :func:`monostixels.build.build_runner`
+            for the runner of a config).
         pipeline: the per-pair pipeline (built from the settings when None).
     """
 
-    def __init__(self, cfg: DictConfig | SequenceSettings, pipeline: Pipeline | None = None) -> None:
-        self.cfg = cfg
-        settings = cfg if isinstance(cfg, SequenceSettings) else SequenceSettings.from_config(cfg)
+    def __init__(self, settings: SequenceSettings, pipeline: Pipeline | None = None) -> None:
+        if not isinstance(settings, SequenceSettings):
+            raise TypeError(f"SequenceRunner: expected SequenceSettings, got {type(settings).__name__}; "
+                            "from a config: monostixels.build.build_runner(cfg, purpose)")
         self.settings = settings
         self.pipeline = pipeline if pipeline is not None else Pipeline(settings.pipeline)
         self.keyframes = settings.keyframes

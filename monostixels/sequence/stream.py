@@ -49,7 +49,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from monostixels._checks import InputError, config_params
+from monostixels._checks import InputError
 from monostixels.data.static_regions import crop_ignored
 from monostixels.data.base import FramePair, LiveSource, PreviousFrame, SequentialSource, Source
 from monostixels.inputs.motion_track import MotionTrack
@@ -135,11 +135,6 @@ class StreamState:
         self._pool: ThreadPoolExecutor | None = None
         self._ready: Future | None = None
         self.reset()
-
-    @staticmethod
-    def from_config(cfg: Any) -> "StreamState":
-        """The state of the ``stream`` group of a composed config (nothing carried where it has none)."""
-        return StreamState(config_params(StreamParams, cfg.get("stream") if hasattr(cfg, "get") else None, "stream"))
 
     def reset(self) -> None:
         """Forget the stream (a new clip, a failed pair); work started ahead is dropped."""
