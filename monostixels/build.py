@@ -46,7 +46,8 @@ from monostixels.pipeline import EvalConfig, Pipeline, PipelineSettings
 from monostixels.post.movers import MoverCheckParams
 from monostixels.sequence.runner import SequenceRunner, SequenceSettings
 from monostixels.sequence.stream import StreamParams
-from monostixels.sequence.tracking import TrackParams, TtcParams
+from monostixels.sequence.tracking import TrackParams
+from monostixels.sequence.ttc import TtcParams
 
 __all__ = ["Purpose", "Settings", "Built", "pipeline_settings", "sequence_settings", "parse_settings", "build_source",
            "build_pipeline", "build_runner", "build_writers", "build"]
