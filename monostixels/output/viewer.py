@@ -255,8 +255,8 @@ class RerunRecorder(RecordingHook):
 
         self._centres.append(pose[:3, 3].copy())
         rec.log("world/trajectory", rr.LineStrips3D([np.asarray(self._centres)]))
-        if world.flags.get("degenerate_motion"):
-            rec.log("log", rr.TextLog(f"{pair.name}: {world.flags.get('reason', 'degenerate camera motion')}",
+        if world.status.motion.degenerate:
+            rec.log("log", rr.TextLog(f"{pair.name}: {world.status.motion.reason or 'degenerate camera motion'}",
                                       level="WARN"))
         self.frames += 1
 

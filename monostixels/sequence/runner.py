@@ -19,7 +19,7 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
 2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
    scene model), but the movers still are found and measured from the flow: their depth from the
    ground contact, their motion from ``t̃``. Static stixels whose track was measured with a baseline
-   keep the track's depth (``flags["carried_stixels"]``).
+   keep the track's depth (``status.counts.carried_stixels``).
 3. **Tracks** (:mod:`monostixels.sequence.tracking`): every object stixel gets a ``track_id``, a filtered depth
    and a world velocity (m/s, world = the sequence's first camera); with ``temporal.enabled=false``
    velocities come from the pair alone and no depth is filtered.
@@ -343,14 +343,13 @@ class SequenceRunner:
                 flow_last = res.flow.flow
             out = self.tracks.update(
                 st, frame=frame_no, time=time, pose=pose, dt_pair=dt,
-                degenerate=bool(res.motion.degenerate or st.flags.get("degenerate_motion")), camera_velocity=v_cam,
+                degenerate=bool(res.motion.degenerate or st.status.motion.degenerate), camera_velocity=v_cam,
                 motion=res.motion.motion, flow_to_last=flow_last, flow_reaches=last_no)
             track_id, velocity = out["track_id"], out["velocity"]
             st = _with_filtered_depth(st, out["point_cam"])
             if bool(out["carried"].any()):
-                st.flags["carried_stixels"] = int(out["carried"].sum())
-                st.flags["reason"] = (st.flags.get("reason", "") + "; static depths carried from the tracks of "
-                                      "earlier frames with a baseline").lstrip("; ")
+                st.status.counts.carried_stixels = int(out["carried"].sum())
+                st.status.motion.add_reason("static depths carried from the tracks of earlier frames with a baseline")
         else:
             N = len(st)
             track_id = torch.full((N,), -1, dtype=torch.long)
@@ -374,7 +373,7 @@ class SequenceRunner:
         ttc_both = torch.maximum(ttc, time_to_collision(X_ok, v_rel)) if tracking else ttc
         warn = obj & movable & critical(X_ok, v_rel, ttc_both, self.ttc)
         warn = object_wide(confirmed(warn, out["age"] if tracking else None, self.ttc), st)
-        if st.flags.get("scale_uncertain"):
+        if st.status.motion.scale_uncertain:
             warn = torch.zeros_like(warn)
         st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
         st.ttc_warning = warn
@@ -419,4 +418,4 @@ def _with_filtered_depth(st: StixelWorld, point_cam: torch.Tensor) -> StixelWorl
         return st
     d = (torch.nan_to_num(point_cam) * st.normals()).sum(-1)
     p = torch.where(ok & (d > 1e-3), 1.0 / d.clamp_min(1e-3), st.inverse_depth.double())
-    return dataclasses.replace(st, inverse_depth=p.to(st.inverse_depth.dtype), flags=dict(st.flags))
+    return dataclasses.replace(st, inverse_depth=p.to(st.inverse_depth.dtype), status=st.status.copy())
