@@ -59,6 +59,7 @@ from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motio
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, PipelineSettings
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamParams, StreamState
+from monostixels.sequence.tracked import TrackedFrame
 from monostixels.sequence.tracking import (Tracks, TrackParams, TtcParams, confirmed, critical, object_wide, stixel_points,
                                    time_to_collision)
 
@@ -129,12 +130,17 @@ def motion_matrix(motion: Motion) -> torch.Tensor:
 
 @dataclass
 class SequenceStep:
-    """One processed frame: the source index, the pair solved, and the result (None: motion failed)."""
+    """One processed frame: the source index, the pair solved, and the result (None: motion failed).
+
+    ``tracked``: what the sequence layer adds to the pair's stixels (tracks, velocities, TTC, pose); the
+    result's ``stixels`` is :meth:`TrackedFrame.world` of it, as ``stixels.json`` writes it.
+    """
 
     index: int
     pair: FramePair
     result: PipelineResult | None
     error: str | None = None
+    tracked: TrackedFrame | None = None
 
 
 @dataclass
@@ -279,35 +285,32 @@ class SequenceRunner:
         sequence = back is not None
         if res.motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: no pose to chain, nothing to track, no time to collision.
-            self._unknown(res, pair, back, dt)
-            return SequenceStep(index, pair, res)
+            return self._step(index, pair, res, self._unknown(res, pair, back, dt))
         if sequence and not res.motion.degenerate:
             self.speed = res.motion.motion.translation_norm / max(dt, 1e-9)
         elif sequence and res.motion.degenerate:
             self.speed = 0.0
-        self._finish(res, pair, back, driven, dt, sequence)
-        return SequenceStep(index, pair, res)
+        return self._step(index, pair, res, self._finish(res, pair, back, driven, dt, sequence))
 
-    def _unknown(self, res: PipelineResult, pair: FramePair, back: int | None, dt: float) -> None:
+    @staticmethod
+    def _step(index: int, pair: FramePair, res: PipelineResult, tracked: TrackedFrame) -> SequenceStep:
+        """The step of a solved pair: its result's stixels a new world with the sequence's fields."""
+        res.stixels = tracked.world()
+        res.pose = tracked.pose
+        return SequenceStep(index, pair, res, tracked=tracked)
+
+    def _unknown(self, res: PipelineResult, pair: FramePair, back: int | None, dt: float) -> TrackedFrame:
         """Outputs of a pair whose camera motion is unknown (``scale_unknown`` / ``unknown``).
 
         Its stixels are already static (the pipeline); here they get no track, no velocity, no time to
         collision and no pose (``pose`` stays None). The frame is not kept as a later pair's partner, so the
         pose chain goes on through the frames whose motion is known; the keyframe speed is left as it was.
         """
-        st = res.stixels
-        N = len(st)
         self.count += 1
-        st.track_id = torch.full((N,), -1, dtype=torch.long)
-        st.velocity = torch.zeros(N, 3, dtype=torch.float64)
-        st.ttc_s = torch.full((N,), math.inf, dtype=torch.float64)
-        st.ttc_warning = torch.zeros(N, dtype=torch.bool)
-        st.pose = None
-        st.pair_info = _pair_info(pair, back, dt, None, None)
-        res.pose = None
+        return TrackedFrame.untracked(res.stixels, _pair_info(pair, back, dt, None, None))
 
     def _finish(self, res: PipelineResult, pair: FramePair, back: int | None, driven: float | None, dt: float,
-                sequence: bool) -> None:
+                sequence: bool) -> TrackedFrame:
         st = res.stixels
         # Frames are known by the source's frame numbers (raw frame, video frame, clip frame), so that a
         # keyframe pair finds its earlier frame whatever the source skipped.
@@ -375,16 +378,12 @@ class SequenceRunner:
         warn = object_wide(confirmed(warn, out["age"] if tracking else None, self.ttc), st)
         if st.status.motion.scale_uncertain:
             warn = torch.zeros_like(warn)
-        st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
-        st.ttc_warning = warn
-        st.pose = pose
-        st.pair_info = _pair_info(pair, back, dt, res.motion.motion.translation_norm, driven)
-        res.stixels = st
-        res.pose = pose
         if sequence:
             self.frames[frame_no] = _Frame(pair.name, time, pose)
             while len(self.frames) > self.keyframes.window + 1:
                 self.frames.popitem(last=False)
+        return TrackedFrame(stixels=st, track_id=track_id, velocity=velocity, ttc_s=ttc, ttc_warning=warn, pose=pose,
+                            pair_info=_pair_info(pair, back, dt, res.motion.motion.translation_norm, driven))
 
 
 _frozen = False
@@ -404,7 +403,7 @@ def _freeze_startup_objects() -> None:
 
 def _pair_info(pair: FramePair, back: int | None, dt: float, driven_m: float | None,
                keyframe_m: float | None) -> dict[str, Any]:
-    """``StixelWorld.pair_info`` of a solved pair: its frames, how far back, seconds and metres driven (None
+    """``TrackedFrame.pair_info`` of a solved pair: its frames, how far back, seconds and metres driven (None
     where the camera motion is unknown) and the keyframe distance it was chosen by."""
     return {"current": pair.name, "previous": pair.info.name_prev or "",
             "frames_back": int(back) if back is not None else 1, "dt_s": dt,
