@@ -359,7 +359,7 @@ class Pipeline:
             res.pair = full
             res.stixels.image_size = full.size
             res.flow, res.semantic = _padded(res.flow, res.semantic, full.size[0])
-            res.stixels.status.counts.ignored_pixels = int(full.meta["ignore_mask"].sum())
+            res.stixels.status.counts.ignored_pixels = int(full.info.ignore_mask.sum())
         return res
 
     def inputs(self, pair: FramePair, carried: Carried) -> tuple[FlowResult, torch.Tensor | None, dict[str, float]]:

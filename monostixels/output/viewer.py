@@ -199,7 +199,7 @@ class RerunRecorder(RecordingHook):
             return np.asarray(velocity, dtype=np.float64).reshape(-1, 3)[dyn]
         # Δ: the object's displacement between the pair's frames, current camera frame, metres.
         delta = world.motion.double().numpy()[dyn] @ pose[:3, :3].T
-        dt = (getattr(pair, "meta", {}) or {}).get("dt")
+        dt = pair.info.dt
         return delta / float(dt) if dt else delta
 
     def log_frame(self, index: int, pair: Any, res: Any) -> None:

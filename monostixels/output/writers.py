@@ -447,8 +447,7 @@ def frame_rows(index: int, pair: Any, res: Any, pose: np.ndarray, fps: float | N
     motion = world.motion.double().numpy().reshape(-1, 3)
     track, vel, ttc = (optional_field(world, k) for k in ("track_id", "velocity", "ttc_s"))
     vel = None if vel is None else np.asarray(vel, dtype=np.float64).reshape(-1, 3)
-    meta = getattr(pair, "meta", {}) or {}
-    dt = meta.get("dt")
+    dt = pair.info.dt
 
     def finite(a: np.ndarray) -> list[float | None]:
         return [float(v) if math.isfinite(v) else None for v in a]
