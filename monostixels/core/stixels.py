@@ -112,7 +112,7 @@ class StixelWorld:
         status: what is known about the frame beside its stixels (:class:`~monostixels.core.status.FrameStatus`:
             the camera motion's status, the post-processing's counts); ``stixels.json`` writes it as ``flags``.
 
-    On sequences (:mod:`monostixels.sequence`) also, else None:
+    On sequences (:mod:`monostixels.sequence`: ``TrackedFrame.world()``) also, else None:
         track_id: (N,) int64 track of each object stixel (-1: ground, sky, untracked).
         velocity: (N, 3) world velocity, m/s (world = the sequence's first camera; 0: ground, sky).
         ttc_s: (N,) time to collision, seconds (inf: not closing; ground and sky inf).
