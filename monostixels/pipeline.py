@@ -44,6 +44,7 @@ from monostixels.post.movers import MoverCheckParams, check_movers, settle_reced
 from monostixels.core.solver import SolverConfig, solve
 from monostixels.data.static_regions import crop_ignored
 from monostixels.core.stixels import StixelWorld
+from monostixels.core.status import StreamFrames
 
 __all__ = ["EvalConfig", "MotionEstimationError", "PipelineResult", "Carried", "Chain", "PipelineSettings", "Pipeline",
            "warp_scores", "load_config"]
@@ -199,7 +200,7 @@ class Pipeline:
         sfm: also triangulate the SfM baseline (``eval``, ``demo``); ``run`` does not read it.
         report_height: with a metric motion from elsewhere (``motion=gt`` / ``file``), also estimate the camera
             height the road implies (:func:`~monostixels.inputs.motion.implied_height`), in
-            ``flags["camera_height_fit_m"]`` (``monostixels run``).
+            ``status.motion.camera_height_fit_m`` (``monostixels run``).
         overlap: estimate the semantics in a second thread while the flow is computed (they are
             independent; OpenCV's flow and ONNX Runtime release the GIL, and DeepFlow runs on one
             core). Results are the same either way; ``seconds`` then holds each stage's own wall
@@ -342,7 +343,7 @@ class Pipeline:
             res.pair = full
             res.stixels.image_size = full.size
             res.flow, res.semantic = _padded(res.flow, res.semantic, full.size[0])
-            res.stixels.flags["ignored_pixels"] = int(full.meta["ignore_mask"].sum())
+            res.stixels.status.counts.ignored_pixels = int(full.info.ignore_mask.sum())
         return res
 
     def inputs(self, pair: FramePair, carried: Carried) -> tuple[FlowResult, torch.Tensor | None, dict[str, float]]:
@@ -420,28 +421,29 @@ class Pipeline:
             # A metric motion from elsewhere (gt / file): the camera height the road implies beside the setting.
             h_fit = implied_height(pair, flow, self._mono_cfg, semantic, motion.motion)
             if h_fit is not None:
-                stixels.flags["camera_height_fit_m"] = round(h_fit, 3)
+                stixels.status.motion.camera_height_fit_m = round(h_fit, 3)
         if motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: the flow cannot tell an object's motion from the camera's.
             stixels = static_only(stixels)
-        # The flags hold the plain strings (stixels.json, docs/conventions.md).
-        stixels.flags["camera_motion"] = motion.kind.value
-        if motion.scale_from is not None:
-            stixels.flags["scale_from"] = motion.scale_from.value
+        # The camera motion's status (stixels.json writes it as its flags, docs/conventions.md).
+        status = stixels.status.motion
+        status.kind = motion.kind
+        status.scale_from = motion.scale_from
         if motion.scale_std is not None and motion.kind == MotionKind.METRIC:
-            stixels.flags["scale_std"] = round(float(motion.scale_std), 4)
-            stixels.flags["scale_uncertain"] = uncertain
-        if motion.degenerate and not stixels.flags.get("degenerate_motion"):
-            stixels.flags["degenerate_motion"] = True
-        if stixels.flags.get("degenerate_motion"):
-            stixels.flags["reason"] = f"{motion.reason}; {stixels.flags.get('reason', '')}".strip("; ")
-            logger.warning("%s: %s", pair.name, stixels.flags["reason"])
+            status.scale_std = round(float(motion.scale_std), 4)
+            status.scale_uncertain = uncertain
+        if motion.degenerate:
+            status.degenerate = True
+        if status.degenerate:
+            status.add_reason(str(motion.reason), first=True)
+            logger.warning("%s: %s", pair.name, status.reason)
         if "capture_time_s" in pair.meta:
             # A live source (monostixels.data.live_video.LiveVideoSource): which frames this pair is made of.
-            stixels.flags["stream"] = {k: pair.meta.get(m) for k, m in (
-                ("frame", "frame"), ("capture_time_s", "capture_time_s"), ("previous_frame", "frame_prev"),
-                ("previous_capture_time_s", "capture_time_prev_s"), ("dropped_before", "dropped_before"),
-                ("realtime", "realtime"))}
+            m = pair.meta
+            stixels.status.stream = StreamFrames(
+                frame=m.get("frame"), capture_time_s=m.get("capture_time_s"), previous_frame=m.get("frame_prev"),
+                previous_capture_time_s=m.get("capture_time_prev_s"), dropped_before=m.get("dropped_before"),
+                realtime=m.get("realtime"))
         sfm = None
         if self.sfm:
             t0 = time.perf_counter()

@@ -13,6 +13,7 @@ import torch
 from benchmarks.clips import (Clip, FrameScore, _lidar_depth, _score, discover_clips, kitti_intrinsics,
                               lidar_summary, markdown, summarize, warnings_off_referee)
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
+from monostixels.core.status import FrameStatus, MotionKind, MotionStatus, ScaleFrom
 from monostixels.core.stixels import StixelWorld
 from monostixels.eval.metrics import DepthAccumulator
 
@@ -32,7 +33,7 @@ def _world(warning: list[bool]) -> StixelWorld:
         ground_normal=t([0.0, -1.0, 0.0], torch.float32), column=t([0, 0, 1, 1]), v_top=t([10, 0, 10, 0]),
         v_bottom=t([19, 9, 19, 9]), type=t([GROUND, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT]), cls=t([0, 6, 0, 4]),
         inverse_depth=torch.full((n,), 0.1), motion=torch.zeros(n, 3), cost=torch.zeros(n), tau=torch.zeros(n, 2),
-        energy=torch.zeros(2), flags={"camera_motion": "metric", "scale_from": "road_marks", "scale_std": 0.1},
+        energy=torch.zeros(2), status=FrameStatus(MotionStatus(kind=MotionKind.METRIC, scale_from=ScaleFrom.ROAD_MARKS, scale_std=0.1)),
         ttc_warning=torch.tensor(warning), pair_info={"dt_s": 0.1})
 
 

@@ -12,6 +12,7 @@ from matplotlib import colormaps
 from monostixels._checks import InputError
 from monostixels.output.bev import BevView, bev_image, free_space, stixel_footprints
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
+from monostixels.core.status import FrameStatus
 from monostixels.core.stixels import StixelWorld
 from monostixels.output.viz import frame_notes, mover_groups, side_by_side, stixel_depth_overlay
 
@@ -46,7 +47,7 @@ def _world(types: tuple[int, ...] | None = None, motion: torch.Tensor | None = N
         inverse_depth=torch.tensor(p, dtype=torch.float64),
         motion=torch.zeros(N, 3, dtype=torch.float64) if motion is None else motion,
         cost=torch.zeros(N, dtype=torch.float64), tau=torch.zeros(N, 2, dtype=torch.float64),
-        energy=torch.zeros(C, dtype=torch.float64), flags=dict(flags or {}),
+        energy=torch.zeros(C, dtype=torch.float64), status=FrameStatus.from_flags(flags or {}),
     )
 
 

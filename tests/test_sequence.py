@@ -398,6 +398,11 @@ def test_sequence_eval_and_run_outputs(tmp_path):
     # 0.3 m a frame: from the third frame on the pair reaches two frames back (0.6 m >= 0.5 m).
     assert [s.result.stixels.pair_info["frames_back"] for s in steps] == [1, 2, 2, 2, 2]
     st = steps[-1].result.stixels
+    # The sequence layer's own result: the pair's stixels, untouched, and the tracks' fields beside them.
+    frame = steps[-1].tracked
+    assert frame.stixels.track_id is None and frame.stixels.pose is None
+    assert torch.equal(frame.track_id, st.track_id) and frame.pose is steps[-1].result.pose
+    assert frame.world().to_dict() == st.to_dict() and frame.pair_info == st.pair_info
     tracked = st.type != 3  # ground and objects; the sky is not tracked
     assert bool((st.track_id[tracked] >= 0).all()) and bool((st.track_id[~tracked] == -1).all())
     assert len(set(st.track_id[tracked].tolist())) == int(tracked.sum())  # one stixel per track
@@ -526,6 +531,7 @@ def test_a_pair_whose_camera_motion_is_unknown_shows_no_movers_and_no_warning(mo
         assert not bool(w.ttc_warning.any()) and bool(torch.isinf(w.ttc_s).all())
         assert bool((w.track_id == -1).all()) and w.pose is None and "pose" not in w.to_dict()
         assert frame_notes(w)[0].startswith(f"camera {what} unknown: no movers, no collision warnings")
+    assert steps[1].tracked.pose is None and steps[1].tracked.stixels.status.motion.kind == "scale_unknown"
     # Frame 4 pairs past frames 2 and 3 with frame 1; its pose chains the known motions (0.3 m a frame).
     info = worlds[3].pair_info
     assert info["previous"].endswith("_001") and info["frames_back"] == 3

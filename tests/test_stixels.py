@@ -89,3 +89,28 @@ def test_neighbours_and_segment_medians_against_loops():
     seg = torch.repeat_interleave(torch.arange(4), counts)
     med = segment_lower_median(values, seg, counts)
     assert med[0] == 3.0 and torch.isnan(med[1]) and med[2] == 2.0 and med[3] == 4.0
+
+
+def test_frame_status_writes_the_flags_of_stixels_json_and_reads_them_back(world):
+    """The typed status is written as the flags of docs/conventions.md (section 4.4), in the pipeline's order."""
+    from monostixels.core.status import FrameStatus, MotionKind, MotionStatus, ScaleFrom, StreamFrames
+
+    status = FrameStatus(MotionStatus(degenerate=False, kind=MotionKind.METRIC, scale_from=ScaleFrom.ROAD_MARKS,
+                                      scale_std=0.05, scale_uncertain=False, camera_height_fit_m=1.6))
+    status.counts.static_checked, status.counts.carried_stixels = 3, 2
+    status.motion.add_reason("static depths carried")
+    status.stream = StreamFrames(frame=5, capture_time_s=0.5, previous_frame=4, previous_capture_time_s=0.4,
+                                 dropped_before=0, realtime=True)
+    flags = status.to_flags()
+    assert list(flags) == ["degenerate_motion", "static_checked", "camera_height_fit_m", "camera_motion", "scale_from",
+                           "scale_std", "scale_uncertain", "stream", "carried_stixels", "reason"]
+    assert flags["camera_motion"] == "metric" and type(flags["camera_motion"]) is str
+    assert FrameStatus.from_flags(flags) == status
+    # A degenerate frame's reason follows its flag (the solver sets both).
+    deg = FrameStatus(MotionStatus(degenerate=True, reason="camera translation 0.000 m < ..."))
+    assert list(deg.to_flags()) == ["degenerate_motion", "reason"]
+    assert FrameStatus().to_flags() == {}
+    world.status = status
+    with pytest.raises(TypeError):
+        world.flags["reason"] = "x"  # read only: set the status instead
+    assert StixelWorld.from_dict(world.to_dict()).status == status

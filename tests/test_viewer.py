@@ -122,6 +122,7 @@ def test_sequence_fields_reach_the_recording_and_the_rows(tmp_path):
     from monostixels.batch import frame_rows
     from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
     from monostixels.core.geometry import Camera
+    from monostixels.data.base import FrameInfo
     from monostixels.output.scene3d import reference_points
     from monostixels.output.viewer import RerunRecorder
     from tests.test_scene3d import _world
@@ -139,6 +140,7 @@ def test_sequence_fields_reach_the_recording_and_the_rows(tmp_path):
     H, W = st.image_size
     pair = SimpleNamespace(image=torch.rand(3, H, W), camera=Camera(K=st.K), name="seq_000007",
                            meta={"source": "video", "frame": 7, "dt": 0.1}, size=(H, W))
+    pair.info = FrameInfo.of(pair.meta)
     res = SimpleNamespace(stixels=st, pose=pose, motion=SimpleNamespace(motion=None))
 
     rows = frame_rows(0, pair, res, pose, fps=10.0)

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Sequence
 
 import torch
 
@@ -55,6 +55,7 @@ from monostixels.core.energy import GRAVITY_TOLERANCE_M, PriorParams, gravity, o
 from monostixels.core.geometry import Camera, Motion, dynamic_motion, ground_basis
 from monostixels.core.solver_config import SolverConfig
 from monostixels.core.stixels import StixelWorld
+from monostixels.core.status import FrameStatus, MotionStatus
 
 __all__ = ["SolverConfig", "ColumnSolution", "solve_columns", "solve", "solve_batch"]
 
@@ -420,9 +421,9 @@ def _to_worlds(prob: ColumnProblem, sol: ColumnSolution, cameras, motions, cfg: 
             g = tau[dyn].double() @ Bm.T
             Rm, tm = motions[f].R.double(), motions[f].t.double()
             motion[dyn] = dynamic_motion(Rm.expand(g.shape[0], 3, 3), tm.expand_as(g), g, p[dyn].double())
-        flags: dict[str, Any] = {"degenerate_motion": bool(prob.degenerate[f * C])}
-        if flags["degenerate_motion"]:
-            flags["reason"] = (f"camera translation {motions[f].translation_norm:.3f} m < solver.min_translation "
+        status = FrameStatus(motion=MotionStatus(degenerate=bool(prob.degenerate[f * C])))
+        if status.motion.degenerate:
+            status.motion.reason = (f"camera translation {motions[f].translation_norm:.3f} m < solver.min_translation "
                                f"{cfg.min_translation} m: flow carries no depth; depths come from the scene model "
                                "(ground at the camera height, objects standing on the ground or on the object below)")
         worlds.append(StixelWorld(
@@ -431,6 +432,6 @@ def _to_worlds(prob: ColumnProblem, sol: ColumnSolution, cameras, motions, cfg: 
             v_top=torch.clamp(H - (t + 1) * r, min=0), v_bottom=H - 1 - b * r,
             type=typ, cls=sol.cls[m], inverse_depth=p.double(), motion=motion,
             cost=sol.cost[m].double(), tau=tau.double(),
-            energy=sol.energy[f * C:(f + 1) * C].detach().double(), flags=flags,
+            energy=sol.energy[f * C:(f + 1) * C].detach().double(), status=status,
         ))
     return worlds

@@ -5,7 +5,8 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, Mapping
 
 import numpy as np
 import torch
@@ -13,6 +14,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.core.classes import CLASS_NAMES, SKY, TYPE_NAMES
 from monostixels.core.geometry import object_normals, pixel_rays
+from monostixels.core.status import FrameStatus
 
 __all__ = ["StixelWorld", "paint_index_map", "neighbours", "segment_lower_median"]
 
@@ -107,9 +109,10 @@ class StixelWorld:
         inverse_depth: (N,) 1/metres. motion: (N, 3) metres, ``Δ`` of dynamic stixels (0 otherwise).
         cost: (N,) energy of each stixel (data + prior terms). tau: (N, 2) ``(t̃x, t̃y)`` of dynamic stixels.
         energy: (C,) optimal energy of every column.
-        flags: frame-level flags, e.g. ``{"degenerate_motion": True, "reason": ...}``.
+        status: what is known about the frame beside its stixels (:class:`~monostixels.core.status.FrameStatus`:
+            the camera motion's status, the post-processing's counts); ``stixels.json`` writes it as ``flags``.
 
-    On sequences (:mod:`monostixels.sequence`) also, else None:
+    On sequences (:mod:`monostixels.sequence`: ``TrackedFrame.world()``) also, else None:
         track_id: (N,) int64 track of each object stixel (-1: ground, sky, untracked).
         velocity: (N, 3) world velocity, m/s (world = the sequence's first camera; 0: ground, sky).
         ttc_s: (N,) time to collision, seconds (inf: not closing; ground and sky inf).
@@ -132,7 +135,7 @@ class StixelWorld:
     cost: torch.Tensor
     tau: torch.Tensor
     energy: torch.Tensor
-    flags: dict[str, Any] = field(default_factory=dict)
+    status: FrameStatus = field(default_factory=FrameStatus)
     track_id: torch.Tensor | None = None
     velocity: torch.Tensor | None = None
     ttc_s: torch.Tensor | None = None
@@ -143,6 +146,12 @@ class StixelWorld:
     # ------------------------------------------------------------------ derived quantities
     def __len__(self) -> int:
         return int(self.column.numel())
+
+    @property
+    def flags(self) -> Mapping[str, Any]:
+        """The ``flags`` of ``stixels.json`` (read only; :meth:`FrameStatus.to_flags
+        <monostixels.core.status.FrameStatus.to_flags>`): set :attr:`status` instead."""
+        return MappingProxyType(self.status.to_flags())
 
     @property
     def num_columns(self) -> int:
@@ -265,7 +274,7 @@ class StixelWorld:
             "K": self.K.double().tolist(),
             "ground_normal": self.ground_normal.double().tolist(),
             "energy": [float(e) for e in self.energy],
-            "flags": self.flags,
+            "flags": self.status.to_flags(),
             "compactness": self.compactness,
             **extra,
             "stixels": stixels,
@@ -297,7 +306,7 @@ class StixelWorld:
             cost=L("cost", torch.float64),
             tau=torch.tensor([s["tau"] for s in st], dtype=torch.float64).reshape(-1, 2),
             energy=torch.tensor(d["energy"], dtype=torch.float64),
-            flags=dict(d.get("flags", {})),
+            status=FrameStatus.from_flags(d.get("flags", {})),
             track_id=L("track_id") if st and "track_id" in st[0] else None,
             velocity=(torch.tensor([s["velocity"] for s in st], dtype=torch.float64).reshape(-1, 3)
                       if st and "velocity" in st[0] else None),
@@ -329,7 +338,7 @@ class StixelWorld:
         np.savez(
             path, column_width=self.column_width, image_size=np.array(self.image_size),
             K=self.K.detach().cpu().numpy(), ground_normal=self.ground_normal.detach().cpu().numpy(),
-            energy=self.energy.detach().cpu().numpy(), flags=json.dumps(self.flags), **arrays,
+            energy=self.energy.detach().cpu().numpy(), flags=json.dumps(self.status.to_flags()), **arrays,
         )
 
     @staticmethod
@@ -346,5 +355,5 @@ class StixelWorld:
         return StixelWorld(
             column_width=int(z["column_width"]), image_size=tuple(int(x) for x in z["image_size"]),
             K=torch.from_numpy(z["K"]), ground_normal=torch.from_numpy(z["ground_normal"]),
-            energy=torch.from_numpy(z["energy"]), flags=json.loads(str(z["flags"])), **t,
+            energy=torch.from_numpy(z["energy"]), status=FrameStatus.from_flags(json.loads(str(z["flags"]))), **t,
         )

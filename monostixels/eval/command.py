@@ -64,8 +64,8 @@ def demo(cfg: DictConfig) -> float:
                                max_depth=ev.max_depth) if pair.gt.moving is not None else None
             extra = f", moving rel {mv['rel']:.3f}" if mv is not None and mv["n"] else ""
             print(f"  {name:<13} rel {m['rel']:.3f}  d1.25 {m['d1.25']:.3f}{extra}")
-    if st.flags.get("degenerate_motion"):
-        print(f"  note: {st.flags.get('reason')}")
+    if st.status.motion.degenerate:
+        print(f"  note: {st.status.motion.reason}")
     print(f"wrote {len(files.names)} files under {out}/ (figure.png, stixels_overlay.png, stixels.json, ...)")
     return float(st.energy.sum())
 

@@ -199,7 +199,7 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
                 cands = source.previous_frames(step.index, 1)
                 if cands and cands[0].name == last_frame[1]:
                     gt_motion = cands[0].motion
-            temporal.add(st, res.pose, gt, pair.meta, gt_motion,
+            temporal.add(st, res.pose, gt, pair.info, gt_motion,
                          last_frame[2] if last_frame is not None and last_frame[0] == seq else None)
             last_frame = (seq, pair.name, res.pose)
         dt = frame_interval(pair, default_dt)

@@ -28,6 +28,7 @@ import torch
 from monostixels.core.classes import CLASS_TYPE, DYNAMIC_OBJECT, STATIC_OBJECT
 from monostixels.core.geometry import Motion, pixel_rays
 from monostixels.core.stixels import StixelWorld
+from monostixels.data.base import FrameInfo
 
 __all__ = ["TemporalAccumulator", "carry_depth"]
 
@@ -94,7 +95,7 @@ class TemporalAccumulator:
             x = x[torch.randperm(x.numel(), generator=self.gen)[:_MAX_SAMPLES]]
         return x.float()
 
-    def add(self, world: StixelWorld, pose: torch.Tensor | None, gt: Any, meta: dict[str, Any],
+    def add(self, world: StixelWorld, pose: torch.Tensor | None, gt: Any, info: FrameInfo,
             motion_to_prev_frame: Motion | None, estimated_prev_pose: torch.Tensor | None) -> None:
         """Score one frame.
 
@@ -102,7 +103,7 @@ class TemporalAccumulator:
             world: the frame's stixels with ``velocity`` and ``ttc_s``.
             pose: (4, 4) camera-to-world of the frame.
             gt: its ground truth (``moving``, ``velocity``, ``ttc``, ``depth``, ``labels``: any may be None).
-            meta: the pair's meta (``sequence``, ``frame``).
+            info: the pair's :class:`~monostixels.data.base.FrameInfo` (``sequence``, ``frame``).
             motion_to_prev_frame: ground-truth camera motion from this frame to the frame just before it
                 (``X_prev = R X_cur + t``), or None.
             estimated_prev_pose: the stream's pose of the frame just before it, or None.
@@ -149,7 +150,7 @@ class TemporalAccumulator:
                 out.append(self._sample(torch.where(torch.isfinite(est), err, torch.ones_like(err))))
         # Depth jitter against the previous frame of the same sequence.
         depth = world.depth_map().double()
-        seq, frame = meta.get("sequence"), meta.get("frame")
+        seq, frame = info.sequence, info.frame
         if (self._prev is not None and seq is not None and frame is not None and self._prev[0] == seq
                 and gt.depth is not None and static is not None):
             motion = motion_to_prev_frame

@@ -8,50 +8,18 @@ estimator back; :mod:`monostixels.inputs.motion` exports them too.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 from typing import List, Optional
 
 import torch
 from omegaconf import MISSING
 
 from monostixels.core.geometry import Motion
+from monostixels.core.status import MotionKind, ScaleFrom
 
 __all__ = ["MOTION_BACKENDS", "MotionKind", "ScaleFrom", "MOTION_KINDS", "NO_METRIC_MOTION", "ROAD_SCALES",
            "MIN_TRANSLATION_M", "MotionEstimate", "MonoParams", "GtMotionConfig", "FileMotionConfig"]
 
 MOTION_BACKENDS = ("gt", "file", "mono")
-
-
-class _Named(str, Enum):
-    """An enum whose members are their strings: equal to them, and written as them (``str``, f-strings,
-    JSON), so that ``stixels.json`` keeps the strings of docs/conventions.md."""
-
-    def __str__(self) -> str:
-        # Python 3.12 formats mixed-in enums with __str__ ("MotionKind.METRIC" by default).
-        return str(self.value)
-
-
-class MotionKind(_Named):
-    """What a camera-motion estimate knows (:attr:`MotionEstimate.kind`, ``flags.camera_motion``). Only
-    ``standing`` lets the movers treat every flow vector as object motion; ``scale_unknown`` and ``unknown``
-    call nothing moving."""
-
-    METRIC = "metric"                # rotation and metric translation
-    STANDING = "standing"            # no translation: standing still or turning on the spot
-    SCALE_UNKNOWN = "scale_unknown"  # rotation and translation direction, not its length
-    UNKNOWN = "unknown"              # nothing known about the camera
-
-
-class ScaleFrom(_Named):
-    """Where a metric translation's length came from (:attr:`MotionEstimate.scale_from`, ``flags.scale_from``)."""
-
-    GIVEN = "given"              # gt / file
-    PHOTOMETRIC = "photometric"  # the road's image alignment
-    ROAD_MARKS = "road_marks"    # the road's marks and the travel direction (monostixels.inputs.road_marks)
-    GROUND_FLOW = "ground_flow"  # the road's flow vectors
-    SEQUENCE = "sequence"        # the recent pairs' speed (monostixels.inputs.motion_track.MotionTrack)
-    SCENE = "scene"              # static objects standing on the ground (monostixels.inputs.motion_scene)
-
 
 #: The kinds, in the order reports list them.
 MOTION_KINDS = tuple(MotionKind)

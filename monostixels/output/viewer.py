@@ -202,7 +202,7 @@ class RerunRecorder(RecordingHook):
             return np.asarray(velocity, dtype=np.float64).reshape(-1, 3)[dyn]
         # Δ: the object's displacement between the pair's frames, current camera frame, metres.
         delta = world.motion.double().numpy()[dyn] @ pose[:3, :3].T
-        dt = (getattr(pair, "meta", {}) or {}).get("dt")
+        dt = pair.info.dt
         return delta / float(dt) if dt else delta
 
     def log_frame(self, index: int, pair: Any, res: Any) -> None:
@@ -258,8 +258,8 @@ class RerunRecorder(RecordingHook):
 
         self._centres.append(pose[:3, 3].copy())
         rec.log("world/trajectory", rr.LineStrips3D([np.asarray(self._centres)]))
-        if world.flags.get("degenerate_motion"):
-            rec.log("log", rr.TextLog(f"{pair.name}: {world.flags.get('reason', 'degenerate camera motion')}",
+        if world.status.motion.degenerate:
+            rec.log("log", rr.TextLog(f"{pair.name}: {world.status.motion.reason or 'degenerate camera motion'}",
                                       level="WARN"))
         self.frames += 1
 

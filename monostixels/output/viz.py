@@ -30,6 +30,7 @@ from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, IGNORE_LABEL, PALET
 from monostixels.core.geometry import pixel_rays
 from monostixels.inputs.motion import NO_METRIC_MOTION, MotionKind
 from monostixels.core.stixels import neighbours, paint_index_map
+from monostixels.core.status import FrameStatus
 
 __all__ = [
     "image_to_uint8",
@@ -311,18 +312,19 @@ def frame_notes(stixels: Any) -> list[str]:
     A frame flagged ``degenerate_motion`` (the camera barely translates, docs/conventions.md,
     section 7) has its depths from the scene model: ground at the camera height, objects standing on
     it; on sequences static objects seen before with a baseline keep their tracks' depths
-    (``carried_stixels``). A frame whose camera motion is unknown (``flags["camera_motion"]``
+    (``status.counts.carried_stixels``). A frame whose camera motion is unknown (``status.motion.kind``
     ``scale_unknown`` / ``unknown``) says that it shows no movers and raises no collision warning.
     """
-    flags = getattr(stixels, "flags", None) or {}
-    if flags.get("camera_motion") in NO_METRIC_MOTION:
+    status: FrameStatus = getattr(stixels, "status", None) or FrameStatus()
+    motion = status.motion
+    if motion.kind in NO_METRIC_MOTION:
         # Said first and plainly: the frame shows no movers and raises no collision warning.
-        what = "speed" if flags["camera_motion"] == MotionKind.SCALE_UNKNOWN else "motion"
+        what = "speed" if motion.kind == MotionKind.SCALE_UNKNOWN else "motion"
         return [f"camera {what} unknown: no movers, no collision warnings; depths from the scene model"]
-    if not flags.get("degenerate_motion"):
+    if not motion.degenerate:
         return []
-    reason = str(flags.get("reason", ""))
-    carried = int(flags.get("carried_stixels", 0))
+    reason = motion.reason
+    carried = int(status.counts.carried_stixels or 0)
     source = "the scene model" + (" and tracks" if carried else "")
     # The solver's own reason ("camera translation ... m < ...") or the ego-motion's ("no translation").
     if reason.startswith(("camera translation", "no translation")):

@@ -319,8 +319,8 @@ class RunSummary(Writer):
         st = frame.result.stixels
         info = st.pair_info or {}
         speed = (info["driven_m"] / info["dt_s"] if info.get("driven_m") is not None and info.get("dt_s")
-                 and st.flags.get("camera_motion") == MotionKind.METRIC else None)
-        self.camera.append({**st.flags, "speed_mps": speed})
+                 and st.status.motion.kind == MotionKind.METRIC else None)
+        self.camera.append({**st.status.to_flags(), "speed_mps": speed})
 
     def close(self, error: BaseException | None = None) -> None:
         if error is not None:
@@ -451,8 +451,7 @@ def frame_rows(index: int, pair: Any, res: Any, pose: np.ndarray, fps: float | N
     motion = world.motion.double().numpy().reshape(-1, 3)
     track, vel, ttc = (optional_field(world, k) for k in ("track_id", "velocity", "ttc_s"))
     vel = None if vel is None else np.asarray(vel, dtype=np.float64).reshape(-1, 3)
-    meta = getattr(pair, "meta", {}) or {}
-    dt = meta.get("dt")
+    dt = pair.info.dt
 
     def finite(a: np.ndarray) -> list[float | None]:
         return [float(v) if math.isfinite(v) else None for v in a]
@@ -476,7 +475,7 @@ def frame_rows(index: int, pair: Any, res: Any, pose: np.ndarray, fps: float | N
         "velocity_y": [None] * n if vel is None else vel[:, 1].tolist(),
         "velocity_z": [None] * n if vel is None else vel[:, 2].tolist(),
         "ttc_s": [None] * n if ttc is None else [float(v) for v in np.asarray(ttc, dtype=np.float64)],
-        "degenerate_motion": [bool(world.flags.get("degenerate_motion", False))] * n,
+        "degenerate_motion": [world.status.motion.is_degenerate] * n,
     }
 
 

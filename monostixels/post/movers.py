@@ -136,7 +136,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
             dynamic (no kept classes, no depth or contact test).
 
     Returns:
-        A new :class:`StixelWorld`; ``flags["static_checked"]`` = number of dynamic stixels made static.
+        A new :class:`StixelWorld`; ``status.counts.static_checked`` = number of dynamic stixels made static.
     """
     prm = params or MoverCheckParams()
     H, W = stixels.image_size
@@ -267,7 +267,7 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
 def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d_s: torch.Tensor | None,
                  S: int) -> StixelWorld:
     """``stixels`` with the dynamic stixels ``dyn[still]`` made static objects at their static depths ``d_s``
-    (S,) metres (None: their depths kept), with zero motion and their classes kept; ``flags["static_checked"]``
+    (S,) metres (None: their depths kept), with zero motion and their classes kept; ``status.counts.static_checked``
     counts them."""
     k = dyn[still]
     types, p_out = stixels.type.clone(), stixels.inverse_depth.clone()
@@ -278,25 +278,25 @@ def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d
     mot[k] = 0.0
     tau[k] = 0.0  # (t̃x, t̃y) belong to dynamic stixels only
     changed = int(still.sum())
-    flags = dict(stixels.flags)
-    flags["static_checked"] = changed
+    status = stixels.status.copy()
+    status.counts.static_checked = changed
     logger.debug("mover check: %d of %d dynamic stixels explained by a static object", changed, S)
-    return dataclasses.replace(stixels, type=types, inverse_depth=p_out, motion=mot, tau=tau, flags=flags)
+    return dataclasses.replace(stixels, type=types, inverse_depth=p_out, motion=mot, tau=tau, status=status)
 
 
 def static_only(stixels: StixelWorld) -> StixelWorld:
     """The stixels with every dynamic one made a static object (its motion and ``tau`` zeroed, its depth
     kept): for a frame whose camera motion is unknown, where no flow vector can be told to be an object's
-    own motion. ``flags["movers_suppressed"]`` counts them."""
+    own motion. ``status.counts.movers_suppressed`` counts them."""
     dyn = stixels.type == DYNAMIC_OBJECT
-    flags = dict(stixels.flags)
-    flags["movers_suppressed"] = int(dyn.sum())
+    status = stixels.status.copy()
+    status.counts.movers_suppressed = int(dyn.sum())
     if not bool(dyn.any()):
-        return dataclasses.replace(stixels, flags=flags)
+        return dataclasses.replace(stixels, status=status)
     types = torch.where(dyn, torch.full_like(stixels.type, STATIC_OBJECT), stixels.type)
     mot = stixels.motion.masked_fill(dyn[:, None], 0.0)
     tau = stixels.tau.masked_fill(dyn[:, None] if stixels.tau.dim() == 2 else dyn, 0.0)
-    return dataclasses.replace(stixels, type=types, motion=mot, tau=tau, flags=flags)
+    return dataclasses.replace(stixels, type=types, motion=mot, tau=tau, status=status)
 
 
 def _starts(stixels: StixelWorld) -> torch.Tensor:
@@ -327,7 +327,7 @@ def settle_receding(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, he
     truck beside the camera that the semantic net calls a building; the KITTI traffic drive). Its flow gives
     it no depth; the scene model does: it stands where its bottom row meets the ground (the ground stixel
     directly below, else the reference ground ``height`` below the camera), or at the depth of the object
-    below it. Its type and class stay (its motion is not measured); ``flags["receding_static"]`` counts them.
+    below it. Its type and class stay (its motion is not measured); ``status.counts.receding_static`` counts them.
 
     Args:
         stixels: the solver's result (after the mover check). flow: (2, H, W) current -> previous, pixels.
@@ -378,7 +378,7 @@ def settle_receding(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, he
     p_out = stixels.inverse_depth.clone()
     for j in range(k.numel()):
         p_out[k[j]] = (p_out[bi[j]] if bool(on_object[j]) else p_stand[j]).to(p_out.dtype)
-    flags = dict(stixels.flags)
-    flags["receding_static"] = int(k.numel())
+    status = stixels.status.copy()
+    status.counts.receding_static = int(k.numel())
     logger.debug("%d static stixels recede (flow behind the camera): scene-model depths", k.numel())
-    return dataclasses.replace(stixels, inverse_depth=p_out, flags=flags)
+    return dataclasses.replace(stixels, inverse_depth=p_out, status=status)

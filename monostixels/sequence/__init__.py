@@ -2,5 +2,6 @@
 from __future__ import annotations
 
 from monostixels.sequence.runner import KeyframeParams, SequenceRunner, SequenceStep, choose_keyframe, motion_matrix
+from monostixels.sequence.tracked import TrackedFrame
 
-__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "choose_keyframe", "motion_matrix"]
+__all__ = ["KeyframeParams", "SequenceStep", "SequenceRunner", "TrackedFrame", "choose_keyframe", "motion_matrix"]

@@ -19,7 +19,7 @@ For a source of sequences (drives, videos, folders of frames, synthetic clips: t
 2. **A standing camera.** A pair without baseline is solved as before (degenerate: depths from the
    scene model), but the movers still are found and measured from the flow: their depth from the
    ground contact, their motion from ``t̃``. Static stixels whose track was measured with a baseline
-   keep the track's depth (``flags["carried_stixels"]``).
+   keep the track's depth (``status.counts.carried_stixels``).
 3. **Tracks** (:mod:`monostixels.sequence.tracking`): every object stixel gets a ``track_id``, a filtered depth
    and a world velocity (m/s, world = the sequence's first camera); with ``temporal.enabled=false``
    velocities come from the pair alone and no depth is filtered.
@@ -58,6 +58,7 @@ from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack, motio
 from monostixels.pipeline import MotionEstimationError, Pipeline, PipelineResult, PipelineSettings
 from monostixels.core.stixels import StixelWorld
 from monostixels.sequence.stream import StreamParams, StreamState
+from monostixels.sequence.tracked import TrackedFrame
 from monostixels.sequence.tracking import Tracks, TrackParams, stixel_points
 from monostixels.sequence.ttc import TtcParams, confirmed, critical, object_wide, time_to_collision
 
@@ -128,12 +129,17 @@ def motion_matrix(motion: Motion) -> torch.Tensor:
 
 @dataclass
 class SequenceStep:
-    """One processed frame: the source index, the pair solved, and the result (None: motion failed)."""
+    """One processed frame: the source index, the pair solved, and the result (None: motion failed).
+
+    ``tracked``: what the sequence layer adds to the pair's stixels (tracks, velocities, TTC, pose); the
+    result's ``stixels`` is :meth:`TrackedFrame.world` of it, as ``stixels.json`` writes it.
+    """
 
     index: int
     pair: FramePair
     result: PipelineResult | None
     error: str | None = None
+    tracked: TrackedFrame | None = None
 
 
 @dataclass
@@ -270,35 +276,32 @@ class SequenceRunner:
         sequence = back is not None
         if res.motion.kind in NO_METRIC_MOTION:
             # The camera's motion is not known: no pose to chain, nothing to track, no time to collision.
-            self._unknown(res, pair, back, dt)
-            return SequenceStep(index, pair, res)
+            return self._step(index, pair, res, self._unknown(res, pair, back, dt))
         if sequence and not res.motion.degenerate:
             self.speed = res.motion.motion.translation_norm / max(dt, 1e-9)
         elif sequence and res.motion.degenerate:
             self.speed = 0.0
-        self._finish(res, pair, back, driven, dt, sequence)
-        return SequenceStep(index, pair, res)
+        return self._step(index, pair, res, self._finish(res, pair, back, driven, dt, sequence))
 
-    def _unknown(self, res: PipelineResult, pair: FramePair, back: int | None, dt: float) -> None:
+    @staticmethod
+    def _step(index: int, pair: FramePair, res: PipelineResult, tracked: TrackedFrame) -> SequenceStep:
+        """The step of a solved pair: its result's stixels a new world with the sequence's fields."""
+        res.stixels = tracked.world()
+        res.pose = tracked.pose
+        return SequenceStep(index, pair, res, tracked=tracked)
+
+    def _unknown(self, res: PipelineResult, pair: FramePair, back: int | None, dt: float) -> TrackedFrame:
         """Outputs of a pair whose camera motion is unknown (``scale_unknown`` / ``unknown``).
 
         Its stixels are already static (the pipeline); here they get no track, no velocity, no time to
         collision and no pose (``pose`` stays None). The frame is not kept as a later pair's partner, so the
         pose chain goes on through the frames whose motion is known; the keyframe speed is left as it was.
         """
-        st = res.stixels
-        N = len(st)
         self.count += 1
-        st.track_id = torch.full((N,), -1, dtype=torch.long)
-        st.velocity = torch.zeros(N, 3, dtype=torch.float64)
-        st.ttc_s = torch.full((N,), math.inf, dtype=torch.float64)
-        st.ttc_warning = torch.zeros(N, dtype=torch.bool)
-        st.pose = None
-        st.pair_info = _pair_info(pair, back, dt, None, None)
-        res.pose = None
+        return TrackedFrame.untracked(res.stixels, _pair_info(pair, back, dt, None, None))
 
     def _finish(self, res: PipelineResult, pair: FramePair, back: int | None, driven: float | None, dt: float,
-                sequence: bool) -> None:
+                sequence: bool) -> TrackedFrame:
         st = res.stixels
         # Frames are known by the source's frame numbers (raw frame, video frame, clip frame), so that a
         # keyframe pair finds its earlier frame whatever the source skipped.
@@ -334,14 +337,13 @@ class SequenceRunner:
                 flow_last = res.flow.flow
             out = self.tracks.update(
                 st, frame=frame_no, time=time, pose=pose, dt_pair=dt,
-                degenerate=bool(res.motion.degenerate or st.flags.get("degenerate_motion")), camera_velocity=v_cam,
+                degenerate=bool(res.motion.degenerate or st.status.motion.degenerate), camera_velocity=v_cam,
                 motion=res.motion.motion, flow_to_last=flow_last, flow_reaches=last_no)
             track_id, velocity = out["track_id"], out["velocity"]
             st = _with_filtered_depth(st, out["point_cam"])
             if bool(out["carried"].any()):
-                st.flags["carried_stixels"] = int(out["carried"].sum())
-                st.flags["reason"] = (st.flags.get("reason", "") + "; static depths carried from the tracks of "
-                                      "earlier frames with a baseline").lstrip("; ")
+                st.status.counts.carried_stixels = int(out["carried"].sum())
+                st.status.motion.add_reason("static depths carried from the tracks of earlier frames with a baseline")
         else:
             N = len(st)
             track_id = torch.full((N,), -1, dtype=torch.long)
@@ -365,18 +367,14 @@ class SequenceRunner:
         ttc_both = torch.maximum(ttc, time_to_collision(X_ok, v_rel)) if tracking else ttc
         warn = obj & movable & critical(X_ok, v_rel, ttc_both, self.ttc)
         warn = object_wide(confirmed(warn, out["age"] if tracking else None, self.ttc), st)
-        if st.flags.get("scale_uncertain"):
+        if st.status.motion.scale_uncertain:
             warn = torch.zeros_like(warn)
-        st.track_id, st.velocity, st.ttc_s = track_id, velocity, ttc
-        st.ttc_warning = warn
-        st.pose = pose
-        st.pair_info = _pair_info(pair, back, dt, res.motion.motion.translation_norm, driven)
-        res.stixels = st
-        res.pose = pose
         if sequence:
             self.frames[frame_no] = _Frame(pair.name, time, pose)
             while len(self.frames) > self.keyframes.window + 1:
                 self.frames.popitem(last=False)
+        return TrackedFrame(stixels=st, track_id=track_id, velocity=velocity, ttc_s=ttc, ttc_warning=warn, pose=pose,
+                            pair_info=_pair_info(pair, back, dt, res.motion.motion.translation_norm, driven))
 
 
 _frozen = False
@@ -396,7 +394,7 @@ def _freeze_startup_objects() -> None:
 
 def _pair_info(pair: FramePair, back: int | None, dt: float, driven_m: float | None,
                keyframe_m: float | None) -> dict[str, Any]:
-    """``StixelWorld.pair_info`` of a solved pair: its frames, how far back, seconds and metres driven (None
+    """``TrackedFrame.pair_info`` of a solved pair: its frames, how far back, seconds and metres driven (None
     where the camera motion is unknown) and the keyframe distance it was chosen by."""
     return {"current": pair.name, "previous": pair.info.name_prev or "",
             "frames_back": int(back) if back is not None else 1, "dt_s": dt,
@@ -410,4 +408,4 @@ def _with_filtered_depth(st: StixelWorld, point_cam: torch.Tensor) -> StixelWorl
         return st
     d = (torch.nan_to_num(point_cam) * st.normals()).sum(-1)
     p = torch.where(ok & (d > 1e-3), 1.0 / d.clamp_min(1e-3), st.inverse_depth.double())
-    return dataclasses.replace(st, inverse_depth=p.to(st.inverse_depth.dtype), flags=dict(st.flags))
+    return dataclasses.replace(st, inverse_depth=p.to(st.inverse_depth.dtype), status=st.status.copy())
