@@ -171,6 +171,20 @@ def test_mono_fits_a_tilted_road_and_the_pipeline_can_use_it():
     assert Pipeline(pipeline_settings(load_config(["motion=mono"]))).camera_for(pair, est_gt) is pair.camera
 
 
+def _road_and_walls(cam: Camera, planes: list[tuple[torch.Tensor, float]]) -> torch.Tensor:
+    """(10, H, W) scores of the plane scene: road where the ground plane (the first) is the nearest,
+    building (class 3) on the walls."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = pixel_rays(cam.K, u, v)
+    depth = torch.stack([torch.where(ray @ n > 0, d / (ray @ n), torch.tensor(math.inf, dtype=torch.float64))
+                         for n, d in planes])
+    road = depth.argmin(0) == 0
+    sem = torch.zeros(10, H, W)
+    sem[0][road] = 1.0
+    sem[3][~road] = 1.0
+    return sem
+
+
 @pytest.mark.parametrize("turned", [True, False])
 def test_the_scene_model_meets_the_road_in_the_plane_of_travel(monkeypatch, turned):
     # A phone on the windscreen looks down 12 degrees and is configured level (camera.pitch 0): beyond the
@@ -188,16 +202,7 @@ def test_the_scene_model_meets_the_road_in_the_plane_of_travel(monkeypatch, turn
     gt = Motion(R=_rot(0.4, 0.0, 0.0), t=0.9 * forward + torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64))
     cam = _camera()
     pair, fr = _pair_and_flow(gt, flow=_analytic_flow(cam, gt, 0.05, planes=planes))
-    # Semantics: the road where the ground plane is the nearest, buildings (class 3) on the walls.
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-    ray = pixel_rays(cam.K, u, v)
-    depth = torch.stack([torch.where(ray @ n > 0, d / (ray @ n), torch.tensor(math.inf, dtype=torch.float64))
-                         for n, d in planes])
-    road = depth.argmin(0) == 0
-    sem = torch.zeros(10, H, W)
-    sem[0][road] = 1.0
-    sem[3][~road] = 1.0
-    est = estimate_motion(pair, fr, MONO, semantic=sem)
+    est = estimate_motion(pair, fr, MONO, semantic=_road_and_walls(cam, planes))
     if turned:
         assert est.kind == "metric" and est.scale_from == "scene", est.reason
         assert motion_errors(est.motion, gt)["scale_rel_err"] < 0.03
@@ -219,14 +224,7 @@ def test_the_scene_models_uncertainty_covers_a_road_tilted_against_the_plane_of_
     gt = Motion(R=_rot(0.3, 0.0, 0.0), t=torch.tensor([0.02, 0.0, 0.9], dtype=torch.float64))
     cam = _camera()
     pair, fr = _pair_and_flow(gt, flow=_analytic_flow(cam, gt, 0.05, planes=planes))
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-    ray = pixel_rays(cam.K, u, v)
-    depth = torch.stack([torch.where(ray @ n > 0, h / (ray @ n), torch.tensor(math.inf, dtype=torch.float64))
-                         for n, h in planes])
-    road = depth.argmin(0) == 0
-    sem = torch.zeros(10, H, W)
-    sem[0][road] = 1.0
-    sem[3][~road] = 1.0
+    sem = _road_and_walls(cam, planes)
 
     def scene_with(tilt_std: float):
         seen = []
