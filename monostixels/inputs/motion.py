@@ -576,7 +576,7 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
 
     Args:
         pair: the frame pair (camera intrinsics, height and ground normal; ``motion`` for gt;
-            ``meta["frame_index"]`` / ``["frame_index_prev"]`` for file).
+            ``info.frame_index`` / ``frame_index_prev`` (else ``frame`` / ``frame_prev``) for file).
         flow: the :class:`~monostixels.inputs.flow.FlowResult` of the pair (used by mono).
         cfg: the ``motion`` config group node, a dict or its settings dataclass
             (:data:`monostixels.inputs.motion_track.MOTION_SCHEMAS`).

@@ -252,7 +252,7 @@ def fcn8s_scale(pair: FramePair, cfg: Any) -> float | None:
     With ``semantic.focal_px`` set and a calibrated camera, the image is resized so that its focal
     length becomes ``focal_px`` pixels: the net then sees objects at the angular resolution it was
     trained at, whatever the camera (KITTI fx 721 px and 1242 wide, DDAD fx ~2200 px). A pair
-    whose camera is nominal (``pair.meta["nominal_camera"]``: single labelled images such as
+    whose camera is nominal (``pair.info.nominal_camera``: single labelled images such as
     CamVid, which carry no calibration) uses ``semantic.scale``.
 
     Returns:
