@@ -33,6 +33,7 @@ from typing import Any, List, Optional, Sequence
 from monostixels._checks import InputError, config_params
 from monostixels._threads import set_threads
 from monostixels.data._readers import IMAGE_EXTENSIONS
+from monostixels.data.base import source_info
 # SCHEMA_FIELDS and frame_rows: the dataset's columns, named here as before (docs/conventions.md, section 4.6).
 from monostixels.output.writers import SCHEMA_FIELDS, frame_rows  # noqa: F401
 from monostixels.output.writers import StixelRows, write_partition, write_sequence
@@ -227,10 +228,10 @@ def process_clip(cfg: dict[str, Any], clip: Clip, threads: int = 1) -> tuple[dic
             raise InputError(f"{clip.path}: no frame pairs")
         # Built as `monostixels run` builds it (monostixels.build): the same frames, pairs, tracks and TTC.
         runner = build(conf, Purpose.RUN, source=src).runner
-        rows = StixelRows(getattr(src, "fps", None))
+        rows = StixelRows(source_info(src).fps)
         write_sequence(runner.run(src), [rows])
         frames = rows.frames
-        skipped = list(getattr(src, "skipped_frames", []))  # unreadable frames, warned about and skipped
+        skipped = source_info(src).skipped_frames  # unreadable frames, warned about and skipped
         if skipped:
             entry["skipped_frames"] = skipped
             if frames == 0:

@@ -337,7 +337,8 @@ class Pipeline:
     def at_full_size(self, res: PipelineResult) -> PipelineResult:
         """``res`` of a pair whose bottom rows were cut off (:meth:`prepare`) at the frame's size."""
         pair = res.pair
-        full = pair.meta.get("full_pair", pair)
+        full = pair.info.full_pair
+        full = pair if full is None else full
         if pair is not full:
             # The outputs keep the frame's size: the rows cut off get no stixel (no depth).
             res.pair = full
@@ -437,13 +438,13 @@ class Pipeline:
         if status.degenerate:
             status.add_reason(str(motion.reason), first=True)
             logger.warning("%s: %s", pair.name, status.reason)
-        if "capture_time_s" in pair.meta:
+        info = pair.info
+        if info.capture_time_s is not None:
             # A live source (monostixels.data.live_video.LiveVideoSource): which frames this pair is made of.
-            m = pair.meta
             stixels.status.stream = StreamFrames(
-                frame=m.get("frame"), capture_time_s=m.get("capture_time_s"), previous_frame=m.get("frame_prev"),
-                previous_capture_time_s=m.get("capture_time_prev_s"), dropped_before=m.get("dropped_before"),
-                realtime=m.get("realtime"))
+                frame=info.frame, capture_time_s=info.capture_time_s, previous_frame=info.frame_prev,
+                previous_capture_time_s=info.capture_time_prev_s, dropped_before=info.dropped_before,
+                realtime=info.realtime)
         sfm = None
         if self.sfm:
             t0 = time.perf_counter()

@@ -562,3 +562,63 @@ def test_make_source_synthetic_dispatch():
     src = build_source({"data": {"name": "synthetic", "frames": 3, "seed": 2, "scale": 0.25, "density": 1.0}})
     assert type(src).__name__ == "SyntheticSource" and len(src) == 3
     assert src.scene_seed(1) == 2 * 100_000 + 1
+
+
+def test_every_source_of_the_package_has_the_source_attributes():
+    """Every source class of monostixels.data states fps, step, skipped_frames and restarts (SourceAttributes)."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import monostixels.data as data
+    from monostixels.data.base import SourceAttributes
+
+    classes = set()
+    for mod in pkgutil.iter_modules(data.__path__):
+        module = importlib.import_module(f"monostixels.data.{mod.name}")
+        classes |= {c for n, c in inspect.getmembers(module, inspect.isclass)
+                    if n.endswith("Source") and c.__module__ == module.__name__ and not getattr(c, "_is_protocol", False)}
+    assert {c.__name__ for c in classes} >= {"LazySource", "FramesSource", "VideoSource", "LiveVideoSource",
+                                             "SyntheticSource", "SyntheticSequenceSource", "CamVidSource"}
+    missing = sorted(c.__name__ for c in classes if not issubclass(c, SourceAttributes))
+    assert not missing, f"sources without SourceAttributes: {missing}"
+
+
+def test_a_source_of_ones_own_needs_only_len_and_getitem():
+    """docs/usage.md, "A data source of your own": __len__ and __getitem__ suffice; the attributes it
+    leaves out read as their defaults, those it has are read."""
+    from monostixels.data.base import SequenceSource, SourceInfo, source_info
+    from monostixels.data.synthetic import SyntheticSource, render_pair
+    from monostixels.output.writers import video_fps
+
+    pair = render_pair(0, scale=0.125)
+
+    class Own:
+        def __len__(self) -> int:
+            return 1
+
+        def __getitem__(self, index: int):
+            return pair
+
+    own = Own()
+    assert isinstance(own, SequenceSource) and isinstance([pair], SequenceSource)
+    assert source_info(own) == SourceInfo(fps=None, step=1, skipped_frames=[], restarts=[]) == source_info([pair])
+    assert video_fps(own) == 5.0
+    own.fps, own.step, own.skipped_frames = 30.0, 3, ("a.png",)
+    assert source_info(own) == SourceInfo(fps=30.0, step=3, skipped_frames=["a.png"], restarts=[])
+    assert video_fps(own) == pytest.approx(10.0)
+    assert source_info(SyntheticSource(frames=1, scale=0.125)) == SourceInfo()
+
+
+def test_frame_info_reads_the_keys_sources_write():
+    """FrameInfo: a typed view of meta; a key a source does not write reads None."""
+    from monostixels.data.base import FrameInfo
+
+    meta = {"source": "video", "path": "clip.mp4", "frame": 7, "frame_prev": 6, "capture_time_s": 0.7,
+            "capture_time_prev_s": 0.6, "dropped_before": 2, "realtime": True, "frame_index": 70,
+            "frame_index_prev": 69, "motion_source": "poses", "nominal_camera": True, "anything": 1}
+    info = FrameInfo.of(meta)
+    assert (info.source, info.path, info.frame, info.frame_prev, info.capture_time_s, info.capture_time_prev_s,
+            info.dropped_before, info.realtime, info.frame_index, info.frame_index_prev, info.motion_source,
+            info.nominal_camera) == ("video", "clip.mp4", 7, 6, 0.7, 0.6, 2, True, 70, 69, "poses", True)
+    assert info.dataset is None and info.path_prev is None and info.full_pair is None

@@ -16,6 +16,7 @@ from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
 from monostixels.core.geometry import Motion
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
 from monostixels.core.stixels import StixelWorld
+from monostixels.data.base import FrameInfo
 
 FX, FY, CX, CY = 410.0, 380.0, 147.3, 52.6
 H, W, WS = 120, 320, 8
@@ -99,6 +100,11 @@ def test_boxes_are_the_object_stixels_standing_on_their_planes(pitch_deg):
         assert _project(right)[0] == pytest.approx(19 * WS - 0.5, abs=0.05)
 
 
+def _pair(meta: dict, name: str = "") -> SimpleNamespace:
+    """A stand-in pair: what a source writes (``meta``) and its typed view (``info``)."""
+    return SimpleNamespace(meta=meta, info=FrameInfo.of(meta), name=name)
+
+
 def _res(R: np.ndarray, t: np.ndarray, **extra) -> SimpleNamespace:
     m = Motion(torch.from_numpy(R), torch.from_numpy(t))
     return SimpleNamespace(motion=SimpleNamespace(motion=m), **extra)
@@ -118,11 +124,11 @@ def test_pose_chain_maps_every_frame_into_the_first_camera():
     X_k = X_w.copy()  # frame 0 = the world
     for k, (R, t) in enumerate(motions, start=1):
         X_k = R.T @ (X_k - t)  # the same point in camera k
-        pair = SimpleNamespace(meta={"source": "video", "frame": k, "frame_prev": k - 1}, name=f"f{k}")
+        pair = _pair({"source": "video", "frame": k, "frame_prev": k - 1}, name=f"f{k}")
         T = chain.update(pair, _res(R, t))
         assert np.allclose(to_world(T, X_k), X_w, atol=1e-9)
     # Forward 1 m: the camera centre is at z = +1 in the world.
-    T = PoseChain().update(SimpleNamespace(meta={}), _res(np.eye(3), np.array([0.0, 0.0, 1.0])))
+    T = PoseChain().update(_pair({}), _res(np.eye(3), np.array([0.0, 0.0, 1.0])))
     assert np.allclose(T[:3, 3], [0, 0, 1])
 
 
@@ -137,13 +143,13 @@ def test_pose_chain_keeps_the_recent_frames_only():
     T = np.eye(4)
     for k in range(1, 3 * _KEPT_POSES):
         T = T @ step
-        got = chain.update(SimpleNamespace(meta={"source": "video", "frame": k, "frame_prev": k - 1}, name=f"f{k}"),
+        got = chain.update(_pair({"source": "video", "frame": k, "frame_prev": k - 1}, name=f"f{k}"),
                            _res(R, t))
         assert np.allclose(got, T)
         assert len(chain._poses) <= _KEPT_POSES
     # A keyframe pair reaching back 10 frames still finds its previous frame's pose.
     k = 3 * _KEPT_POSES
-    back = chain.update(SimpleNamespace(meta={"source": "video", "frame": k, "frame_prev": k - 10}, name="f"), _res(R, t))
+    back = chain.update(_pair({"source": "video", "frame": k, "frame_prev": k - 10}, name="f"), _res(R, t))
     assert np.allclose(back, chain._poses[("frame", k - 10)] @ step)
 
 
@@ -153,7 +159,7 @@ def test_pose_chain_follows_the_previous_frame_not_the_previous_pair(caplog):
     M = {k: (_rot_y(k), np.array([0.1 * k, 0.0, 1.0])) for k in (2, 3, 4)}
 
     def pair(k):
-        return SimpleNamespace(meta={"path": f"{k}.png", "path_prev": f"{k - 2}.png"}, name=f"{k}")
+        return _pair({"path": f"{k}.png", "path_prev": f"{k - 2}.png"}, name=f"{k}")
 
     T2 = chain.update(pair(2), _res(*M[2]))
     with caplog.at_level(logging.WARNING, logger="monostixels.output.scene3d"):
@@ -170,10 +176,10 @@ def test_pose_chain_follows_the_previous_frame_not_the_previous_pair(caplog):
 
 
 def test_frame_time_and_optional_fields():
-    assert frame_time(SimpleNamespace(meta={"source": "video", "frame": 7}), 10.0) == pytest.approx(0.7)
-    assert frame_time(SimpleNamespace(meta={"source": "video", "frame": 7}), None) is None
-    assert frame_time(SimpleNamespace(meta={"source": "frames", "index": 7}), 10.0) is None
-    assert frame_time(SimpleNamespace(meta={"time_s": 3.25}), None) == 3.25
+    assert frame_time(_pair({"source": "video", "frame": 7}), 10.0) == pytest.approx(0.7)
+    assert frame_time(_pair({"source": "video", "frame": 7}), None) is None
+    assert frame_time(_pair({"source": "frames", "index": 7}), 10.0) is None
+    assert frame_time(_pair({"time_s": 3.25}), None) == 3.25
     st = _world()
     assert optional_field(st, "track_id") is None
     st.track_id = torch.arange(len(st))  # as the sequence layer will add it

@@ -7,7 +7,7 @@ import math
 from typing import Any, Iterator, Sequence
 
 from monostixels._checks import InputError
-from monostixels.data.base import FramePair, PreviousFrame
+from monostixels.data.base import FramePair, PreviousFrame, SourceAttributes
 from monostixels.core.geometry import Motion
 
 __all__ = [
@@ -49,7 +49,7 @@ class PairSkipped(InputError):
     It has been warned about; callers skip it (:class:`monostixels.sequence.SequenceRunner`)."""
 
 
-class LazySource(Sequence[FramePair]):
+class LazySource(SourceAttributes, Sequence[FramePair]):
     """A sequence of frame pairs that indexes its files up front and reads images on access.
 
     Subclasses fill ``self._items`` (one record per pair) in ``__init__`` (so that a missing folder

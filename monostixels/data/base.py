@@ -17,7 +17,7 @@ from monostixels._checks import InputError, check_finite_fast, check_same_size, 
 from monostixels.core.geometry import Camera, Motion
 
 __all__ = ["GroundTruth", "FrameInfo", "FramePair", "PreviousFrame", "KeyframeParams", "FOLDER_FPS", "SequenceSource",
-           "SequentialSource", "LiveSource", "Source"]
+           "SequentialSource", "LiveSource", "Source", "SourceInfo", "SourceAttributes", "source_info"]
 
 #: Frame rate (Hz) of a folder of images that states none (``data=frames``' ``data.fps``): KITTI's 10 Hz.
 FOLDER_FPS = 10.0
@@ -125,6 +125,23 @@ class FrameInfo:
         ignore_mask: (H, W) bool, True = pixels to ignore (``data.mask``, pixels undistortion leaves empty).
         ignore_pixels: (H, W) bool, the part of ``ignore_mask`` left once a bonnet's rows are cut off
             (:func:`monostixels.data.static_regions.crop_ignored`), or None.
+        source: the kind of source that made the pair (``"video"``, ``"frames"``, ``"kitti_raw"``...):
+            messages, and a video's frame times.
+        dataset: the dataset's name, where a source writes it instead of ``source`` (messages).
+        path, path_prev: the files of the two frames (an image, or the video of a video frame).
+        frame_index, frame_index_prev: the two frames' numbers in a poses file (``motion=file``; a source
+            that writes none is looked up by ``frame`` / ``frame_prev``).
+        nominal_camera: True where the camera is a nominal one, not calibrated (single labelled images
+            such as CamVid): ``semantic.focal_px`` is not applied.
+        motion_source: where the ground-truth camera motion comes from (a poses file, the OXTS
+            velocities): ``eval``'s report.
+        full_pair: the pair before a bonnet's rows were cut off
+            (:func:`monostixels.data.static_regions.crop_ignored`), from which the outputs take back the
+            frame's size.
+        capture_time_s, capture_time_prev_s: a live source's capture times of the two frames (seconds: the
+            position in a file, or since the first frame of a camera or URL).
+        dropped_before: a live source's frames dropped since the frame taken before the current one.
+        realtime: a live source's ``data.realtime``.
     """
 
     sequence: str | None = None
@@ -138,6 +155,19 @@ class FrameInfo:
     timestamp_prev: Any = None
     ignore_mask: torch.Tensor | None = None
     ignore_pixels: torch.Tensor | None = None
+    source: str | None = None
+    dataset: str | None = None
+    path: str | None = None
+    path_prev: str | None = None
+    frame_index: int | None = None
+    frame_index_prev: int | None = None
+    nominal_camera: bool | None = None
+    motion_source: str | None = None
+    full_pair: FramePair | None = None
+    capture_time_s: float | None = None
+    capture_time_prev_s: float | None = None
+    dropped_before: int | None = None
+    realtime: bool | None = None
 
     @classmethod
     def of(cls, meta: dict[str, Any]) -> FrameInfo:
@@ -210,10 +240,10 @@ class SequenceSource(Protocol):
     Pairs are read on access, in any order; a pair that cannot be made raises
     :class:`monostixels.data._lazy_source.PairSkipped` (warned about and skipped by the sequence layer).
 
-    Optional attributes, read where present: ``fps`` (frames per second of the recording: videos'
-    frame rate, velocities), ``step`` (recorded frames per frame offered), ``skipped_frames`` and
-    ``restarts`` (labels of unreadable frames and of frames where a sequence started again: ``run``'s
-    summary).
+    The attributes of :class:`SourceInfo` (``fps``, ``step``, ``skipped_frames``, ``restarts``) are part of
+    a source too: every source of :mod:`monostixels.data` has them (:class:`SourceAttributes`), and a
+    source of one's own that leaves them out has their defaults. They are read through
+    :func:`source_info`, never probed one by one.
     """
 
     def __len__(self) -> int:
@@ -268,3 +298,54 @@ class LiveSource(SequentialSource, Protocol):
 
 #: Any data source: recorded (with a length) or live (frames as they come).
 Source = SequenceSource | LiveSource
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """What a source says of its frames besides its pairs (:func:`source_info`); the defaults are those
+    of a source that does not say.
+
+    Attributes:
+        fps: frames per second of the recording (a video's frame rate: ``run``'s videos, the frames'
+            times), or None (unknown: image folders give ``data.fps``, others none).
+        step: recorded frames per frame offered (``data.step``; >= 1).
+        skipped_frames: labels (file name, ``video frame N``) of the frames found unreadable so far, in the
+            order found (``run``'s and ``eval``'s summaries).
+        restarts: names of the frames where a sequence started again after unreadable frames.
+    """
+
+    fps: float | None = None
+    step: int = 1
+    skipped_frames: list[str] = field(default_factory=list)
+    restarts: list[str] = field(default_factory=list)
+
+
+class SourceAttributes:
+    """The :class:`SourceInfo` attributes with their defaults: a base of every source of
+    :mod:`monostixels.data`, which sets (or computes) those it knows."""
+
+    #: Frames per second of the recording, or None (unknown).
+    fps: float | None = None
+    #: Recorded frames per frame offered.
+    step: int = 1
+
+    @property
+    def skipped_frames(self) -> list[str]:
+        """Labels of the frames found unreadable so far (none)."""
+        return []
+
+    @property
+    def restarts(self) -> list[str]:
+        """Names of the frames where a sequence started again (none)."""
+        return []
+
+
+def source_info(src: object) -> SourceInfo:
+    """``src``'s :class:`SourceInfo` now (``skipped_frames`` and ``restarts`` grow as pairs are read).
+
+    The one place where a source's attributes are read: a source of one's own may have none of them
+    (``__len__`` and ``__getitem__`` are all a source must provide), and gets the defaults.
+    """
+    return SourceInfo(fps=getattr(src, "fps", None), step=getattr(src, "step", 1),
+                      skipped_frames=list(getattr(src, "skipped_frames", [])),
+                      restarts=list(getattr(src, "restarts", [])))

@@ -45,6 +45,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.core.classes import CLASS_NAMES, IGNORE_LABEL
+from monostixels.data.base import SourceAttributes
 
 __all__ = [
     "CAMVID_CLASSES",
@@ -182,7 +183,7 @@ def read_camvid_split(root: str | Path, split: str) -> list[CamVidItem]:
     return items
 
 
-class CamVidSource(Sequence[CamVidItem]):
+class CamVidSource(SourceAttributes, Sequence[CamVidItem]):
     """A CamVid split for semantic evaluation (single images: no flow, motion or stixels).
 
     Args:
@@ -200,7 +201,7 @@ class CamVidSource(Sequence[CamVidItem]):
             if int(frames) < 1:
                 raise InputError(f"data.frames: must be >= 1 or null, got {frames}")
             items = items[: int(frames)]
-        self.items, self.split = items, split
+        self.items, self.split, self.step = items, split, int(step)
 
     def __len__(self) -> int:
         return len(self.items)

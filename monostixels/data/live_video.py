@@ -21,7 +21,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.data._lens import lens_camera, working_size
 from monostixels.data._readers import MAX_U8, require_file
-from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
+from monostixels.data.base import FramePair, GroundTruth, PreviousFrame, SourceAttributes
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M
 from monostixels.data.static_regions import AUTO_MASK
 
@@ -53,7 +53,7 @@ class _Taken:
     image: torch.Tensor   # (3, H, W) uint8 RGB
 
 
-class LiveVideoSource:
+class LiveVideoSource(SourceAttributes):
     """Frame pairs of a camera, a URL or a video file, read as the frames come (``data=video``).
 
     A reader thread decodes frames as they arrive: a camera or a URL at its own pace, a video file at

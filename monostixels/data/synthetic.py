@@ -44,7 +44,7 @@ import torch
 from monostixels._checks import InputError
 from monostixels.data._render import _cast_grid, _flow_validity, _geometry, _render, _sample_appearance, _Surface
 from monostixels.data._scene import FRAME_INTERVAL_S, KERB_HEIGHT_M, sample_scene
-from monostixels.data.base import FramePair, GroundTruth, PreviousFrame
+from monostixels.data.base import FramePair, GroundTruth, PreviousFrame, SourceAttributes
 from monostixels.core.geometry import KITTI_CAMERA_HEIGHT_M, Camera, Motion, intrinsics
 
 __all__ = [
@@ -220,7 +220,7 @@ def render_pair(seed: int, *, scale: float = 1.0, density: float = 1.0,
     )
 
 
-class SyntheticSource:
+class SyntheticSource(SourceAttributes):
     """A sequence of independent synthetic frame pairs (docs/conventions.md, section 6; config group
     ``data``).
 
@@ -419,7 +419,7 @@ class SyntheticSequence:
                          gt=gt, name=f"synthetic_{self.seed:06d}_{j:03d}", meta=meta)
 
 
-class SyntheticSequenceSource:
+class SyntheticSequenceSource(SourceAttributes):
     """Clips of consecutive synthetic frames (``data.sequence_length > 1``): keyframes and tracks run on them.
 
     Clip ``c`` of source seed ``s`` is :class:`SyntheticSequence` of scene seed ``s * 100_000 + c``; its

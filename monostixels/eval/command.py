@@ -8,7 +8,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from monostixels.data.base import LiveSource
+from monostixels.data.base import LiveSource, source_info
 from monostixels.build import build_source
 from monostixels.output.writers import DemoFiles, Frame, listed
 
@@ -91,7 +91,7 @@ def evaluate_command(cfg: DictConfig) -> float:
         print(f"camera motion could not be estimated on {len(report['failed_frames'])} frame(s), scored with no "
               f"estimate: {', '.join(report['failed_frames'])}")
     if report.get("skipped_frames"):
-        skipped = list(getattr(src, "skipped_frames", []))
+        skipped = source_info(src).skipped_frames
         print(f"{len(skipped)} unreadable frame(s) skipped: {listed(skipped)}")
     if cfg.out:
         path = write_report(report, cfg.out)

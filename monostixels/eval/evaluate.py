@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from monostixels.build import Purpose, build_runner
 from monostixels.core.classes import DYNAMIC_OBJECT, STATIC_OBJECT
-from monostixels.data.base import FramePair, SequenceSource, SequentialSource
+from monostixels.data.base import FramePair, SequenceSource, SequentialSource, source_info
 from monostixels.eval.metrics import (
     DepthAccumulator,
     SemanticAccumulator,
@@ -228,7 +228,8 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
                 degenerate += 1
             else:
                 motion_stats.append(motion_errors(res.motion.motion, pair.motion))
-                gt_motion_source = pair.meta.get("motion_source", gt_motion_source)
+                if pair.info.motion_source is not None:
+                    gt_motion_source = pair.info.motion_source
         if res.semantic is not None and semantic_name != "gt" and gt.labels is not None:
             sem_used = True
             sem_acc.add(res.semantic.argmax(0), gt.labels)
@@ -250,7 +251,7 @@ def evaluate(cfg: DictConfig, source: SequenceSource, *, dataset: str, progress:
     report["methods"]["sfm"] = {**sfm, "compactness": dense_compactness(n_pixels)}
     if failed:
         report["failed_frames"] = failed
-    skipped = list(getattr(source, "skipped_frames", []))
+    skipped = source_info(source).skipped_frames
     if skipped:
         # Unreadable frames the source skipped (monostixels.data._lazy_source.LazySource): counted, never silent.
         report["skipped_frames"] = len(skipped)

@@ -255,7 +255,7 @@ def _covariance(image: torch.Tensor, cfg: ImageFlowConfig, params: ConfidencePar
 
 
 def _gt_flow(pair: FramePair, params: ConfidenceParams) -> tuple[torch.Tensor, torch.Tensor]:
-    source = pair.meta.get("source", pair.name or "this data source")
+    source = pair.info.source if pair.info.source is not None else pair.name or "this data source"
     flow = pair.gt.flow
     if flow is None:
         raise InputError(f"flow=gt: {source} has no ground-truth flow (pair.gt.flow is None); choose flow=deepflow|dis|raft")

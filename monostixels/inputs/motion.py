@@ -10,8 +10,8 @@ Backends (``cfg.name``):
 - ``file``: a KITTI-style poses file (``cfg.path``, read by
   :func:`monostixels.data._camera_files.read_poses_file`): per line either 12 numbers (the 3x4 row-major
   ``T_w_cam``, camera to world, metres; line ``i`` = frame ``i``), a frame number followed by the
-  12 numbers, or the 16 numbers of the 4x4 matrix. Frames are ``pair.meta["frame_index"]`` (current) and
-  ``pair.meta["frame_index_prev"]`` (or ``"frame"`` / ``"frame_prev"``, as kitti_raw writes them). ``cfg.offset`` (3,) is the position of the image camera
+  12 numbers, or the 16 numbers of the 4x4 matrix. Frames are ``pair.info.frame_index`` (current) and
+  ``pair.info.frame_index_prev`` (or ``frame`` / ``frame_prev``, as kitti_raw writes them). ``cfg.offset`` (3,) is the position of the image camera
   in the posed camera's frame when the two differ by a translation only (KITTI camera 2 vs the
   camera-0 poses: ``(P_rect_02[0,3] / fx, 0, 0)``, about 6 cm).
 - ``mono``: from the flow alone.
@@ -135,7 +135,7 @@ def _mono_params(cfg: Any) -> MonoParams:
 
 def _gt_motion(pair: FramePair) -> MotionEstimate:
     if pair.motion is None:
-        source = pair.meta.get("source", pair.name or "this data source")
+        source = pair.info.source if pair.info.source is not None else pair.name or "this data source"
         raise InputError(f"motion=gt: {source} has no ground-truth camera motion (pair.motion is None); use motion=file or motion=mono")
     return _known(pair.motion, "ground truth")
 
@@ -184,15 +184,16 @@ def load_poses(path: str | Path) -> dict[int, np.ndarray]:
 def _file_motion(pair: FramePair, cfg: FileMotionConfig) -> MotionEstimate:
     path = cfg.path
     poses = load_poses(path)
-    # Our sources put raw frame numbers in meta: "frame_index"/"frame_index_prev", or (kitti_raw)
-    # "frame"/"frame_prev".
-    keys = next((k for k in (("frame_index", "frame_index_prev"), ("frame", "frame_prev")) if all(x in pair.meta for x in k)), None)
-    if keys is None:
+    # Raw frame numbers: FrameInfo.frame_index / frame_index_prev, else (kitti_raw, videos) frame / frame_prev.
+    info = pair.info
+    frames = next(((c, p) for c, p in ((info.frame_index, info.frame_index_prev), (info.frame, info.frame_prev))
+                   if c is not None and p is not None), None)
+    if frames is None:
         raise InputError(
             f"motion=file: frame pair {pair.name!r} has no meta['frame_index'] / ['frame_index_prev'] (or 'frame' / "
             f"'frame_prev') to look up in {str(path)!r}"
         )
-    cur, prev = int(pair.meta[keys[0]]), int(pair.meta[keys[1]])
+    cur, prev = int(frames[0]), int(frames[1])
     for f in (cur, prev):
         if f not in poses:
             raise InputError(f"motion.path: {str(path)!r} has no pose for frame {f} (frames {min(poses)}..{max(poses)})")
@@ -575,7 +576,7 @@ def estimate_motion(pair: FramePair, flow: Any, cfg: Any, semantic: torch.Tensor
 
     Args:
         pair: the frame pair (camera intrinsics, height and ground normal; ``motion`` for gt;
-            ``meta["frame_index"]`` / ``["frame_index_prev"]`` for file).
+            ``info.frame_index`` / ``frame_index_prev`` (else ``frame`` / ``frame_prev``) for file).
         flow: the :class:`~monostixels.inputs.flow.FlowResult` of the pair (used by mono).
         cfg: the ``motion`` config group node, a dict or its settings dataclass
             (:data:`monostixels.inputs.motion_track.MOTION_SCHEMAS`).

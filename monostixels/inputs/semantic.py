@@ -233,7 +233,8 @@ def estimate_semantics(pair: FramePair, cfg: Any, *, threads: int = 0) -> torch.
         return None
     if name == "gt":
         if pair.gt.labels is None:
-            source = pair.meta.get("source", pair.meta.get("dataset", "this data source"))
+            info = pair.info
+            source = next((s for s in (info.source, info.dataset) if s is not None), "this data source")
             raise InputError(
                 f"semantic=gt: frame {pair.name or '?'} from {source} has no ground-truth labels "
                 "(pair.gt.labels is None); use semantic=fcn8s, semantic=onnx or semantic=none"
@@ -251,7 +252,7 @@ def fcn8s_scale(pair: FramePair, cfg: Any) -> float | None:
     With ``semantic.focal_px`` set and a calibrated camera, the image is resized so that its focal
     length becomes ``focal_px`` pixels: the net then sees objects at the angular resolution it was
     trained at, whatever the camera (KITTI fx 721 px and 1242 wide, DDAD fx ~2200 px). A pair
-    whose camera is nominal (``pair.meta["nominal_camera"]``: single labelled images such as
+    whose camera is nominal (``pair.info.nominal_camera``: single labelled images such as
     CamVid, which carry no calibration) uses ``semantic.scale``.
 
     Returns:
@@ -259,7 +260,7 @@ def fcn8s_scale(pair: FramePair, cfg: Any) -> float | None:
     """
     cfg = config_params(Fcn8sSemanticConfig, cfg, "semantic")
     focal = cfg.focal_px
-    if focal is not None and not pair.meta.get("nominal_camera", False):
+    if focal is not None and not pair.info.nominal_camera:
         fx = float(pair.camera.K[0, 0])
         if not (focal > 0 and fx > 0):
             raise InputError(f"semantic.focal_px: needs a positive value and camera fx, got {focal} and {fx}")

@@ -22,6 +22,7 @@ import torch
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
 from monostixels.core.geometry import object_normals, pixel_rays
 from monostixels.core.stixels import StixelWorld
+from monostixels.data.base import FramePair
 
 __all__ = ["StixelBoxes", "PoseChain", "frame_time", "optional_field", "reference_points", "stixel_boxes",
            "to_world"]
@@ -31,9 +32,6 @@ logger = logging.getLogger(__name__)
 #: Fields that the sequence layer adds to a StixelWorld (docs/conventions.md, section 4.4), absent
 #: on single pairs.
 TEMPORAL_FIELDS = ("track_id", "velocity", "ttc_s")
-#: Pairs of ``FramePair.meta`` keys naming a pair's current and previous frame, by source:
-#: video and KITTI raw (frame numbers), image folders (paths), DDAD (timestamps).
-_FRAME_KEYS = (("frame", "frame_prev"), ("path", "path_prev"), ("timestamp", "timestamp_prev"))
 
 
 def optional_field(world: StixelWorld, name: str) -> np.ndarray | None:
@@ -137,16 +135,16 @@ def to_world(pose: np.ndarray, X: np.ndarray) -> np.ndarray:
     return X @ pose[:3, :3].T + pose[:3, 3]
 
 
-def frame_time(pair: Any, fps: float | None) -> float | None:
+def frame_time(pair: FramePair, fps: float | None) -> float | None:
     """Time (seconds) of a pair's current frame in its recording where known, else None.
 
-    ``meta["time_s"]`` if a source provides it; else the video frame number over the frame rate.
+    ``pair.info.time_s`` if a source provides it; else the video frame number over the frame rate.
     """
-    meta = getattr(pair, "meta", {}) or {}
-    if meta.get("time_s") is not None:
-        return float(meta["time_s"])
-    if fps and meta.get("frame") is not None and meta.get("source") == "video":
-        return float(meta["frame"]) / float(fps)
+    info = pair.info
+    if info.time_s is not None:
+        return float(info.time_s)
+    if fps and info.frame is not None and info.source == "video":
+        return float(info.frame) / float(fps)
     return None
 
 
@@ -182,14 +180,17 @@ class PoseChain:
         self._warned = False
 
     @staticmethod
-    def _keys(pair: Any) -> tuple[Hashable, Hashable]:
-        meta = getattr(pair, "meta", {}) or {}
-        for cur, prev in _FRAME_KEYS:
-            if meta.get(cur) is not None and meta.get(prev) is not None:
-                return (cur, meta[cur]), (cur, meta[prev])
+    def _keys(pair: FramePair) -> tuple[Hashable, Hashable]:
+        """Keys of the pair's current and previous frame, by what its source names them with: video and
+        KITTI raw (frame numbers), image folders (paths), DDAD (timestamps); (None, None) where it names none."""
+        info = pair.info
+        for kind, cur, prev in (("frame", info.frame, info.frame_prev), ("path", info.path, info.path_prev),
+                                ("timestamp", info.timestamp, info.timestamp_prev)):
+            if cur is not None and prev is not None:
+                return (kind, cur), (kind, prev)
         return None, None
 
-    def update(self, pair: Any, res: Any) -> np.ndarray:
+    def update(self, pair: FramePair, res: Any) -> np.ndarray:
         """Pose (4, 4) float64 of ``pair``'s current frame; remembers it for the later pairs."""
         cur, prev = self._keys(pair)
         pose = getattr(res, "pose", None)

@@ -34,6 +34,7 @@ import torch
 
 from monostixels._checks import InputError, choice
 from monostixels.core.classes import DYNAMIC_OBJECT, PALETTE
+from monostixels.data.base import source_info
 from monostixels.pipeline import EvalConfig
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, stixel_boxes, to_world
 
@@ -290,6 +291,6 @@ def open_recorder(out: Path, src: Any, *, ev: EvalConfig, output: OutputConfig) 
     """
     if not output.rerun:
         return RecordingHook()
-    return RerunRecorder(out / RECORDING_NAME, fps=getattr(src, "fps", None), colors=output.rerun_colors,
+    return RerunRecorder(out / RECORDING_NAME, fps=source_info(src).fps, colors=output.rerun_colors,
                          point_stride=output.rerun_point_stride, jpeg_quality=output.rerun_jpeg_quality,
                          min_depth=ev.colormap_min_depth, max_depth=ev.colormap_max_depth)

@@ -31,7 +31,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.core.classes import CLASS_NAMES, TYPE_NAMES
-from monostixels.data.base import LiveSource, Source
+from monostixels.data.base import LiveSource, Source, source_info
 from monostixels.inputs.motion_base import NO_METRIC_MOTION, MotionKind
 from monostixels.output.scene3d import PoseChain, frame_time, optional_field, reference_points, to_world
 
@@ -188,7 +188,8 @@ _VIDEO_FPS = 5.0
 
 def video_fps(src: Source) -> float:
     """The videos' frame rate: the rate of the used frames of a video source, else 5 fps."""
-    fps, step = getattr(src, "fps", None), getattr(src, "step", 1)
+    info = source_info(src)
+    fps, step = info.fps, info.step
     return float(fps) / max(int(step), 1) if fps else _VIDEO_FPS
 
 
@@ -330,7 +331,7 @@ class RunSummary(Writer):
 
         src, out = self.src, self.out
         written = len(self.camera)
-        self.skipped = skipped = list(getattr(src, "skipped_frames", []))
+        self.skipped = skipped = source_info(src).skipped_frames
         if written == 0 and skipped:
             raise InputError(f"run: no frame pair could be made: {len(skipped)} unreadable frame(s) skipped "
                              f"({listed(skipped)}); a pair needs two readable frames at most "
@@ -346,7 +347,7 @@ class RunSummary(Writer):
                 self.lines.append(f"{summary['frames_taken']} of {summary['frames_read']} frames taken, "
                                   f"{summary['frames_dropped']} dropped while solving (realtime); {self.stream}")
         out.mkdir(parents=True, exist_ok=True)
-        restarts = list(getattr(src, "restarts", []))
+        restarts = source_info(src).restarts
         # What the run made of its input; unreadable frames are listed, never dropped silently.
         cam = camera_report(self.camera, self.height)
         # platform: the CPU, ONNX Runtime's INT8 path and the solver's build (docs/conventions.md, section 4.3).

@@ -234,7 +234,9 @@ class SequenceRunner:
                                                    self.standing_m)
                     pair = source.pair_back(i, back) if back != 1 else source[i]
                     # Paired across unreadable frames, the pair reaches further back than chosen.
-                    back = int(pair.meta.setdefault("back", back))
+                    if pair.info.back is None:
+                        pair.meta["back"] = back  # the pair tells how far back it reaches (FrameInfo.back)
+                    back = int(pair.info.back)
                     step = self._solve(i, pair, back, driven)
             except PairSkipped:
                 # Its frames could not be read: the source warned and lists them (skipped_frames).
