@@ -93,6 +93,23 @@ def test_an_uncertain_scale_leaves_only_the_movers_that_break_the_epipolar_const
     short = Motion(MOTION.R, MOTION.t / 20.0)
     unsure_short = check_movers(st, flow, short, params=MoverCheckParams(), scale_known=False)
     assert torch.equal(unsure_short.type, unsure.type) and unsure_short.flags["static_checked"] == 3
+    # A frame whose static objects' own flow lies 12 px off the epipolar lines (a rotation or direction as
+    # uncertain as the length): an 8 px crossing flow is no motion of its own there; 30 px off still is.
+    noisy = flow.clone()
+    noisy[0, :, 20:30] += 12.0  # column 2, the static object
+    noisy[0, :, 40:50] += 22.0  # column 4: 30 px
+    loose = check_movers(st, noisy, MOTION, params=MoverCheckParams(), scale_known=False)
+    assert loose.type[3] == STATIC_OBJECT and loose.type[4] == DYNAMIC_OBJECT
+    # The distance it judges by: exact on the epipolar lines, the sideways offset off them.
+    from monostixels.post.movers import epipolar_distance
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    exact = _wall_flow(10.0)
+    on = epipolar_distance(K, MOTION.R, MOTION.t, u.flatten(), v.flatten(), exact[0].flatten(), exact[1].flatten())
+    assert float(on.max()) < 1e-3
+    foe_row = 18.0  # a pixel straight above the focus of expansion: its epipolar line is the column itself
+    d = epipolar_distance(K, MOTION.R, MOTION.t, torch.tensor([32.0]), torch.tensor([foe_row - 15.0]),
+                          torch.tensor([5.0]), torch.tensor([0.0]))
+    assert abs(float(d) - 5.0) < 0.01
 
 
 # A camera with a KITTI-like focal length, so that a depth difference shows as rows at the ground contact.

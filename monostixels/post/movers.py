@@ -47,7 +47,7 @@ from monostixels.post.sfm import triangulate_points
 from monostixels.core.geometry import Motion, apply_homography, dynamic_homography, homography, pixel_rays
 from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
 
-__all__ = ["MoverCheckParams", "check_movers", "settle_receding", "static_only"]
+__all__ = ["MoverCheckParams", "STATIC_EPIPOLAR_QUANTILE", "check_movers", "epipolar_distance", "settle_receding", "static_only"]
 
 logger = logging.getLogger(__name__)
 
@@ -133,7 +133,9 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
             stixel whose flow a static plane explains (it fits the epipolar geometry) stands still whatever
             its depth, since a wrong length moves every static depth, and keeps the scene model's depth (the
             flow's scales with that length); only a flow that breaks the epipolar constraint keeps a stixel
-            dynamic (no kept classes, no depth or contact test).
+            dynamic, by more than ``max_static_residual_px`` and than the frame's static objects' flow breaks
+            it (:data:`STATIC_EPIPOLAR_QUANTILE`): the median :func:`epipolar_distance` of its pixels (no
+            triangulation, no kept classes, no depth or contact test).
 
     Returns:
         A new :class:`StixelWorld`; ``status.counts.static_checked`` = number of dynamic stixels made static.
@@ -193,9 +195,14 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         e_d = segment_lower_median(torch.hypot(upd - uu - fu, vpd - vv - fv), sid, counts)
         explained |= fit & (e_d >= prm.max_dynamic_residual_ratio * e_s)
     if not scale_known:
-        # Their depths stay the scene model's (the ground contact): the flow's static depth d_s scales with
-        # the very length that is uncertain (and a preceding car's is far off its contact).
-        return _stand_still(stixels, dyn, explained, None, S)
+        # Only a flow off the epipolar lines makes a mover, by more than the frame's static objects' own flow
+        # is off them: where the camera's rotation or direction is as uncertain as its length (a phone behind
+        # a windscreen), the static world breaks the epipolar geometry too, and that is no motion of its own.
+        # The distance needs no depth, so stixels without a valid triangulation are judged as well. Their
+        # depths stay the scene model's (the flow's static depth scales with the very length that is uncertain).
+        e_epi = segment_lower_median(epipolar_distance(K, R, t, uu, vv, fu, fv), sid, counts)
+        bound = max(prm.max_static_residual_px, _static_epipolar_quantile(stixels, flow, K, R, t))
+        return _stand_still(stixels, dyn, e_epi <= bound, None, S)
     if prm.keep_classes:
         kept = torch.tensor([CLASS_NAMES.index(c) for c in prm.keep_classes], dtype=torch.long)
         explained &= ~torch.isin(stixels.cls[dyn].long(), kept)
@@ -262,6 +269,40 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
             alone &= ~torch.isin(stixels.cls[dyn].long(), kept)
         still = still | alone
     return _stand_still(stixels, dyn, still, d_s, S)
+
+
+#: The quantile of the static objects' distances from their epipolar lines that a mover's must exceed
+#: where the camera motion's length is uncertain (:func:`check_movers`): their 9 in 10 nearest.
+STATIC_EPIPOLAR_QUANTILE = 0.9
+
+
+def epipolar_distance(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                      fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
+    """Pixels (N,) from each flow's end ``(u + fu, v + fv)`` in the previous image to the epipolar line of
+    ``(u, v)`` under ``X_prev = R X + t`` (``F = K^-T [t]x R K^-1``); any length of ``t``; computed in float64."""
+    K, R, t = K.double(), R.double(), t.double()
+    u, v, fu, fv = u.double(), v.double(), fu.double(), fv.double()
+    Ki = torch.linalg.inv(K)
+    tx = torch.zeros(3, 3, dtype=K.dtype)
+    tx[0, 1], tx[0, 2], tx[1, 0], tx[1, 2], tx[2, 0], tx[2, 1] = -t[2], t[1], t[2], -t[0], -t[1], t[0]
+    F = Ki.T @ tx @ R @ Ki
+    x = torch.stack([u, v, torch.ones_like(u)], -1)
+    line = x @ F.T  # (N, 3): a u' + b v' + c = 0
+    xp = torch.stack([u + fu, v + fv, torch.ones_like(u)], -1)
+    return (xp * line).sum(-1).abs() / torch.hypot(line[:, 0], line[:, 1]).clamp(min=1e-12)
+
+
+def _static_epipolar_quantile(stixels: StixelWorld, flow: torch.Tensor, K: torch.Tensor, R: torch.Tensor,
+                              t: torch.Tensor) -> float:
+    """:data:`STATIC_EPIPOLAR_QUANTILE` of the static object stixels' pixels' :func:`epipolar_distance`
+    (pixels, on a grid of every 4th pixel), 0 without any."""
+    typ = stixels.type_map()
+    vs, us = torch.nonzero(typ[::4, ::4] == STATIC_OBJECT, as_tuple=True)
+    if vs.numel() == 0:
+        return 0.0
+    vs, us = vs * 4, us * 4
+    d = epipolar_distance(K, R, t, us.double(), vs.double(), flow[0, vs, us].double(), flow[1, vs, us].double())
+    return float(torch.quantile(d[torch.isfinite(d)], STATIC_EPIPOLAR_QUANTILE)) if bool(torch.isfinite(d).any()) else 0.0
 
 
 def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d_s: torch.Tensor | None,
