@@ -40,6 +40,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+from kornia.geometry.epipolar import cross_product_matrix, fundamental_from_essential, left_to_right_epipolar_distance
 
 from monostixels._checks import InputError
 from monostixels.core.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
@@ -279,17 +280,14 @@ STATIC_EPIPOLAR_QUANTILE = 0.9
 def epipolar_distance(K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                       fu: torch.Tensor, fv: torch.Tensor) -> torch.Tensor:
     """Pixels (N,) from each flow's end ``(u + fu, v + fv)`` in the previous image to the epipolar line of
-    ``(u, v)`` under ``X_prev = R X + t`` (``F = K^-T [t]x R K^-1``); any length of ``t``; computed in float64."""
-    K, R, t = K.double(), R.double(), t.double()
-    u, v, fu, fv = u.double(), v.double(), fu.double(), fv.double()
-    Ki = torch.linalg.inv(K)
-    tx = torch.zeros(3, 3, dtype=K.dtype)
-    tx[0, 1], tx[0, 2], tx[1, 0], tx[1, 2], tx[2, 0], tx[2, 1] = -t[2], t[1], t[2], -t[0], -t[1], t[0]
-    F = Ki.T @ tx @ R @ Ki
-    x = torch.stack([u, v, torch.ones_like(u)], -1)
-    line = x @ F.T  # (N, 3): a u' + b v' + c = 0
-    xp = torch.stack([u + fu, v + fv, torch.ones_like(u)], -1)
-    return (xp * line).sum(-1).abs() / torch.hypot(line[:, 0], line[:, 1]).clamp(min=1e-12)
+    ``(u, v)`` under ``X_prev = R X + t`` (``F = K^-T [t]x R K^-1``; kornia's one-sided distance, ``inf`` at
+    the epipole); any length of ``t``; computed in float64."""
+    K = K.double()
+    E = cross_product_matrix(t.double()) @ R.double()
+    F = fundamental_from_essential(E[None], K[None], K[None])
+    cur = torch.stack([u, v], -1).double()
+    prev = torch.stack([u + fu, v + fv], -1).double()
+    return left_to_right_epipolar_distance(cur[None], prev[None], F)[0]
 
 
 def _static_epipolar_quantile(stixels: StixelWorld, flow: torch.Tensor, K: torch.Tensor, R: torch.Tensor,
