@@ -150,19 +150,21 @@ def scene_scale(K: np.ndarray, R: np.ndarray, t_unit: np.ndarray, n_g: np.ndarra
     # Weighted by the parallax (the flow's error in ρ falls with it); the standard error of the median from
     # the samples' spread (MAD), and the model's error of each column, over the effective number of columns.
     w = par_col**2
-    order = np.argsort(log_s)
-    cw = np.cumsum(w[order])
-    med = float(log_s[order][np.searchsorted(cw, 0.5 * cw[-1])])
+    med = _weighted_median(log_s, w)
     mad = float(np.median(np.abs(log_s - med))) * 1.4826
     n_eff = float(w.sum() ** 2 / np.sum(w**2))
     # A ground tilted by δ against n_g moves a contact's depth by about δ z_c / h in log: the same δ in every
     # column, so it adds to the standard error whole, at the contacts' distance (their weighted median).
-    x = z_c[good] / h_c[good]
-    ox = np.argsort(x)
-    cwx = np.cumsum(w[ox])
-    reach = float(x[ox][np.searchsorted(cwx, 0.5 * cwx[-1])])
+    reach = _weighted_median(z_c[good] / h_c[good], w)
     std = math.sqrt(1.5708 * (mad**2 + _MODEL_STD**2) / n_eff + (tilt_std * reach) ** 2)
     return SceneScale(float(math.exp(med)), std, int(good.sum()), reach)
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The value (N,) at which the ``weights`` (N,) sorted by value first reach half their sum."""
+    order = np.argsort(values)
+    cw = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cw, 0.5 * cw[-1])])
 
 
 def with_scene_scale(est: MotionEstimate, scene: SceneScale | None, t_unit: np.ndarray, params: Any) -> MotionEstimate:

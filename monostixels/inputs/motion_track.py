@@ -245,10 +245,10 @@ class MotionTrack:
             self._elevations = [*self._elevations, elev][-ELEVATION_WINDOW:]
         if est.scale_from != ScaleFrom.SCENE or est.scene_reach is None or est.motion is None:
             return est
-        tilt = self.direction_scatter() * est.scene_reach
-        std = math.hypot(est.scale_std or 0.0, tilt)
+        scatter = self.direction_scatter()
+        std = math.hypot(est.scale_std or 0.0, scatter * est.scene_reach)
         note = (f"the scene model's length at {est.scene_reach:.0f} camera heights, the direction of travel "
-                f"scattering {math.degrees(self.direction_scatter()):.2f} deg: uncertain by {std:.2f}")
+                f"scattering {math.degrees(scatter):.2f} deg: uncertain by {std:.2f}")
         if std <= self.params.max_scale_std:
             return dataclasses.replace(est, scale_std=std, reason=f"{est.reason}; {note}")
         R, t = est.motion.R, est.motion.t

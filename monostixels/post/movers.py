@@ -80,8 +80,8 @@ class MoverCheckParams:
         contact_sliver_rows: a stixel on an object at most this many rows tall that stands on a
             ground stixel stands on that ground for the contact test (0 = off).
         min_pixels: fewest pixels with a valid triangulation for a decision.
-        min_depth, max_depth: triangulated depths outside this range (metres) do not vote (where the length of
-            the camera motion is known: else every depth in front of the camera votes).
+        min_depth, max_depth: triangulated depths outside this range (metres) do not vote (at an uncertain
+            length nothing is triangulated: the epipolar distance decides).
 
     The defaults are the shipped check (the schema of the config group ``movers``); the purely
     geometric check is ``keep_classes=()``, ``max_dynamic_residual_ratio=inf``,
@@ -161,18 +161,21 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
     ui = c0[sid] + local % widths[sid]
     vv, uu = vi.double(), ui.double()
     fu, fv = flow[0, vi, ui].double(), flow[1, vi, ui].double()
+    if not scale_known:
+        # Only a flow off the epipolar lines makes a mover, by more than the frame's static objects' own flow
+        # is off them: where the camera's rotation or direction is as uncertain as its length (a phone behind
+        # a windscreen), the static world breaks the epipolar geometry too, and that is no motion of its own.
+        # The distance needs no depth (nothing is triangulated), so every stixel is judged. Their
+        # depths stay the scene model's (the flow's static depth scales with the very length that is uncertain).
+        e_epi = segment_lower_median(epipolar_distance(K, R, t, uu, vv, fu, fv), sid, counts)
+        bound = max(prm.max_static_residual_px, _static_epipolar_quantile(stixels, flow, K, R, t))
+        return _stand_still(stixels, dyn, e_epi <= bound, None, S)
     if point_depth is None:
         # In the flow's dtype, as triangulate() returns it (the decisions then match the full-frame path).
         z = triangulate_points(K, R, t, uu, vv, fu, fv)[0].to(flow.dtype if flow.is_floating_point() else torch.float32).double()
     else:
         z = point_depth[vi, ui].double()
-    if scale_known:
-        ok = torch.isfinite(z) & (z >= prm.min_depth) & (z <= prm.max_depth)
-    else:
-        # The depths scale with the very length that is uncertain: a range in metres would refuse a whole
-        # static scene seen through a length 20x short (DAD 487's held 0.1 m/s), and leave it moving. The
-        # static plane's residual does not depend on the length; only "in front of the camera" does not either.
-        ok = torch.isfinite(z) & (z > 0)
+    ok = torch.isfinite(z) & (z >= prm.min_depth) & (z <= prm.max_depth)
     n_ok = torch.bincount(sid[ok], minlength=S)
     n_all = stixels.normals().double()[dyn]  # S x 3
     rays = pixel_rays(K, uu[ok], vv[ok])
@@ -195,15 +198,6 @@ def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point
         upd, vpd = apply_homography(Hd[sid], uu, vv)
         e_d = segment_lower_median(torch.hypot(upd - uu - fu, vpd - vv - fv), sid, counts)
         explained |= fit & (e_d >= prm.max_dynamic_residual_ratio * e_s)
-    if not scale_known:
-        # Only a flow off the epipolar lines makes a mover, by more than the frame's static objects' own flow
-        # is off them: where the camera's rotation or direction is as uncertain as its length (a phone behind
-        # a windscreen), the static world breaks the epipolar geometry too, and that is no motion of its own.
-        # The distance needs no depth, so stixels without a valid triangulation are judged as well. Their
-        # depths stay the scene model's (the flow's static depth scales with the very length that is uncertain).
-        e_epi = segment_lower_median(epipolar_distance(K, R, t, uu, vv, fu, fv), sid, counts)
-        bound = max(prm.max_static_residual_px, _static_epipolar_quantile(stixels, flow, K, R, t))
-        return _stand_still(stixels, dyn, e_epi <= bound, None, S)
     if prm.keep_classes:
         kept = torch.tensor([CLASS_NAMES.index(c) for c in prm.keep_classes], dtype=torch.long)
         explained &= ~torch.isin(stixels.cls[dyn].long(), kept)
@@ -300,7 +294,8 @@ def _static_epipolar_quantile(stixels: StixelWorld, flow: torch.Tensor, K: torch
         return 0.0
     vs, us = vs * 4, us * 4
     d = epipolar_distance(K, R, t, us.double(), vs.double(), flow[0, vs, us].double(), flow[1, vs, us].double())
-    return float(torch.quantile(d[torch.isfinite(d)], STATIC_EPIPOLAR_QUANTILE)) if bool(torch.isfinite(d).any()) else 0.0
+    d = d[torch.isfinite(d)]  # the epipole's pixel has no line
+    return float(torch.quantile(d, STATIC_EPIPOLAR_QUANTILE)) if d.numel() else 0.0
 
 
 def _stand_still(stixels: StixelWorld, dyn: torch.Tensor, still: torch.Tensor, d_s: torch.Tensor | None,
