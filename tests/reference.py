@@ -120,16 +120,25 @@ class _Column:
         if key not in self._cache:
             self._cache[key] = [min(_f(self.prm.alpha_L), _f(self.prob.nll[self.c, j, cls])) * _f(self.prob.rows[j])
                                 * _f(self.prm.delta_L)
-                                + (self._sky_extra(j) if cls in TYPE_CLASSES[SKY] else 0.0) for j in range(self.n)]
+                                + (self._sky_extra(j) if cls in TYPE_CLASSES[SKY] else self._ground_extra(j) if cls in TYPE_CLASSES[GROUND]
+                                   else 0.0) for j in range(self.n)]
         return sum(self._cache[key][b:t + 1])
 
     def _sky_extra(self, j: int) -> float:
         """Both caps per row where cell ``j``'s ray points more than ``sky_horizon_margin_deg`` below the
         horizon (columns.semantic_prefix): sky is not seen there."""
+        return self._caps_beyond(j, 1.0, self.cfg.sky_horizon_margin_deg)
+
+    def _ground_extra(self, j: int) -> float:
+        """Both caps per row where cell ``j``'s ray points more than ``ground_horizon_margin_deg`` above the
+        horizon (columns.semantic_prefix): ground is not seen there."""
+        return self._caps_beyond(j, -1.0, self.cfg.ground_horizon_margin_deg)
+
+    def _caps_beyond(self, j: int, sign: float, margin_deg: float) -> float:
         prob, c = self.prob, self.c
         ray = pixel_rays(prob.K[c].double(), prob.u[c].double(), prob.v[j].double())
-        below = float(ray @ self.n_g) / float(ray.norm())
-        if not below > math.sin(math.radians(self.cfg.sky_horizon_margin_deg)):
+        beyond = sign * float(ray @ self.n_g) / float(ray.norm())
+        if not beyond > math.sin(math.radians(margin_deg)):
             return 0.0
         prm = self.prm
         return (_f(prm.alpha_F) * _f(prm.delta_F) + _f(prm.alpha_L) * _f(prm.delta_L)) * _f(prob.rows[j])

@@ -316,3 +316,33 @@ def test_no_sky_far_below_the_horizon():
         with pytest.raises(InputError, match="sky_horizon_margin_deg"):
             SolverConfig.from_yaml(sky_horizon_margin_deg=bad)
     assert SolverConfig.from_yaml(sky_horizon_margin_deg="inf").sky_horizon_margin_deg == math.inf
+
+
+def test_no_ground_far_above_the_horizon():
+    """A vehicle that drives along with the camera has the sky's flow (none): the static types fail
+    on it. Where the net reads it as road, ground no longer reaches more than
+    ``ground_horizon_margin_deg`` above the horizon, where its depth would be negative: there it pays
+    both caps and the sky (the net's second class) wins. Off (``.inf``), the net's score decides."""
+    H, W = 40, 10
+    K = intrinsics(50.0, 50.0, 4.5, 30.0)  # horizon at row 30
+    cam = Camera(K, height=1.5)
+    mot = Motion(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    g = torch.Generator().manual_seed(0)
+    flow = 40.0 * torch.randn(2, H, W, generator=g, dtype=torch.float64)  # no type fits it
+    cov = torch.eye(2, dtype=torch.float64).expand(H, W, 2, 2).clone()
+    scores = torch.full((10, H, W), 0.01, dtype=torch.float64)
+    scores[0] = 0.6
+    scores[9] = 0.31  # sky second
+    prm = PriorParams.from_yaml()
+    rows_above = 30.0 - torch.arange(H, dtype=torch.float64)
+    high = rows_above / 50.0 > math.tan(math.radians(5.0))  # rows more than 5 deg above the horizon
+    for margin, ground_high in ((5.0, False), (math.inf, True)):
+        cfg = SolverConfig.from_yaml(column_width=5, cell_rows=2, dtype="float64", ground_horizon_margin_deg=margin)
+        st = solve(flow, cov, scores, cam, mot, prm, cfg)
+        ground = st.type_map() == GROUND
+        assert bool(ground[high].any()) == ground_high
+        if not ground_high:
+            assert bool((st.type_map()[high] == SKY).all())
+    for bad in (-1.0, ".inf", None):
+        with pytest.raises(InputError, match="ground_horizon_margin_deg"):
+            SolverConfig.from_yaml(ground_horizon_margin_deg=bad)

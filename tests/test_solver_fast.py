@@ -190,9 +190,9 @@ def test_cpp_preparation_identical_to_torch(seed, dtype):
     # Cells without a fit were replaced (reference ground, farthest depth, tau = 0): repeats exist.
     assert len(set(hyp_c.p_ground[0].tolist())) < hyp_c.p_ground.shape[1]
     prm_t = prm.as_tensors(dtype)
-    for margin in (5.0, math.inf):
-        L_t, cls_t = columns_mod.semantic_prefix(prob, prm_t, dtype, margin, geo_t)
-        L_c, cls_c = columns_mod.semantic_prefix(prob, prm_t, dtype, margin, geo_c, cpp=True)
+    for margin in ((5.0, 5.0), (5.0, math.inf), (math.inf, 2.0), (math.inf, math.inf)):
+        L_t, cls_t = columns_mod.semantic_prefix(prob, prm_t, dtype, margin[0], geo_t, ground_margin_deg=margin[1])
+        L_c, cls_c = columns_mod.semantic_prefix(prob, prm_t, dtype, margin[0], geo_c, cpp=True, ground_margin_deg=margin[1])
         assert cls_t == cls_c and torch.equal(L_t, L_c), margin
 
 

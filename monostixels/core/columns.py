@@ -19,7 +19,7 @@ from typing import Any, Sequence
 import torch
 
 from monostixels.core import _dp_cpp
-from monostixels.core.classes import NUM_CLASSES, SKY, TYPE_CLASSES
+from monostixels.core.classes import GROUND, NUM_CLASSES, SKY, TYPE_CLASSES
 from monostixels.core.energy import PriorParams, flow_cost
 from monostixels.core.geometry import (
     Camera,
@@ -37,7 +37,11 @@ __all__ = ["ColumnProblem", "prepare_columns", "beyond_horizon", "Z_MIN", "colum
 
 #: Default class of each type when there is no semantic input (road, building, vehicle, sky).
 _DEFAULT_CLASS = (0, 3, 6, 9)
-_SKY_CLASS = TYPE_CLASSES[SKY][0]
+# Bits of the per-cell mask of semantic_prefix: the sky is not seen there, the ground is not.
+_UNSEEN_SKY, _UNSEEN_GROUND = 1, 2
+# Which bit of the unseen mask each class pays for (semantic_prefix): the sky class the sky's, the ground classes the ground's.
+_UNSEEN_RULE = torch.tensor([_UNSEEN_SKY if k in TYPE_CLASSES[SKY] else _UNSEEN_GROUND if k in TYPE_CLASSES[GROUND] else 0
+                             for k in range(NUM_CLASSES)], dtype=torch.uint8)
 #: Hypothesis-cell pairs evaluated at once when computing flow costs (bounds peak memory).
 _CHUNK_ELEMENTS = 4_000_000
 #: A predicted point with ``z`` at or below this (homogeneous, px) is behind the camera: flow cap.
@@ -418,33 +422,47 @@ def _sky_unseen(geo: _Geometry, margin_deg: float) -> torch.Tensor:
     return sin_below > math.sin(math.radians(margin_deg))
 
 
+def _ground_unseen(geo: _Geometry, margin_deg: float) -> torch.Tensor:
+    """(C, n) cells whose ray points more than ``margin_deg`` above the horizon of the road plane."""
+    sin_above = -geo.s_g / geo.ray.norm(dim=-1)
+    return sin_above > math.sin(math.radians(margin_deg))
+
+
 def semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky_margin_deg: float = math.inf,
-                    geo: _Geometry | None = None, cpp: bool = False) -> tuple[torch.Tensor, list[list[int]]]:
+                    geo: _Geometry | None = None, cpp: bool = False,
+                    ground_margin_deg: float = math.inf) -> tuple[torch.Tensor, list[list[int]]]:
     """Prefix-summed semantic cost (C, 10, n + 1) and the classes of each type.
 
     With semantics, the sky class also pays the flow and semantic caps (``alpha_F delta_F + alpha_L
-    delta_L`` per row) in cells more than ``sky_margin_deg`` below the horizon: the flow term alone
-    only caps the sky there (:func:`beyond_horizon`), the cost of any type whose flow fails, so where
-    the flow fails (the image's lower corners, which leave the previous frame) the net's score decided,
-    and a bright patch of road read as sky would become a sky stixel a few metres ahead. A road's
-    grade changes by a few degrees, so sky is seen at most slightly below the road plane's horizon.
-    Without semantics: zeros (C, 1, n + 1) and the default class of each type. ``cpp``: in the
-    kernel (values only, no gradients).
+    delta_L`` per row) in cells more than ``sky_margin_deg`` below the horizon, and the ground classes
+    in cells more than ``ground_margin_deg`` above it. The flow term alone only caps them there
+    (:func:`beyond_horizon`), the cost of any type whose flow fails, so where the flow fails the net's
+    score decided: at the image's lower corners, which leave the previous frame, a bright patch of road
+    read as sky became a sky stixel a few metres ahead; on a vehicle that drives along with the camera
+    (its flow is the sky's), a surface read as road became ground above the horizon, whose depth is
+    negative. A road's grade changes by a few degrees, so sky is seen at most slightly below the road
+    plane's horizon and ground at most slightly above it. Without semantics: zeros (C, 1, n + 1) and
+    the default class of each type. ``cpp``: in the kernel (values only, no gradients).
     """
     C, n = prob.num_columns, prob.num_cells
     if prob.nll is not None:
         unseen = extra = None
-        if math.isfinite(sky_margin_deg):
-            unseen = _sky_unseen(column_geometry(prob) if geo is None else geo, sky_margin_deg)
+        if math.isfinite(sky_margin_deg) or math.isfinite(ground_margin_deg):
+            geo = column_geometry(prob) if geo is None else geo
+            unseen = torch.zeros(C, n, dtype=torch.uint8)
+            if math.isfinite(sky_margin_deg):
+                unseen |= _sky_unseen(geo, sky_margin_deg).to(torch.uint8) * _UNSEEN_SKY
+            if math.isfinite(ground_margin_deg):
+                unseen |= _ground_unseen(geo, ground_margin_deg).to(torch.uint8) * _UNSEEN_GROUND
             extra = (prm.alpha_F * prm.delta_F + prm.alpha_L * prm.delta_L) * prob.rows[None, :]
         if cpp:  # the same expressions and sums, one pass (csrc/column_dp.cpp; tests/test_solver_fast.py)
             Lp = _dp_cpp.semantic_prefix(prob.nll, prob.rows, prm.alpha_L, prm.delta_L, unseen,
-                                         None if extra is None else extra[0], _SKY_CLASS)
+                                         None if extra is None else extra[0], _UNSEEN_RULE)
             return Lp, [list(cs) for cs in TYPE_CLASSES]
         sem = torch.minimum(prob.nll, prm.alpha_L) * prob.rows[None, :, None] * prm.delta_L
         if unseen is not None:
-            sky = torch.where(unseen, sem[..., _SKY_CLASS] + extra, sem[..., _SKY_CLASS])
-            sem = torch.cat([sem[..., :_SKY_CLASS], sky[..., None], sem[..., _SKY_CLASS + 1:]], -1)
+            rule = (unseen[..., None] & _UNSEEN_RULE) != 0  # C x n x 10
+            sem = torch.where(rule, sem + extra[..., None], sem)
         return _prefix(sem.transpose(1, 2)), [list(cs) for cs in TYPE_CLASSES]  # C x 10 x (n + 1)
     return torch.zeros(C, 1, n + 1, dtype=dt), [[c] for c in _DEFAULT_CLASS]
 

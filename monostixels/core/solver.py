@@ -144,7 +144,8 @@ def _solve_columns_cpp(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig)
     geo = column_geometry(prob, cpp=cpp_prep(prob, cfg))
     hyp = hypotheses(prob, cfg, geo)
     a, cK, s_g, s_o, g = flow_geometry(prob, hyp, geo)
-    Lp, classes = semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo, cpp=cpp_prep(prob, cfg))
+    Lp, classes = semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo, cpp=cpp_prep(prob, cfg),
+                                   ground_margin_deg=cfg.ground_horizon_margin_deg)
     cls_table = torch.tensor([cs + [-1] * (3 - len(cs)) for cs in classes], dtype=torch.long)  # 4 x 3
     ncs = torch.tensor([len(cs) for cs in classes], dtype=torch.long)
     params = torch.stack([getattr(prm, k) for k in _dp_cpp.PARAM_ORDER]
@@ -177,7 +178,8 @@ def solve_columns(prob: ColumnProblem, prm: PriorParams, cfg: SolverConfig) -> C
     P = flow_prefix(prob, hyp, prm, geo)  # per type: C x K_T x (n + 1)
     p_min, p_max = 1.0 / cfg.max_depth, 1.0 / cfg.min_depth
 
-    Lp, classes = semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo)
+    Lp, classes = semantic_prefix(prob, prm, dt, cfg.sky_horizon_margin_deg, geo,
+                                 ground_margin_deg=cfg.ground_horizon_margin_deg)
     cls_idx = [torch.tensor(cs) if prob.nll is not None else torch.tensor([0]) for cs in classes]
     L = [Lp[:, ci] for ci in cls_idx]  # per type: C x nc x (n + 1)
 

@@ -53,6 +53,9 @@ class SolverConfig:
             plane: there the sky class pays the flow and semantic caps on top (with semantics; YAML ``.inf``,
             command line ``inf`` = off). Where the flow fails (the image's lower corners) the net's score
             alone would decide, and bright road read as sky would become a sky stixel a few metres ahead.
+        ground_horizon_margin_deg: likewise, ground is not seen more than this many degrees above that horizon
+            (the ground classes pay both caps there): a vehicle driving along with the camera has the sky's
+            flow, and a surface of it read as road would become ground above the horizon (a negative depth).
         top_refine_rows, top_refine_depth_ratio, top_refine_objects: moving objects' tops at pixel rows
             (monostixels/post/boundaries.py; applied by the pipeline after the DP and the mover check, with
             semantics only): where an object stixel (of ``top_refine_objects``: dynamic | all) has sky or an
@@ -72,6 +75,7 @@ class SolverConfig:
     standing_hypotheses: bool = True
     backend: SolverBackend = SolverBackend.auto
     sky_horizon_margin_deg: float = 5.0
+    ground_horizon_margin_deg: float = 5.0
     # Applied after the DP by the pipeline (monostixels.post.boundaries.refine_object_tops).
     top_refine_rows: int = 3
     top_refine_depth_ratio: float = 1.5
@@ -97,13 +101,14 @@ class SolverConfig:
             raise InputError(f"solver.tau: must be >= 0, got {self.tau}")
         if not self.min_translation >= 0:
             raise InputError(f"solver.min_translation: must be >= 0, got {self.min_translation}")
-        try:  # a command line gives `inf` as a float, but `.inf` (YAML's spelling) as a string
-            margin = float(self.sky_horizon_margin_deg)
-        except (TypeError, ValueError):
-            margin = math.nan
-        if not margin >= 0:
-            raise InputError(f"solver.sky_horizon_margin_deg: degrees >= 0 (inf = off), got {self.sky_horizon_margin_deg!r}")
-        self.sky_horizon_margin_deg = margin
+        for k in ("sky_horizon_margin_deg", "ground_horizon_margin_deg"):
+            try:  # a command line gives `inf` as a float, but `.inf` (YAML's spelling) as a string
+                margin = float(getattr(self, k))
+            except (TypeError, ValueError):
+                margin = math.nan
+            if not margin >= 0:
+                raise InputError(f"solver.{k}: degrees >= 0 (inf = off), got {getattr(self, k)!r}")
+            setattr(self, k, margin)
         if not (isinstance(self.top_refine_rows, int) and self.top_refine_rows >= 0):
             raise InputError(f"solver.top_refine_rows: an integer >= 0 (0 = off), got {self.top_refine_rows!r}")
         if not (isinstance(self.top_refine_depth_ratio, (int, float)) and 1.0 <= self.top_refine_depth_ratio < math.inf):

@@ -929,12 +929,13 @@ std::vector<at::Tensor> geometry(const at::Tensor& K, const at::Tensor& KR, cons
   return {ray, a, s_g, s_o, q};
 }
 
-// Prefix-summed semantic cost (C, 10, n + 1) of every column (columns._semantic_prefix, in the
-// order of its torch ops): min(nll, alpha_L) * rows * delta_L per cell and class, plus extra[j] for
-// the sky class where `unseen` (if given), summed in double like torch.cumsum on the CPU.
+// Prefix-summed semantic cost (C, 10, n + 1) of every column (columns.semantic_prefix, in the
+// order of its torch ops): min(nll, alpha_L) * rows * delta_L per cell and class, plus extra[j] where
+// the cell's `unseen` bits (if given: 1 = no sky there, 2 = no ground there) meet the class's `rule`
+// bits, summed in double like torch.cumsum on the CPU.
 template <typename T>
 void semantic_prefix_impl(int64_t C, int64_t n, int64_t ncl, const T* nll, const T* rows, T alpha_L, T delta_L,
-                          const bool* unseen, const T* extra, int64_t sky, T* Lp) {
+                          const uint8_t* unseen, const T* extra, const uint8_t* rule, T* Lp) {
   at::parallel_for(0, C, 1, [&](int64_t c0, int64_t c1) {
     std::vector<double> acc(ncl);
     for (int64_t c = c0; c < c1; ++c) {
@@ -946,7 +947,7 @@ void semantic_prefix_impl(int64_t C, int64_t n, int64_t ncl, const T* nll, const
         for (int64_t k = 0; k < ncl; ++k) {
           const T m = alpha_L < x[k] ? alpha_L : x[k];  // torch.minimum (no NaN here)
           T e = m * rows[j] * delta_L;
-          if (k == sky && unseen != nullptr && unseen[c * n + j]) e = e + extra[j];
+          if (unseen != nullptr && (unseen[c * n + j] & rule[k])) e = e + extra[j];
           acc[k] += static_cast<double>(e);
           L[k * (n + 1) + j + 1] = static_cast<T>(acc[k]);
         }
@@ -957,18 +958,20 @@ void semantic_prefix_impl(int64_t C, int64_t n, int64_t ncl, const T* nll, const
 
 at::Tensor semantic_prefix(const at::Tensor& nll, const at::Tensor& rows, const at::Tensor& alpha_L,
                            const at::Tensor& delta_L, const c10::optional<at::Tensor>& unseen,
-                           const c10::optional<at::Tensor>& extra, int64_t sky) {
+                           const c10::optional<at::Tensor>& extra, const at::Tensor& rule) {
   const int64_t C = nll.size(0), n = nll.size(1), ncl = nll.size(2);
+  TORCH_CHECK(rule.numel() == ncl, "semantic_prefix: rule has ", rule.numel(), " entries for ", ncl, " classes");
   auto Lp = at::empty({C, ncl, n + 1}, nll.options());
-  const bool rule = unseen.has_value() && unseen->defined();
-  auto un = rule ? unseen->to(at::kBool).contiguous() : at::Tensor();
+  const bool has = unseen.has_value() && unseen->defined();
+  auto un = has ? unseen->to(at::kByte).contiguous() : at::Tensor();
+  auto ru = rule.to(at::kByte).contiguous();
   AT_DISPATCH_FLOATING_TYPES(nll.scalar_type(), "semantic_prefix", [&] {
     using T = scalar_t;
     auto nll_ = nll.contiguous(), rows_ = rows.to(nll.scalar_type()).contiguous();
-    auto ex = rule ? extra->to(nll.scalar_type()).contiguous() : at::Tensor();
+    auto ex = has ? extra->to(nll.scalar_type()).contiguous() : at::Tensor();
     semantic_prefix_impl<T>(C, n, ncl, nll_.data_ptr<T>(), rows_.data_ptr<T>(), alpha_L.item<T>(),
-                            delta_L.item<T>(), rule ? un.data_ptr<bool>() : nullptr,
-                            rule ? ex.data_ptr<T>() : nullptr, sky, Lp.data_ptr<T>());
+                            delta_L.item<T>(), has ? un.data_ptr<uint8_t>() : nullptr,
+                            has ? ex.data_ptr<T>() : nullptr, ru.data_ptr<uint8_t>(), Lp.data_ptr<T>());
   });
   return Lp;
 }
@@ -1067,7 +1070,7 @@ TORCH_LIBRARY(monostixels, m) {
   m.def("geometry(Tensor K, Tensor KR, Tensor n_g, Tensor n_obj, Tensor u, Tensor v, Tensor v_edge) -> Tensor[]");
   m.def(
       "semantic_prefix(Tensor nll, Tensor rows, Tensor alpha_L, Tensor delta_L, Tensor? unseen, Tensor? extra, "
-      "int sky) -> Tensor");
+      "Tensor rule) -> Tensor");
   m.def(
       "hypotheses(Tensor a, Tensor cK, Tensor s_g, Tensor s_o, Tensor q, Tensor u, Tensor v, Tensor flow, "
       "Tensor M, Tensor p_ref, Tensor degenerate, float p_min, float p_max, float eps, bool standing) -> Tensor[]");
