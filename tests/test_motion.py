@@ -760,3 +760,63 @@ def test_the_scene_model_checks_the_road_and_stands_in_where_it_gives_none():
     assert taken.kind == "metric" and taken.scale_from == "scene" and float(taken.motion.t.norm()) == pytest.approx(0.8)
     assert taken.scale_std == pytest.approx(0.05)
     assert with_scene_scale(unknown, SceneScale(0.8, 0.3, 40), t.numpy(), prm).kind == "scale_unknown"
+
+
+def _car_rays(R: np.ndarray, t: np.ndarray, n: int = 800, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Ray pairs (current, previous; (n, 3), z = 1) of static points 8-80 m ahead under ``X_prev = R X_cur + t``."""
+    rng = np.random.default_rng(seed)
+    X = np.stack([rng.uniform(-15, 15, n), rng.uniform(-4, 1.6, n), rng.uniform(8, 80, n)], 1)
+    Xp = X @ R.T + t
+    return X / X[:, 2:3], Xp / Xp[:, 2:3]
+
+
+def test_a_cars_motion_replaces_a_sideways_travel_that_explains_no_more():
+    """A car moves along its heading: its chord turns by half the yaw. A free estimate that travels sideways
+    (the lateral direction traded against the yaw) is refitted as a car's motion, which recovers the true
+    pose; one within the bound is left exactly as it is."""
+    from monostixels.inputs.motion import _as_car_motion
+    from monostixels.inputs.motion_base import MonoParams
+    from monostixels.inputs.epipolar import car_offsets_deg, sampson, skew
+
+    n_g = np.array([0.0, 1.0, 0.0])
+    yaw = math.radians(0.6)
+    R = _rot(0.6, 0.0, 0.0).numpy()
+    t = np.array([math.sin(yaw / 2), 0.02, math.cos(yaw / 2)])  # the chord, 1 deg of pitch on the car
+    t /= np.linalg.norm(t)
+    a, b = _car_rays(R, t)
+    fs = 0.5 / 720.0
+    params = MonoParams()
+    inl = np.ones(len(a), dtype=bool)
+    assert car_offsets_deg(R, t, n_g)[0] < 1e-9
+    # Within the bound: nothing changes (no refit).
+    R1, t1, inl1, note, unit = _as_car_motion(R, t, inl, n_g, a, b, fs, params)
+    assert R1 is R and t1 is t and inl1 is inl and note == "" and unit is None
+    # A sideways estimate: 80 deg off a car's travel, the yaw 1.5 deg off.
+    R_bad = _rot(2.1, 0.0, 0.0).numpy()
+    t_bad = np.array([0.985, 0.02, 0.17])
+    assert car_offsets_deg(R_bad, t_bad, n_g)[0] > 60
+    R2, t2, inl2, note, unit = _as_car_motion(R_bad, t_bad, inl, n_g, a, b, fs, params)
+    assert unit is None and "a car's motion" in note
+    assert math.degrees(math.acos(min(1.0, float(t2 @ t)))) < 0.1
+    assert np.abs(R2 - R).max() < 1e-4
+    assert inl2.mean() > 0.99 and np.abs(sampson(skew(t2) @ R2, a, b)).max() < fs
+    # Travelling 35 deg up off the road plane is no car's either (the bound: car_max_elevation_deg, 20).
+    t_up = np.array([0.0, -math.sin(math.radians(35)), math.cos(math.radians(35))])
+    assert car_offsets_deg(R, t_up, n_g)[1] > 34
+    R3, t3, _, note, unit = _as_car_motion(R, t_up, inl, n_g, a, b, fs, params)
+    assert unit is None and "off the road plane" in note
+    assert math.degrees(math.acos(min(1.0, float(t3 @ t)))) < 0.1
+
+
+def test_a_flow_that_fits_no_cars_motion_has_no_metric_length():
+    """A camera looking sideways from the car sees the travel as sideways: no car's motion explains its
+    flow, so the estimate keeps only a direction and reports no length (``scale_unknown``) instead of a
+    speed from a motion no car makes; with ``car_motion=false`` the free estimate stands."""
+    gt = Motion(R=_rot(0.1, 0.0, 0.0), t=torch.tensor([0.9, 0.0, 0.1], dtype=torch.float64))
+    pair, fr = _pair_and_flow(gt)
+    est = estimate_motion(pair, fr, MONO)
+    assert est.kind.value == "scale_unknown" and est.motion is None, est.reason
+    assert "fits no car's motion" in est.reason
+    free = estimate_motion(pair, fr, OmegaConf.create({"name": "mono", "car_motion": False}))
+    assert free.motion is not None and free.kind.value == "metric"
+    assert motion_errors(free.motion, gt)["trans_dir_err_deg"] < 0.1

@@ -1,16 +1,20 @@
 """Two-view geometry of the monocular camera motion (:mod:`monostixels.inputs.motion`, steps 2-3).
 
 The rotation-only fit that tells a standing or turning camera, the Sampson distance of ray pairs to an
-essential matrix, the nonlinear refinement of ``(R, t̂)`` and the cheirality test of the sign of ``t``.
+essential matrix, the nonlinear refinement of ``(R, t̂)`` (free, or as a car moves) and the cheirality
+test of the sign of ``t``.
 Convention: ``X_prev = R X_cur + t`` (docs/conventions.md, section 2); rays with ``z = 1``.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from monostixels.inputs.ground import rays
 
-__all__ = ["fit_rotation", "max_eigenvalue_at_most", "sampson", "skew", "refine_pose", "cheirality_sign"]
+__all__ = ["car_axes", "car_offsets_deg", "fit_rotation", "max_eigenvalue_at_most", "sampson", "skew", "refine_pose",
+           "refine_car_pose", "cheirality_sign"]
 
 
 def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -80,6 +84,64 @@ def refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_sc
         return sampson(skew(tx) @ Rx, a, b)
 
     sol = least_squares(fun, np.zeros(5), loss="soft_l1", f_scale=f_scale, method="trf", x_scale="jac")
+    return unpack(sol.x)
+
+
+def car_axes(n_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The forward and right axes (3,), (3,) of a car on the road plane with unit normal ``n_g`` (3,) (down):
+    the camera's ``z`` and ``n_g x z`` laid on the plane (:func:`monostixels.core.geometry.ground_basis`)."""
+    ez = np.array([0.0, 0.0, 1.0])
+    f = ez - float(ez @ n_g) * n_g
+    f = f / np.linalg.norm(f)
+    return f, np.cross(n_g, f)
+
+
+def _yaw(R: np.ndarray, n_g: np.ndarray) -> float:
+    """The rotation of ``R`` (3, 3) about the road normal ``n_g`` (radians): its rotation vector along ``n_g``."""
+    from scipy.spatial.transform import Rotation
+
+    return float(Rotation.from_matrix(R).as_rotvec() @ n_g)
+
+
+def car_offsets_deg(R: np.ndarray, t: np.ndarray, n_g: np.ndarray) -> tuple[float, float]:
+    """How far (degrees) the travel direction ``t`` (3,) lies from a car's on the road plane (normal ``n_g``,
+    down): ``(azimuth, elevation)``. A car moves along its heading, so between two frames its camera's
+    chord turns by half the yaw of ``R``: the azimuth (0-90) is the angle on the plane between the axis of
+    ``t`` and that chord (``t`` and ``-t`` alike: the sign is decided elsewhere); the elevation (0-90) the
+    angle between ``t`` and the plane."""
+    f, r = car_axes(n_g)
+    az = math.atan2(float(t @ r), float(t @ f)) - _yaw(R, n_g) / 2.0
+    az = abs((az + math.pi / 2) % math.pi - math.pi / 2)  # the axis: t and -t alike
+    el = math.asin(min(1.0, abs(float(t @ n_g)) / float(np.linalg.norm(t))))
+    return math.degrees(az), math.degrees(el)
+
+
+def refine_car_pose(R: np.ndarray, n_g: np.ndarray, a: np.ndarray, b: np.ndarray, f_scale: float,
+                    max_elevation_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t̂)`` of a camera on a car (Sampson distance, soft-L1, over ray pairs ``a``, ``b`` (N, 3)), from
+    the rotation ``R``: the translation is the car's chord, its heading (``car_axes``) turned by half the
+    yaw of the rotation, lifted off the road plane by at most ``max_elevation_deg`` (the camera's pitch on
+    the car and the road's grade). Four degrees of freedom where the free pose has five: the one taken away
+    is the lateral direction, which trades against the yaw where the parallax is small (Scaramuzza et al.,
+    ICRA 2009)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    f, r = car_axes(n_g)
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Rx = Rotation.from_rotvec(x[:3]).as_matrix() @ R
+        h = _yaw(Rx, n_g) / 2.0
+        tx = math.cos(h) * f + math.sin(h) * r + x[3] * n_g
+        return Rx, tx / np.linalg.norm(tx)
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        Rx, tx = unpack(x)
+        return sampson(skew(tx) @ Rx, a, b)
+
+    e = math.tan(math.radians(max_elevation_deg))
+    lo, hi = np.array([-np.inf, -np.inf, -np.inf, -e]), np.array([np.inf, np.inf, np.inf, e])
+    sol = least_squares(fun, np.zeros(4), loss="soft_l1", f_scale=f_scale, method="trf", x_scale="jac", bounds=(lo, hi))
     return unpack(sol.x)
 
 

@@ -92,8 +92,8 @@ from monostixels.core.geometry import Motion, angle_deg
 from monostixels.inputs.ground import (PATTERN_MAX_GAIN, ROAD_CLASS, fit_ground, ground_candidates, ground_system,
                                        photometric_ground, photometric_inputs, rays, road_sign_votes, tilt_deg,
                                        ROAD_SIGN_SHARE)
-from monostixels.inputs.epipolar import (cheirality_sign, fit_rotation, max_eigenvalue_at_most, refine_pose,
-                                         sampson, skew)
+from monostixels.inputs.epipolar import (car_offsets_deg, cheirality_sign, fit_rotation, max_eigenvalue_at_most,
+                                         refine_car_pose, refine_pose, sampson, skew)
 from monostixels.inputs.motion_base import (MIN_TRANSLATION_M, MOTION_BACKENDS, MOTION_KINDS, NO_METRIC_MOTION,
                                             ROAD_SCALES, FileMotionConfig, GtMotionConfig, MonoParams, MotionEstimate,
                                             MotionKind, ScaleFrom)
@@ -408,6 +408,43 @@ def travel_normal(n_g: np.ndarray, t: np.ndarray) -> np.ndarray:
     return n / q if q > 1e-9 else n_g  # t along the normal: no plane to turn into
 
 
+def _off_a_car(R: np.ndarray, t: np.ndarray, n_g: np.ndarray, params: MonoParams) -> str:
+    """Why the travel direction ``t`` is not a car's (""; within ``car_max_azimuth_deg`` of its chord on the
+    road plane and within ``car_max_elevation_deg`` of that plane, :func:`car_offsets_deg`)."""
+    az, el = car_offsets_deg(R, t, n_g)
+    if az > params.car_max_azimuth_deg:
+        return f"{az:.0f} deg off a car's direction on the road"
+    if el > params.car_max_elevation_deg:
+        return f"{el:.0f} deg off the road plane"
+    return ""
+
+
+def _as_car_motion(R: np.ndarray, t: np.ndarray, inl: np.ndarray, n_g: np.ndarray, a: np.ndarray, b: np.ndarray,
+                   f_scale: float, params: MonoParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, Motion | None]:
+    """The essential matrix's ``(R, t̂)`` and inliers ``inl`` (N,) held against a car's motion (``params.car_motion``).
+
+    Returns ``(R, t̂, inliers, note, unit)``: the pose unchanged and ``note`` empty where ``t̂`` is a car's
+    (:func:`_off_a_car`); the car's pose (:func:`refine_car_pose`) and its inliers where it explains at
+    least ``car_min_inlier_share`` of the free one's; else ``unit``, the car's pose as a unit motion
+    whose length is unknown (the flow fits no car: movers fill it, or the camera is not looking ahead).
+    """
+    off = _off_a_car(R, t, n_g, params)
+    if not off:
+        return R, t, inl, "", None
+    Rc, tc = refine_car_pose(R, n_g, a[inl], b[inl], f_scale, params.car_max_elevation_deg)
+    inl_c = np.abs(sampson(skew(tc) @ Rc, a, b)) < f_scale
+    share = float(inl_c.sum()) / max(int(inl.sum()), 1)
+    # The sign the points in front of both cameras give (the road's vote, step 3b, may still reverse it).
+    tc = tc * cheirality_sign(Rc, tc, a[inl_c], b[inl_c])
+    if share >= params.car_min_inlier_share and inl_c.sum() >= params.min_points:
+        return Rc, tc, inl_c, (f"travel direction {off}: a car's motion "
+                               f"({int(inl_c.sum())} inliers, {share:.2f} of the free estimate's)"), None
+    note = (f"the flow fits no car's motion: the free estimate travels {off}, and a car's motion explains "
+            f"{share:.2f} of its inliers (< {params.car_min_inlier_share})")
+    unit = Motion(torch.from_numpy(np.ascontiguousarray(Rc)), torch.from_numpy(np.ascontiguousarray(tc)))
+    return Rc, tc, inl_c, note, unit
+
+
 def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: MonoParams, rng: np.random.Generator,
                        H: int, W: int, ok: np.ndarray, labels: np.ndarray | None, idx: np.ndarray, p_cur: np.ndarray,
                        p_prev: np.ndarray, road: bool, prep: Any, pred: _Prediction | None = None) -> MotionEstimate:
@@ -466,6 +503,14 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
         if inl.sum() < params.min_points:
             return MotionEstimate(None, False, f"essential matrix: only {int(inl.sum())} inliers after refinement",
                                   float(inl.mean()), kind=MotionKind.UNKNOWN)
+    car_note = ""
+    if params.car_motion:
+        # 3a. A car moves along its heading. Where the parallax is small the lateral direction trades against
+        # the yaw, and the free estimate can travel sideways (docs/experiments.md, "A car's motion").
+        R, t, inl, car_note, unit = _as_car_motion(R, t, inl, n_g, a_all, b_all, f_scale, params)
+        if unit is not None:
+            return MotionEstimate(None, False, f"no metric scale: {car_note}", float(inl.mean()),
+                                  kind=MotionKind.SCALE_UNKNOWN, unit_motion=unit)
     inlier_ratio = float(inl.mean())
 
     # 3b. The sign of t from the road. The epipolar constraint holds for -t as well, and the cheirality
@@ -484,6 +529,8 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             f"median parallax {parallax:.1f} px")
     if flipped:
         head += f", direction reversed by the road ({road_votes[1]} of its {road_votes[2]} vectors against {road_votes[0]})"
+    if car_note:
+        head += f", {car_note}"
     src = "road pixels" if road else "road region ahead"
     failures = []
     found = None
@@ -520,8 +567,13 @@ def _mono_from_vectors(Kn: np.ndarray, n_g: np.ndarray, height: float, params: M
             # Its own generator: the ground-flow RANSAC draws the same numbers with or without it.
             marks = road_marks_scale(grey_cur, grey_prev, Kn, R, t, n_g, height, pts, np.random.default_rng(params.seed),
                                      start=pred.scale if warm else None)
+            off = _off_a_car(R, marks.t, n_g, params) if marks is not None and params.car_motion else ""
             if marks is None:
                 failures.insert(marks_note_at, f"road marks: no clear alignment over {pixels})")
+            elif off:
+                # The marks turn the travel direction; not into one no car takes.
+                failures.insert(marks_note_at, f"road marks: their travel direction {off}")
+                marks = None
         return marks
 
     # The flow of the ground: the corridor ahead first; with road labels, the whole road if a

@@ -111,6 +111,20 @@ class MonoParams:
         road_marks: without a sharp photometric minimum, the scale and travel direction from the road's
             marks (:mod:`monostixels.inputs.road_marks`) where the flow of the ground gives none or
             one well short of theirs (:data:`FLOW_SHORT_RATIO`).
+        car_motion: the camera rides a car, which moves along its heading on the road: an essential matrix
+            whose travel direction lies more than ``car_max_azimuth_deg`` off a car's on the road plane (its
+            heading turned by half the yaw) or more than ``car_max_elevation_deg`` off that plane
+            (:func:`~monostixels.inputs.epipolar.car_offsets_deg`) is refitted as a car's motion
+            (:func:`~monostixels.inputs.epipolar.refine_car_pose`), and the car's replaces it where it
+            explains at least ``car_min_inlier_share`` of the vectors the free one explains; otherwise the
+            flow fits no car's motion (crossing traffic or wipers before a standing camera, a camera looking
+            sideways) and only the car's direction is kept, its length unknown (``scale_unknown``). The road
+            marks' direction (``road_marks``) is held to the same bounds.
+        car_max_azimuth_deg: the most degrees between the travel direction and a car's on the road plane
+            (the camera's yaw on the car, and the yaw's error).
+        car_max_elevation_deg: the most degrees between the travel direction and the configured road plane
+            (the camera's pitch on the car: a phone on a windscreen may look down by 10-15 degrees).
+        car_min_inlier_share: the share of the free estimate's inliers a car's motion must explain to replace it.
         seed: RNG seed of the subsampling and RANSAC.
     """
 
@@ -131,6 +145,10 @@ class MonoParams:
     road_marks: bool = True
     scene_scale: bool = True
     kerb_height: float = 0.15
+    car_motion: bool = True
+    car_max_azimuth_deg: float = 10.0
+    car_max_elevation_deg: float = 20.0
+    car_min_inlier_share: float = 0.8
     seed: int = 0
 
 
