@@ -40,6 +40,7 @@ from monostixels.inputs.motion import (NO_METRIC_MOTION, MotionEstimate, MotionK
                                       implied_height)
 from monostixels.inputs.motion_track import MonoMotionConfig, MotionTrack
 from monostixels.inputs.semantic import estimate_semantics
+from monostixels.post.cut_off import stand_cut_off
 from monostixels.post.movers import MoverCheckParams, check_movers, settle_receding, static_only
 from monostixels.core.solver import SolverConfig, solve
 from monostixels.data.static_regions import crop_ignored
@@ -411,6 +412,10 @@ class Pipeline:
             # Static objects whose flow puts them behind the camera pull away: their depth is the scene model's.
             stixels = settle_receding(stixels, flow.flow, motion.motion, float(pair.camera.height))
             sec["movers"] = time.perf_counter() - t0
+        if self.mover_check.cut_off_contacts > 0 and not motion.degenerate and motion.motion is not None:
+            # Movers whose contact is below the image stand on their object's visible contacts (monostixels.post.cut_off).
+            stixels = stand_cut_off(stixels, motion.motion, self.mover_check.cut_off_contacts,
+                                    self.mover_check.cut_off_max_rms_m, self.mover_check.cut_off_max_jump)
         if self.solver_cfg.top_refine_rows and semantic is not None:
             # Moving objects' tops from cell edges to pixel rows (monostixels.post.boundaries).
             t0 = time.perf_counter()

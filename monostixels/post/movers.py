@@ -82,6 +82,11 @@ class MoverCheckParams:
         min_pixels: fewest pixels with a valid triangulation for a decision.
         min_depth, max_depth: triangulated depths outside this range (metres) do not vote (at an uncertain
             length nothing is triangulated: the epipolar distance decides).
+        cut_off_contacts, cut_off_max_rms_m, cut_off_max_jump: dynamic stixels cut off by the image's lower
+            edge stand on the line of their object's visible contacts (:func:`monostixels.post.cut_off.stand_cut_off`;
+            applied by the pipeline after the check, also where ``enabled`` is false): at most this many
+            contact columns on each side (0 = off), their most RMS distance from their line (m), the most
+            relative depth change between neighbouring contacts of one object.
 
     The defaults are the shipped check (the schema of the config group ``movers``); the purely
     geometric check is ``keep_classes=()``, ``max_dynamic_residual_ratio=inf``,
@@ -104,6 +109,10 @@ class MoverCheckParams:
     # Pedestrians and riders move too slowly (0.1-0.2 m per frame) for the check to tell them from standing still.
     keep_classes: tuple[str, ...] = ("person", "two_wheeler")
     contact_sliver_rows: float = 12.0
+    # Round values set before the traffic drive was scored with them (docs/experiments.md, "Movers cut off by the image's edge").
+    cut_off_contacts: int = 8
+    cut_off_max_rms_m: float = 0.25
+    cut_off_max_jump: float = 0.15
 
     def __post_init__(self) -> None:
         if isinstance(self.keep_classes, str):
