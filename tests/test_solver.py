@@ -290,23 +290,30 @@ def test_image_sizes_not_multiple_of_cells():
     assert bool((st.index_map() >= 0).all())
 
 
-def test_no_sky_far_below_the_horizon():
-    """Where the flow fails everywhere and the net reads the lower rows as sky (bright road), the sky
-    no longer reaches down there: more than ``sky_horizon_margin_deg`` below the horizon it pays both
-    caps. Off (``.inf``), the net's score decides and the bottom of the column is sky."""
+def _flow_fails(horizon_row: float, first: int, second: int):
+    """A 40 x 10 image where no type fits the flow (noise of 40 px), the horizon at ``horizon_row``, and
+    the net's scores: class ``first`` 0.6 everywhere, ``second`` 0.31. Returns the solver's inputs but
+    its config and the rows' angle to the horizon (degrees, positive below)."""
     H, W = 40, 10
-    K = intrinsics(50.0, 50.0, 4.5, 5.0)
+    K = intrinsics(50.0, 50.0, 4.5, horizon_row)
     cam = Camera(K, height=1.5)
     mot = Motion(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
     g = torch.Generator().manual_seed(0)
     flow = 40.0 * torch.randn(2, H, W, generator=g, dtype=torch.float64)  # no type fits it
     cov = torch.eye(2, dtype=torch.float64).expand(H, W, 2, 2).clone()
     scores = torch.full((10, H, W), 0.01, dtype=torch.float64)
-    scores[9] = 0.6
-    scores[0] = 0.31  # road second
-    prm = PriorParams.from_yaml()
-    rows_below = torch.arange(H, dtype=torch.float64) - 5.0
-    deep = rows_below / 50.0 > math.tan(math.radians(5.0))  # rows more than 5 deg below the horizon
+    scores[first] = 0.6
+    scores[second] = 0.31
+    below_deg = torch.rad2deg(torch.atan((torch.arange(H, dtype=torch.float64) - horizon_row) / 50.0))
+    return flow, cov, scores, cam, mot, PriorParams.from_yaml(), below_deg
+
+
+def test_no_sky_far_below_the_horizon():
+    """Where the flow fails everywhere and the net reads the lower rows as sky (bright road), the sky
+    no longer reaches down there: more than ``sky_horizon_margin_deg`` below the horizon it pays both
+    caps. Off (``.inf``), the net's score decides and the bottom of the column is sky."""
+    flow, cov, scores, cam, mot, prm, below_deg = _flow_fails(5.0, 9, 0)  # sky (class 9) first, road second
+    deep = below_deg > 5.0  # rows more than 5 deg below the horizon
     for margin, sky_deep in ((5.0, False), (math.inf, True)):
         cfg = SolverConfig.from_yaml(column_width=5, cell_rows=2, dtype="float64", sky_horizon_margin_deg=margin)
         st = solve(flow, cov, scores, cam, mot, prm, cfg)
@@ -323,19 +330,8 @@ def test_no_ground_far_above_the_horizon():
     on it. Where the net reads it as road, ground no longer reaches more than
     ``ground_horizon_margin_deg`` above the horizon, where its depth would be negative: there it pays
     both caps and the sky (the net's second class) wins. Off (``.inf``), the net's score decides."""
-    H, W = 40, 10
-    K = intrinsics(50.0, 50.0, 4.5, 30.0)  # horizon at row 30
-    cam = Camera(K, height=1.5)
-    mot = Motion(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-    g = torch.Generator().manual_seed(0)
-    flow = 40.0 * torch.randn(2, H, W, generator=g, dtype=torch.float64)  # no type fits it
-    cov = torch.eye(2, dtype=torch.float64).expand(H, W, 2, 2).clone()
-    scores = torch.full((10, H, W), 0.01, dtype=torch.float64)
-    scores[0] = 0.6
-    scores[9] = 0.31  # sky second
-    prm = PriorParams.from_yaml()
-    rows_above = 30.0 - torch.arange(H, dtype=torch.float64)
-    high = rows_above / 50.0 > math.tan(math.radians(5.0))  # rows more than 5 deg above the horizon
+    flow, cov, scores, cam, mot, prm, below_deg = _flow_fails(30.0, 0, 9)  # road first, sky (class 9) second
+    high = below_deg < -5.0  # rows more than 5 deg above the horizon
     for margin, ground_high in ((5.0, False), (math.inf, True)):
         cfg = SolverConfig.from_yaml(column_width=5, cell_rows=2, dtype="float64", ground_horizon_margin_deg=margin)
         st = solve(flow, cov, scores, cam, mot, prm, cfg)
