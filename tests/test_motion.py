@@ -806,6 +806,9 @@ def test_a_cars_motion_replaces_a_sideways_travel_that_explains_no_more():
     R3, t3, _, note, unit = _as_car_motion(R, t_up, inl, n_g, a, b, fs, params)
     assert unit is None and "off the road plane" in note
     assert math.degrees(math.acos(min(1.0, float(t3 @ t)))) < 0.1
+    for bad in ({"car_max_azimuth_deg": -1.0}, {"car_max_elevation_deg": 91.0}, {"car_min_inlier_share": 0.0}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            MonoParams(**bad)
 
 
 def test_a_flow_that_fits_no_cars_motion_has_no_metric_length():

@@ -13,6 +13,7 @@ from typing import List, Optional
 import torch
 from omegaconf import MISSING
 
+from monostixels._checks import InputError
 from monostixels.core.geometry import Motion
 from monostixels.core.status import MotionKind, ScaleFrom
 
@@ -150,6 +151,14 @@ class MonoParams:
     car_max_elevation_deg: float = 20.0
     car_min_inlier_share: float = 0.8
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for k in ("car_max_azimuth_deg", "car_max_elevation_deg"):
+            v = getattr(self, k)
+            if not 0.0 <= v <= 90.0:
+                raise InputError(f"motion.{k}: degrees in [0, 90], got {v!r}")
+        if not 0.0 < self.car_min_inlier_share <= 1.0:
+            raise InputError(f"motion.car_min_inlier_share: a share in (0, 1], got {self.car_min_inlier_share!r}")
 
 
 @dataclass
