@@ -3,12 +3,15 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
+from monostixels._checks import InputError
 from monostixels.core.classes import CLASS_NAMES, DYNAMIC_OBJECT, GROUND, SKY, STATIC_OBJECT
 from monostixels.core.geometry import Motion, dynamic_motion, ground_basis
 from monostixels.core.stixels import StixelWorld
 from monostixels.post.cut_off import stand_cut_off
+from monostixels.post.movers import MoverCheckParams
 
 H, W, WS = 90, 300, 5
 F, CX, CY, HEIGHT = 300.0, 149.5, 30.0, 1.5
@@ -95,3 +98,9 @@ def test_contacts_of_another_object_are_not_taken():
     for c, d_true in truth.items():
         base = torch.nonzero(world.column == c).flatten()[0]
         assert abs(float(1.0 / out.inverse_depth[base]) / d_true - 1) < 1e-6
+
+
+def test_bad_cut_off_settings_are_named():
+    for bad in ({"cut_off_contacts": -1}, {"cut_off_max_rms_m": 0.0}, {"cut_off_max_jump": -0.1}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            MoverCheckParams(**bad)

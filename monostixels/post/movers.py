@@ -121,6 +121,11 @@ class MoverCheckParams:
         unknown = [c for c in self.keep_classes if c not in CLASS_NAMES]
         if unknown:
             raise InputError(f"movers.keep_classes: unknown class name(s) {unknown}; known: {list(CLASS_NAMES)}")
+        if not (isinstance(self.cut_off_contacts, int) and self.cut_off_contacts >= 0):
+            raise InputError(f"movers.cut_off_contacts: an integer >= 0 (0 = off), got {self.cut_off_contacts!r}")
+        for k in ("cut_off_max_rms_m", "cut_off_max_jump"):
+            if not getattr(self, k) > 0:
+                raise InputError(f"movers.{k}: a number > 0, got {getattr(self, k)!r}")
 
 
 def check_movers(stixels: StixelWorld, flow: torch.Tensor, motion: Motion, point_depth: torch.Tensor | None = None,
