@@ -10,7 +10,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
+from monostixels.core.geometry import ground_basis
 from monostixels.inputs.ground import rays
 
 __all__ = ["car_axes", "car_offsets_deg", "fit_rotation", "max_eigenvalue_at_most", "sampson", "skew", "refine_pose",
@@ -90,10 +92,8 @@ def refine_pose(R: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, f_sc
 def car_axes(n_g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The forward and right axes (3,), (3,) of a car on the road plane with unit normal ``n_g`` (3,) (down):
     the camera's ``z`` and ``n_g x z`` laid on the plane (:func:`monostixels.core.geometry.ground_basis`)."""
-    ez = np.array([0.0, 0.0, 1.0])
-    f = ez - float(ez @ n_g) * n_g
-    f = f / np.linalg.norm(f)
-    return f, np.cross(n_g, f)
+    B = ground_basis(torch.from_numpy(np.asarray(n_g, dtype=np.float64))).numpy()
+    return B[:, 1], B[:, 0]
 
 
 def _yaw(R: np.ndarray, n_g: np.ndarray) -> float:
