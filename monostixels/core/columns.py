@@ -416,16 +416,11 @@ def flow_prefix(prob: ColumnProblem, hyp: _Hypotheses, prm: PriorParams,
 
 
 
-def _sky_unseen(geo: _Geometry, margin_deg: float) -> torch.Tensor:
-    """(C, n) cells whose ray points more than ``margin_deg`` below the horizon of the road plane."""
+def _past_horizon(geo: _Geometry, margin_deg: float, side: float) -> torch.Tensor:
+    """(C, n) cells whose ray points more than ``margin_deg`` below (``side`` +1) or above (-1) the horizon of
+    the road plane."""
     sin_below = geo.s_g / geo.ray.norm(dim=-1)
-    return sin_below > math.sin(math.radians(margin_deg))
-
-
-def _ground_unseen(geo: _Geometry, margin_deg: float) -> torch.Tensor:
-    """(C, n) cells whose ray points more than ``margin_deg`` above the horizon of the road plane."""
-    sin_above = -geo.s_g / geo.ray.norm(dim=-1)
-    return sin_above > math.sin(math.radians(margin_deg))
+    return side * sin_below > math.sin(math.radians(margin_deg))
 
 
 def semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky_margin_deg: float = math.inf,
@@ -451,9 +446,9 @@ def semantic_prefix(prob: ColumnProblem, prm: PriorParams, dt: torch.dtype, sky_
             geo = column_geometry(prob) if geo is None else geo
             unseen = torch.zeros(C, n, dtype=torch.uint8)
             if math.isfinite(sky_margin_deg):
-                unseen |= _sky_unseen(geo, sky_margin_deg).to(torch.uint8) * _UNSEEN_SKY
+                unseen |= _past_horizon(geo, sky_margin_deg, 1.0).to(torch.uint8) * _UNSEEN_SKY
             if math.isfinite(ground_margin_deg):
-                unseen |= _ground_unseen(geo, ground_margin_deg).to(torch.uint8) * _UNSEEN_GROUND
+                unseen |= _past_horizon(geo, ground_margin_deg, -1.0).to(torch.uint8) * _UNSEEN_GROUND
             extra = (prm.alpha_F * prm.delta_F + prm.alpha_L * prm.delta_L) * prob.rows[None, :]
         if cpp:  # the same expressions and sums, one pass (csrc/column_dp.cpp; tests/test_solver_fast.py)
             Lp = _dp_cpp.semantic_prefix(prob.nll, prob.rows, prm.alpha_L, prm.delta_L, unseen,
