@@ -41,6 +41,7 @@ __all__ = [
     "solve_dynamic_dof",
     "depth_on_ground",
     "dynamic_motion",
+    "stixel_motion",
     "ray_plane_depth",
     "rotation_yaw",
 ]
@@ -275,6 +276,15 @@ def depth_on_ground(
 def dynamic_motion(R: torch.Tensor, t: torch.Tensor, g: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Metric motion ``Δ`` (..., 3) of a dynamic stixel from ``g = p (t - R Δ)``: ``Δ = R^T (t - g / p)``."""
     return (R.transpose(-1, -2) @ (t - g / p[..., None])[..., None])[..., 0]
+
+
+def stixel_motion(tau: torch.Tensor, p: torch.Tensor, n_g: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Metric motion ``Δ`` (n, 3) of dynamic stixels from their ``(t̃x, t̃y)`` ``tau`` (n, 2) and inverse depths
+    ``p`` (n,), on the road plane of normal ``n_g`` (3,), the camera moving by ``R`` (3, 3), ``t`` (3,) (float64):
+    ``g = B tau`` (:func:`ground_basis`), then :func:`dynamic_motion`."""
+    g = tau.double() @ ground_basis(n_g.double()).T
+    R, t = R.double(), t.double()
+    return dynamic_motion(R.expand(g.shape[0], 3, 3), t.expand_as(g), g, p.double())
 
 
 def ray_plane_depth(K: torch.Tensor, u: torch.Tensor, v: torch.Tensor, n: torch.Tensor, p: torch.Tensor) -> torch.Tensor:

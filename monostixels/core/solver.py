@@ -52,7 +52,7 @@ from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, NUM_CLASSES, NUM_TY
 from monostixels.core.columns import (Z_MIN, ColumnProblem, column_geometry, cpp_prep, flow_geometry, flow_prefix, hypotheses,
                                       prepare_columns, semantic_prefix)
 from monostixels.core.energy import GRAVITY_TOLERANCE_M, PriorParams, gravity, ordering_from_depths
-from monostixels.core.geometry import Camera, Motion, dynamic_motion, ground_basis
+from monostixels.core.geometry import Camera, Motion, stixel_motion
 from monostixels.core.solver_config import SolverConfig
 from monostixels.core.stixels import StixelWorld
 from monostixels.core.status import FrameStatus, MotionStatus
@@ -419,10 +419,7 @@ def _to_worlds(prob: ColumnProblem, sol: ColumnSolution, cameras, motions, cfg: 
         motion = torch.zeros(int(m.sum()), 3, dtype=torch.float64)
         dyn = typ == DYNAMIC_OBJECT
         if bool(dyn.any()):
-            Bm = ground_basis(cameras[f].ground_normal.double())
-            g = tau[dyn].double() @ Bm.T
-            Rm, tm = motions[f].R.double(), motions[f].t.double()
-            motion[dyn] = dynamic_motion(Rm.expand(g.shape[0], 3, 3), tm.expand_as(g), g, p[dyn].double())
+            motion[dyn] = stixel_motion(tau[dyn], p[dyn], cameras[f].ground_normal, motions[f].R, motions[f].t)
         status = FrameStatus(motion=MotionStatus(degenerate=bool(prob.degenerate[f * C])))
         if status.motion.degenerate:
             status.motion.reason = (f"camera translation {motions[f].translation_norm:.3f} m < solver.min_translation "

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.core.geometry import Motion, dynamic_motion, ground_basis, object_normals
+from monostixels.core.geometry import Motion, ground_basis, object_normals, stixel_motion
 from monostixels.core.stixels import StixelWorld
 
 __all__ = ["stand_cut_off"]
@@ -140,8 +140,6 @@ def stand_cut_off(stixels: StixelWorld, motion: Motion, contacts: int = 8, max_r
     inv = stixels.inverse_depth.clone()
     inv[idx] = torch.from_numpy(p_new[moved]).to(inv.dtype)
     delta = stixels.motion.clone()
-    g = stixels.tau[idx].double() @ ground_basis(n_g).T
-    R, t = motion.R.double(), motion.t.double()
-    delta[idx] = dynamic_motion(R.expand(len(moved), 3, 3), t.expand_as(g), g, inv[idx].double()).to(delta.dtype)
+    delta[idx] = stixel_motion(stixels.tau[idx], inv[idx], n_g, motion.R, motion.t).to(delta.dtype)
     logger.debug("%d dynamic stixels cut off by the lower edge stand on their object's contacts", moved.size)
     return dataclasses.replace(stixels, inverse_depth=inv, motion=delta)

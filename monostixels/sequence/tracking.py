@@ -40,7 +40,7 @@ import torch
 
 from monostixels._checks import InputError
 from monostixels.core.classes import DYNAMIC_OBJECT, GROUND, STATIC_OBJECT
-from monostixels.core.geometry import Motion, ground_basis, pixel_rays
+from monostixels.core.geometry import Motion, pixel_rays, stixel_motion
 from monostixels.core.stixels import StixelWorld, neighbours, segment_lower_median
 
 
@@ -493,9 +493,7 @@ class Tracks:
         lam = ((a * b).sum(1) / (a * a).sum(1).clamp_min(1e-12)).clamp(0.5, 2.0)  # at most a factor 2 off
         n = world.normals()[rows]
         p_track = 1.0 / ((lam[:, None] * X_cam[rows]) * n).sum(1).clamp_min(1e-3)
-        R, t = motion.R.double(), motion.t.double()
-        g = world.tau.double()[rows] @ ground_basis(world.ground_normal.double()).T  # (n, 3): B tau
-        delta = (t[None] - g / p_track[:, None]) @ R  # R^T (t - g / p) as rows
+        delta = stixel_motion(world.tau[rows], p_track, world.ground_normal, motion.R, motion.t)
         out = vel_meas.clone()
         out[rows] = delta @ Rwc.T / max(dt_pair, 1e-6)
         if self.params.group_depth_ratio > 0:
