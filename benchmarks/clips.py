@@ -23,7 +23,8 @@ Columns of the table (the JSON holds the same per clip, ``clips.<name>``, and ev
 - ``motion m/s/su/u``: pairs whose ``flags.camera_motion`` is ``metric`` / ``standing`` / ``scale_unknown``
   / ``unknown``; ``standing``: the share of pairs flagged ``standing``;
 - ``scale from``: pairs per ``flags.scale_from`` (``-`` where the flag is absent);
-- ``speed m/s``: the camera speed ``|t| / dt`` over the metric pairs, median [min, max];
+- ``speed m/s``: the camera speed ``|t| / dt`` over the metric pairs whose scale is certain
+  (``flags.scale_uncertain`` false, as in the run's summary), median [min, max];
 - ``scale std``: the median of ``flags.scale_std`` (the scale's relative uncertainty), ``-`` where no pair
   has it;
 - ``false movers %``: per frame, the image share of stixels typed ``dynamic_object`` outside the referee's
@@ -191,7 +192,7 @@ class FrameScore:
 
     Attributes:
         pair: the pair's name. camera_motion, scale_from, scale_std: its flags (``scale_std`` relative).
-        speed_mps: ``|t| / dt`` of a metric pair, m/s. failed: no result (the motion failed).
+        speed_mps: ``|t| / dt`` of a metric pair of a certain scale, m/s. failed: no result (the motion failed).
         false_mover_share: image share of moving stixels off the referee's movers.
         ttc_warnings: warning stixels. ttc_off_referee: warning stixels with a pixel off the referee's movers.
     """
@@ -228,7 +229,7 @@ def _score(step: SequenceStep, classes: Callable[[Any], np.ndarray] | None, kern
     kind = st.flags.get("camera_motion", "metric")
     score = FrameScore(step.pair.name, kind, st.flags.get("scale_from"), st.flags.get("scale_std"),
                        ttc_warnings=int(st.ttc_warning.sum()) if st.ttc_warning is not None else 0)
-    if kind == "metric":
+    if kind == "metric" and not st.flags.get("scale_uncertain"):
         score.speed_mps = float(res.motion.motion.translation_norm / st.pair_info["dt_s"])
     if classes is not None:
         referee = classes(step.pair)

@@ -12,9 +12,11 @@ No ground truth exists for a user's dashcam footage; these numbers need none:
   15 px), the mean over frames; without ``--referee`` it is not measured; ``false_mover_rows``: the same
   share split by tenths of the image height, top to bottom (they sum to ``false_mover_share``: where
   the false movers lie, e.g. the near road at the bottom, whose flow fails at highway speed);
-- ``speed_mps``: the camera speed ``|t| / dt`` of each pair with a metric motion, its ``speed_mean_mps`` and
-  coefficient of variation ``speed_cv`` (a highway: 15-40 m/s, steady). The shared clip's dashes give a
-  yardstick: 12 frames per 12.19 m dash period at 25 fps, about 25 m/s.
+- ``speed_mps``: the camera speed ``|t| / dt`` of each pair with a metric motion whose scale is certain
+  (``flags.scale_uncertain`` false; ``scale_uncertain`` counts the others), its ``speed_mean_mps``,
+  coefficient of variation ``speed_cv``, ``speed_median_mps`` and ``speed_range_mps`` (a highway: 15-40 m/s,
+  steady). The shared clip's dashes give a yardstick: 12 frames per 12.19 m dash period at 25 fps, about
+  25 m/s.
 
 Command (repository root; about 2 minutes for 40 pairs on 2 cores, the referee most of it)::
 
@@ -43,7 +45,7 @@ from monostixels.build import Purpose, build
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import load_config
 
-__all__ = ["false_movers", "measure", "main"]
+__all__ = ["false_movers", "measure", "add_report_arguments", "write_report", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -101,7 +103,7 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
                                "degenerate_motion": bool(st.flags.get("degenerate_motion", False)),
                                "ttc_warnings": int(st.ttc_warning.sum()) if st.ttc_warning is not None else 0,
                                "speed_mps": None}
-        if kind == "metric":
+        if kind == "metric" and not st.flags.get("scale_uncertain"):
             row["speed_mps"] = float(step.result.motion.motion.translation_norm / st.pair_info["dt_s"])
         if classes is not None:
             idx = st.index_map()
@@ -118,6 +120,9 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
         "ttc_warnings": sum(r["ttc_warnings"] for r in rows),
         "speed_mean_mps": float(speeds.mean()) if len(speeds) else None,
         "speed_cv": float(speeds.std() / speeds.mean()) if len(speeds) > 1 else None,
+        "speed_median_mps": float(np.median(speeds)) if len(speeds) else None,
+        "speed_range_mps": [float(speeds.min()), float(speeds.max())] if len(speeds) else None,
+        "scale_uncertain": sum(1 for r in rows if r["camera_motion"] == "metric" and r["speed_mps"] is None),
         "overrides": overrides,
         "per_pair": rows,
     }
@@ -127,20 +132,28 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
     return report
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_report_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options every dashcam-style benchmark takes: ``--json``, ``--referee`` and the run overrides."""
     ap.add_argument("--json", type=Path, help="write the report here")
     ap.add_argument("--referee", help="a Cityscapes ONNX model whose vehicles and persons referee the movers")
     ap.add_argument("overrides", nargs="*", help="monostixels run overrides (key=value)")
+
+
+def write_report(rep: dict[str, Any], path: Path | None) -> None:
+    """Print the report without its pairs, and write all of it to ``path`` (JSON) where given."""
+    print(json.dumps({k: v for k, v in rep.items() if k != "per_pair"}, indent=2))
+    if path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(rep, indent=2))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_report_arguments(ap)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
-    rep = measure(args.overrides, args.referee)
-    head = {k: v for k, v in rep.items() if k != "per_pair"}
-    print(json.dumps(head, indent=2))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rep, indent=2))
+    write_report(measure(args.overrides, args.referee), args.json)
 
 
 if __name__ == "__main__":

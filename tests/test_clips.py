@@ -55,6 +55,10 @@ def test_a_dynamic_stixel_off_the_referees_vehicle_is_a_false_mover_and_a_warnin
     referee[0:10, 0:4] = VEHICLE  # now the mover is on the car and the warning on nothing the referee knows
     off_car = _score(_step(_world([False, False, False, True])), lambda pair: referee, kernel)
     assert off_car.false_mover_share == 0.0 and off_car.ttc_off_referee == 1
+    # A pair whose scale is too uncertain to tell movers has no speed in the row (as in the run's summary).
+    unsure = _world([False] * 4)
+    unsure.status.motion.scale_uncertain = True
+    assert _score(_step(unsure), None, kernel).speed_mps is None
 
 
 def test_a_warning_stixel_with_one_pixel_off_the_referee_counts_once():

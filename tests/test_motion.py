@@ -694,14 +694,20 @@ def test_the_road_implies_the_camera_height_beside_a_given_motion():
     assert camera_summary(rep)[0] == ("camera motion metric on 3 of 4 pair(s) (scale: 1 photometric, 1 sequence); "
                                              "1 without a metric motion (no movers, no collision warnings there)")
     assert rep["speed_mps"] is None and rep["scale_uncertain"] == 0  # no speeds given
-    # The camera speed of the moving metric pairs: median and range, and the pairs of an uncertain scale.
-    mixed[0]["speed_mps"], mixed[1]["speed_mps"] = 12.0, 8.0
+    # The camera speed of the moving metric pairs of a certain scale: median and range; the pairs of an
+    # uncertain scale are counted apart, their lengths left out.
+    mixed[0]["speed_mps"], mixed[1]["speed_mps"] = 12.0, 0.9
     mixed[1]["scale_uncertain"] = True
     mixed.append({"camera_motion": "metric", "scale_from": "road_marks", "speed_mps": 9.0})
+    mixed.append({"camera_motion": "metric", "scale_from": "road_marks", "speed_mps": 10.0, "scale_uncertain": False})
     rep = camera_report(mixed, 1.4)
-    assert rep["speed_mps"] == {"median": 9.0, "min": 8.0, "max": 12.0, "pairs": 3} and rep["scale_uncertain"] == 1
-    assert camera_summary(rep)[1].startswith("camera speed median 9.0 m/s, range 8.0-12.0 m/s over 3 moving pair(s); "
-                                             "1 with an uncertain scale")
+    assert rep["speed_mps"] == {"median": 10.0, "min": 9.0, "max": 12.0, "pairs": 3} and rep["scale_uncertain"] == 1
+    assert camera_summary(rep)[1].startswith("camera speed median 10.0 m/s, range 9.0-12.0 m/s over 3 moving pair(s); "
+                                             "1 more with an uncertain scale, not counted")
+    only_unsure = [{"camera_motion": "metric", "speed_mps": 3.0, "scale_uncertain": True}]
+    rep = camera_report(only_unsure, 1.4)
+    assert rep["speed_mps"] is None
+    assert camera_summary(rep)[1].startswith("camera speed unknown: 1 moving pair(s), each with an uncertain scale")
 
 
 def test_road_marks_are_read_only_where_the_road_flow_falls_short_of_the_stream_prediction(monkeypatch):

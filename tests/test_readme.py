@@ -86,7 +86,13 @@ def _overrides(args: list[str]) -> tuple[str, ...]:
 
 
 def _script_flags(source: Path) -> set[str]:
-    return set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"", source.read_text()))
+    """The flags a script declares, with those of the benchmark modules it imports (shared options such as
+    benchmarks.dashcam.add_report_arguments)."""
+    text = source.read_text()
+    flags = set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"", text))
+    for module in re.findall(r"^from benchmarks\.(\w+) import", text, re.M):
+        flags |= set(re.findall(r"add_argument\(\s*\"(--[\w-]+)\"", (REPO / "benchmarks" / f"{module}.py").read_text()))
+    return flags
 
 
 def _check(words: list[str]) -> None:

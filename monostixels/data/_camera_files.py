@@ -22,6 +22,7 @@ __all__ = [
     "DISTORTION_LENGTHS",
     "read_intrinsics_file",
     "read_distortion",
+    "read_intrinsics_size",
     "check_intrinsics_size",
     "read_poses_file",
     "relative_motion",
@@ -122,6 +123,15 @@ def read_distortion(path: str | Path) -> np.ndarray | None:
     return _read_intrinsics(path).distortion
 
 
+def read_intrinsics_size(path: str | Path) -> tuple[int, int] | None:
+    """(H, W) pixels that an intrinsics file says it holds for (its ``width`` and ``height`` keys), or None.
+
+    Raises:
+        InputError: as :func:`read_intrinsics_file`; ``width`` / ``height`` that are not positive integers.
+    """
+    return _read_intrinsics(Path(path).expanduser()).size
+
+
 def check_intrinsics_size(path: str | Path, size: tuple[int, int], what: str) -> None:
     """Fail when an intrinsics file says which image size it holds for and ``size`` differs.
 
@@ -138,7 +148,7 @@ def check_intrinsics_size(path: str | Path, size: tuple[int, int], what: str) ->
         InputError: the sizes differ (both named), or ``width`` / ``height`` are not positive integers.
     """
     p = Path(path).expanduser()
-    stated = _read_intrinsics(p).size
+    stated = read_intrinsics_size(p)
     if stated is not None and tuple(stated) != tuple(size):
         raise InputError(f"intrinsics: {p} holds for {stated[1]}x{stated[0]} images (width, height), {what} are "
                          f"{size[1]}x{size[0]}; calibrate at that size (or scale fx, fy, cx, cy and drop width, height)")
