@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 from pathlib import Path
 
 import cv2
@@ -40,6 +39,7 @@ from tqdm import tqdm
 from benchmarks.dashcam import add_report_arguments, measure, write_report
 from monostixels._checks import InputError
 from monostixels.data._camera_files import read_distortion, read_intrinsics_file, read_intrinsics_size
+from monostixels.data._lens import intrinsics_from_hfov
 
 __all__ = ["standin_maps", "bonnet_mask", "write_standin", "main"]
 
@@ -62,19 +62,17 @@ def standin_maps(K: np.ndarray, distortion: np.ndarray, size: tuple[int, int], c
         (map_x, map_y): (H, W) float32 clip pixel of each distorted pixel (outside the clip: no source).
     """
     H, W = size
-    Hc, Wc = clip_size
+    # The clip's camera as `data.hfov_deg` gives it to the pipeline.
+    fx, fy, cx, cy = intrinsics_from_hfov(clip_size[1], clip_size[0], clip_hfov_deg)
     u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     rays = cv2.undistortPoints(np.stack([u.ravel(), v.ravel()], -1)[:, None, :], K, distortion)[:, 0, :]
-    f = (Wc / 2) / math.tan(math.radians(clip_hfov_deg) / 2)
-    map_x = (f * rays[:, 0] + (Wc - 1) / 2).reshape(H, W).astype(np.float32)
-    map_y = (f * rays[:, 1] + (Hc - 1) / 2).reshape(H, W).astype(np.float32)
+    map_x = (fx * rays[:, 0] + cx).reshape(H, W).astype(np.float32)
+    map_y = (fy * rays[:, 1] + cy).reshape(H, W).astype(np.float32)
     return map_x, map_y
 
 
-def bonnet_mask(H: int, W: int) -> np.ndarray:
-    """(H, W) bool: a bonnet whose top edge rises from :data:`BONNET_ROWS` [0] rows at the sides to [1] at
-    the middle (scaled from a 720-row frame)."""
-    low, high = (r * H / 720 for r in BONNET_ROWS)
+def bonnet_mask(H: int, W: int, low: float, high: float) -> np.ndarray:
+    """(H, W) bool: a bonnet whose top edge rises from ``low`` rows at the sides to ``high`` at the middle."""
     u = np.arange(W)
     height = low + (high - low) * (1 - ((u - W / 2) / (W / 2)) ** 2)
     return np.arange(H)[:, None] >= (H - height)[None, :]
@@ -102,7 +100,7 @@ def write_standin(clip: Path, intrinsics: Path, out: Path, clip_hfov_deg: float 
     Wc, Hc = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     map_x, map_y = standin_maps(K, dist, (H, W), (Hc, Wc), clip_hfov_deg)
-    bonnet = bonnet_mask(H, W)
+    bonnet = bonnet_mask(H, W, *(r * H / 720 for r in BONNET_ROWS))
     # The same speckle in every frame (it does not move), smooth at the pixel scale as real paint is.
     speckle = (255 * (0.15 + 0.35 * (np.random.default_rng(5).random((H, W)) > 0.7))).astype(np.uint8)
     paint = cv2.GaussianBlur(speckle, (5, 5), 0)[bonnet][:, None]

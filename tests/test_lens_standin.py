@@ -30,7 +30,7 @@ def _pinhole_view(clip: np.ndarray) -> np.ndarray:
     """The clip as the calibrated camera's pinhole (undistorted) image: the reference."""
     H, W = _SIZE
     Hc, Wc = clip.shape[:2]
-    f = (Wc / 2) / math.tan(math.radians(_HFOV) / 2)
+    f = (Wc / 2) / math.tan(math.radians(_HFOV) / 2)  # written out: the reference does not share the code under test
     u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     x = (u - _K[0, 2]) / _K[0, 0]
     y = (v - _K[1, 2]) / _K[1, 1]
@@ -56,7 +56,7 @@ def test_the_pipelines_undistortion_of_the_standin_is_the_pinhole_view():
 
 
 def test_the_bonnet_rises_towards_the_middle():
-    m = bonnet_mask(720, 1280)
+    m = bonnet_mask(720, 1280, 70, 115)
     rows = m.sum(0)
     assert rows[0] == pytest.approx(70, abs=1) and rows[640] == pytest.approx(115, abs=1)
     assert m[-1].all() and not m[:600].any()

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.lens_standin import bonnet_mask
 from monostixels._checks import InputError
 from monostixels.data.synthetic import render_pair
 from monostixels.data.static_regions import (STILL_WINDOW, apply_ignore_mask, find_static_region, spread_samples,
@@ -18,9 +19,7 @@ _BONNET_MIN, _BONNET_MAX = 10, 16
 
 def _bonnet(H: int, W: int) -> np.ndarray:
     """(H, W) bool: a bonnet whose top edge rises towards the middle of the picture."""
-    u = np.arange(W)
-    height = _BONNET_MIN + (_BONNET_MAX - _BONNET_MIN) * (1 - ((u - W / 2) / (W / 2)) ** 2)
-    return np.arange(H)[:, None] >= (H - height)[None, :]
+    return bonnet_mask(H, W, _BONNET_MIN, _BONNET_MAX)
 
 
 def _paint(img: torch.Tensor, mask: np.ndarray) -> torch.Tensor:
