@@ -67,7 +67,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from benchmarks.dashcam import _DILATE_PX, _MOVER_CLASSES, _referee, false_movers
+from benchmarks.dashcam import _DILATE_PX, _MOVER_CLASSES, _referee, false_movers, pair_speed
 from monostixels._checks import InputError
 from monostixels.build import Purpose, build_runner
 from monostixels.core.classes import DYNAMIC_OBJECT
@@ -228,9 +228,8 @@ def _score(step: SequenceStep, classes: Callable[[Any], np.ndarray] | None, kern
     st = res.stixels
     kind = st.flags.get("camera_motion", "metric")
     score = FrameScore(step.pair.name, kind, st.flags.get("scale_from"), st.flags.get("scale_std"),
-                       ttc_warnings=int(st.ttc_warning.sum()) if st.ttc_warning is not None else 0)
-    if kind == "metric" and not st.flags.get("scale_uncertain"):
-        score.speed_mps = float(res.motion.motion.translation_norm / st.pair_info["dt_s"])
+                       ttc_warnings=int(st.ttc_warning.sum()) if st.ttc_warning is not None else 0,
+                       speed_mps=pair_speed(res))
     if classes is not None:
         referee = classes(step.pair)
         idx = st.index_map().numpy()

@@ -45,7 +45,7 @@ from monostixels.build import Purpose, build
 from monostixels.inputs.motion import NO_METRIC_MOTION
 from monostixels.pipeline import load_config
 
-__all__ = ["false_movers", "measure", "add_report_arguments", "write_report", "main"]
+__all__ = ["false_movers", "pair_speed", "measure", "add_report_arguments", "write_report", "main"]
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +88,15 @@ def false_movers(moving: np.ndarray, referee: np.ndarray, kernel: np.ndarray) ->
     return float(false.mean()), (rows_per_band / false.size).tolist()
 
 
+def pair_speed(result: Any) -> float | None:
+    """The camera speed ``|t| / dt`` (m/s) of a pair's result where its motion is metric and its scale certain
+    (``flags.scale_uncertain`` false), else None: the speed the run's summary counts."""
+    st = result.stixels
+    if st.flags.get("camera_motion", "metric") != "metric" or st.flags.get("scale_uncertain"):
+        return None
+    return float(result.motion.motion.translation_norm / st.pair_info["dt_s"])
+
+
 def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
     """Run the clip of ``overrides`` and score it (module docstring); returns the JSON report."""
     cfg = load_config(["data=video", "preset=fast", *overrides])
@@ -102,9 +111,7 @@ def measure(overrides: list[str], referee: str | None = None) -> dict[str, Any]:
         row: dict[str, Any] = {"pair": step.pair.name, "camera_motion": kind, "scale_from": st.flags.get("scale_from"),
                                "degenerate_motion": bool(st.flags.get("degenerate_motion", False)),
                                "ttc_warnings": int(st.ttc_warning.sum()) if st.ttc_warning is not None else 0,
-                               "speed_mps": None}
-        if kind == "metric" and not st.flags.get("scale_uncertain"):
-            row["speed_mps"] = float(step.result.motion.motion.translation_norm / st.pair_info["dt_s"])
+                               "speed_mps": pair_speed(step.result)}
         if classes is not None:
             idx = st.index_map()
             moving = (idx >= 0) & (st.type[idx.clamp(min=0)] == DYNAMIC_OBJECT)
